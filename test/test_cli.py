@@ -1,0 +1,86 @@
+"""The command line: simulate writes every format loss-free; bad input is one line, exit 2."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from msg_adapters.bag_io import read_bag, read_bag_cloud
+from uncertain_facade_map.cli import main
+from uncertain_facade_map.cloud_io import read_npz, read_ply
+
+
+@pytest.fixture(scope='module')
+def simulated(tmp_path_factory):
+    out = tmp_path_factory.mktemp('sim')
+    code = main(['simulate', '--scene', 'small', '--out', str(out), '--campaigns', '2',
+                 '--formats', 'npz,ply,sqlite3,mcap,rosbag1', '--quiet'])
+    assert code == 0
+    return out
+
+
+def test_simulate_writes_all_formats_and_they_agree(simulated):
+    npz = read_npz(simulated / 'campaign0.npz')
+    assert len(npz) > 10_000
+    ply = read_ply(simulated / 'campaign0.ply')
+    assert ply.same_as(npz)
+    for bag in ('campaign0_sqlite3', 'campaign0_mcap', 'campaign0.bag'):
+        cloud = read_bag_cloud([simulated / bag])
+        assert cloud.same_as(npz), bag
+    assert (simulated / 'campaign1.npz').exists() and not (simulated / 'campaign1.ply').exists()
+
+
+def test_bag_messages_are_scans_of_a_tenth_of_a_second(simulated):
+    bag = read_bag([simulated / 'campaign0_mcap'])
+    stamps = np.array([s for s, _ in bag.scans])
+    assert len(bag.scans) > 50
+    assert np.all(np.diff(stamps) >= 100_000_000 - 1)
+    for stamp, pts in bag.scans:
+        span = pts['time'] - stamp * 1e-9
+        assert span.min() >= -1e-6 and span.max() < 0.1 + 1e-6
+
+
+def test_scene_json_describes_campaigns_and_truth(simulated):
+    desc = json.loads((simulated / 'scene.json').read_text())
+    assert desc['scene'] == 'small' and desc['seed'] == 0
+    assert [c['role'] for c in desc['campaigns']] == ['mapped', 'reference']
+    assert desc['campaigns'][0]['points'] == len(read_npz(simulated / 'campaign0.npz'))
+    assert len(desc['buildings']) == 2
+    kinds = {f['type'] for b in desc['buildings'] for fa in b['facades'] for f in fa['features']}
+    assert {'Recess', 'Block', 'Slope', 'Round'} <= kinds
+
+
+def test_existing_output_needs_force(simulated, capsys):
+    code = main(['simulate', '--scene', 'small', '--out', str(simulated), '--formats', 'npz', '--quiet'])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert err.count('\n') == 1 and 'use --force' in err
+    assert main(['simulate', '--scene', 'small', '--out', str(simulated), '--formats', 'npz', '--quiet',
+                 '--force']) == 0
+
+
+@pytest.mark.parametrize('args, words', [
+    (['--campaigns', '0'], '--campaigns'),
+    (['--formats', 'xyz'], 'unknown format'),
+    (['--scene', 'moon'], 'invalid choice'),
+    (['--range-noise', '-1'], 'range_noise'),
+    (['--scan-period', '0'], 'scan period'),
+])
+def test_bad_arguments_give_one_line_and_exit_2(tmp_path, capsys, args, words):
+    try:
+        code = main(['simulate', '--scene', 'small', '--out', str(tmp_path), '--quiet', '--formats', 'sqlite3', *args])
+    except SystemExit as exc:  # argparse errors
+        code = exc.code
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert words in err[-1] and 'Traceback' not in '\n'.join(err)
+
+
+def test_console_script_is_installed(tmp_path):
+    script = Path(sys.executable).parent / 'uncertain-facade-map'
+    assert script.exists(), 'run make venv (pip install -e .)'
+    result = subprocess.run([str(script), 'simulate', '--help'], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0 and '--campaigns' in result.stdout

@@ -1,0 +1,69 @@
+"""The ROS 2 parameter file: defaults, round trips, and one-line errors naming the parameter."""
+
+import pytest
+import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from uncertain_facade_map.config import (
+    DEFAULT_CONFIG, Config, InputConfig, config_from_parameters, dump_config, load_config, parameter_items)
+from uncertain_facade_map.errors import InputError
+
+
+def test_shipped_file_holds_the_defaults():
+    assert load_config(DEFAULT_CONFIG) == Config()
+    tree = yaml.safe_load(DEFAULT_CONFIG.read_text())
+    assert 'ros__parameters' in tree['facade_mapper']
+
+
+def test_every_parameter_has_a_description():
+    items = list(parameter_items())
+    assert items and all(desc for _, _, desc, _ in items)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    classes=st.lists(st.integers(0, 255), min_size=1, max_size=4).map(tuple),
+    field=st.text('abcdefghijklmnopqrstuvwxyz_', min_size=1, max_size=12),
+    origin=st.tuples(*[st.floats(-1e7, 1e7, allow_nan=False)] * 3),
+)
+def test_dump_and_load_round_trip(tmp_path_factory, classes, field, origin):
+    config = Config(input=InputConfig(class_field=field, building_classes=classes, map_origin=origin))
+    path = tmp_path_factory.mktemp('cfg') / 'p.yaml'
+    path.write_text(dump_config(config))
+    assert load_config(path) == config
+
+
+@pytest.mark.parametrize('params, words', [
+    ({'input.nope': 1}, 'unknown parameter input.nope'),
+    ({'input.building_classes': 'building'}, 'expected a list'),
+    ({'input.building_classes': [1.5]}, 'expected an integer'),
+    ({'input.map_origin': [0, 0]}, 'expected 3 values'),
+    ({'input.map_origin': [0, 0, float('nan')]}, 'must be finite'),
+    ({'input.class_field': 3}, 'expected a string'),
+])
+def test_bad_parameters_are_named(params, words):
+    with pytest.raises(InputError, match=words):
+        config_from_parameters(params)
+
+
+@pytest.mark.parametrize('text, words', [
+    ('facade_mapper: [1, 2', 'invalid YAML'),
+    ('- 1\n- 2\n', 'not a ROS 2 parameter file'),
+    ('other_node:\n  ros__parameters: {}\n', 'no "facade_mapper: ros__parameters:" section'),
+])
+def test_bad_files(tmp_path, text, words):
+    path = tmp_path / 'p.yaml'
+    path.write_text(text)
+    with pytest.raises(InputError, match=words):
+        load_config(path)
+
+
+def test_missing_file():
+    with pytest.raises(InputError, match='no such file'):
+        load_config('/nonexistent/params.yaml')
+
+
+def test_wildcard_section_applies():
+    params = yaml.safe_load("/**:\n  ros__parameters:\n    input:\n      frame_id: world\n")
+    assert params

@@ -1,0 +1,174 @@
+"""The ``uncertain-facade-map`` command line.
+
+Sub-commands:
+    simulate   scan a built-in scene in one or more campaigns and write clouds and bags
+
+Every error a user can cause ends in one line on stderr and exit status 2; nothing ends in
+a traceback. Bag formats need ``msg_adapters`` (rosbags), imported only when asked for.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import time
+from pathlib import Path
+from typing import Callable, Sequence
+
+from .errors import FacadeMapError
+
+PROG = 'uncertain-facade-map'
+CLOUD_FORMATS = ('npz', 'ply')
+BAG_FORMATS = ('sqlite3', 'mcap', 'rosbag1')
+#: Output name of each format after the campaign stem (ROS 2 bags are folders).
+SUFFIXES = {'npz': '.npz', 'ply': '.ply', 'sqlite3': '_sqlite3', 'mcap': '_mcap', 'rosbag1': '.bag'}
+
+
+class CliError(FacadeMapError):
+    """A usage error found after argument parsing."""
+
+
+def _formats(text: str) -> tuple[str, ...]:
+    items = tuple(x.strip() for x in text.split(',') if x.strip())
+    bad = [x for x in items if x not in CLOUD_FORMATS + BAG_FORMATS]
+    if bad or not items:
+        raise argparse.ArgumentTypeError(
+            f'unknown format {", ".join(bad) or "(none)"}; choose from {", ".join(CLOUD_FORMATS + BAG_FORMATS)}')
+    return items
+
+
+def _progress_bar(total: float, desc: str, quiet: bool) -> tuple[Callable[[float], None], Callable[[], None]]:
+    """A tqdm bar over ``total`` units driven by absolute positions; no-ops when quiet."""
+    if quiet:
+        return (lambda _pos: None), (lambda: None)
+    from tqdm import tqdm
+
+    bar = tqdm(total=round(total, 1), desc=desc, unit='s', leave=False, file=sys.stderr,
+               bar_format='{desc}: {percentage:3.0f}%|{bar}| {n:.1f}/{total:.1f} s of drive [{elapsed}<{remaining}]')
+
+    def update(pos: float) -> None:
+        bar.update(round(pos, 1) - bar.n)
+
+    return update, bar.close
+
+
+def _output_path(out: Path, name: str, force: bool) -> Path:
+    path = out / name
+    if path.exists():
+        if not force:
+            raise CliError(f'{path} exists; use --force to replace it')
+        shutil.rmtree(path) if path.is_dir() else path.unlink()
+    return path
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    """Simulate campaigns of a scene and write them (see ``simulate --help``)."""
+    from .cloud_io import write_npz, write_ply
+    from .simulation.campaign import SCENE_SENSORS, SensorConfig, campaign, drive_duration, simulate_campaign, with_overrides
+    from .simulation.export import scene_description, split_scans, write_scene_json
+    from .simulation.scenes import build_scene, zurich_scene
+
+    if args.scene == 'zurich' and args.cityjson:
+        scene = zurich_scene(args.seed, args.cityjson)
+    else:
+        scene = build_scene(args.scene, args.seed)
+    sensor = with_overrides(SCENE_SENSORS.get(scene.name, SensorConfig()), range_noise=args.range_noise,
+                            outlier_share=args.outlier_share, range_max=args.range_max,
+                            angular_step_deg=args.angular_step, scan_rate_hz=args.scan_rate, speed=args.speed)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for index in range(args.campaigns):
+        drive = campaign(scene, index)
+        formats = args.formats if index == 0 else args.reference_formats
+        stem = f'campaign{index}'
+        targets = {fmt: _output_path(out, stem + SUFFIXES[fmt], args.force) for fmt in formats}
+        update, close = _progress_bar(drive_duration(scene, drive, sensor),
+                                      f'{scene.name} campaign {index}', args.quiet)
+        started = time.perf_counter()
+        try:
+            cloud = simulate_campaign(scene, index, sensor, xyz_dtype=args.dtype, progress=update)
+        finally:
+            close()
+        elapsed = time.perf_counter() - started
+        files = {}
+        for fmt, path in targets.items():
+            if fmt == 'npz':
+                write_npz(path, cloud)
+            elif fmt == 'ply':
+                write_ply(path, cloud)
+            else:
+                from msg_adapters.bag_io import write_bag
+
+                write_bag(path, split_scans(cloud, args.scan_period), storage=fmt, topic=args.topic,
+                          frame_id='map', map_origin=tuple(cloud.map_origin))
+            files[fmt] = path.name
+        written.append((drive, len(cloud), files))
+        role = 'mapped' if index == 0 else 'reference'
+        print(f'campaign {index} ({role}): {len(cloud):,} points in {elapsed:.1f} s, lane {drive.lane:+.2f} m'
+              f'{" reversed" if drive.reverse else ""}')
+        for fmt, name in files.items():
+            print(f'  {fmt:8s} {out / name}')
+    scene_json = write_scene_json(out / 'scene.json', scene_description(scene, sensor, written))
+    print(f'scene    {scene_json}  ({len(scene.buildings)} buildings, {len(scene.facades)} façades, seed {scene.seed})')
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of all sub-commands."""
+    parser = argparse.ArgumentParser(prog=PROG, description='Façade maps with calibrated uncertainty.')
+    sub = parser.add_subparsers(dest='command', required=True, metavar='COMMAND')
+
+    sim = sub.add_parser('simulate', help='scan a built-in scene with a simulated mobile-mapping system',
+                         description='Scan a built-in scene (deterministic by seed) in one or more campaigns. '
+                                     'Campaign 0 is the mapped one, the others are the reference.')
+    sim.add_argument('--scene', default='street', choices=('street', 'small', 'zurich'),
+                     help='street: ~1.7 M points, 7 buildings (default); small: < 50 000 points; '
+                          'zurich: real CityJSON footprints')
+    sim.add_argument('--seed', type=int, default=0, help='scene seed (default 0)')
+    sim.add_argument('--campaigns', type=int, default=1, help='number of drives, 1 mapped + references (default 1)')
+    sim.add_argument('--out', default='output/simulation', help='output folder (default output/simulation)')
+    sim.add_argument('--formats', type=_formats, default=('npz', 'ply', 'sqlite3', 'mcap'),
+                     help='formats of the mapped campaign, comma-separated from '
+                          f'{",".join(CLOUD_FORMATS + BAG_FORMATS)} (default npz,ply,sqlite3,mcap)')
+    sim.add_argument('--reference-formats', type=_formats, default=('npz',),
+                     help='formats of the reference campaigns (default npz)')
+    sim.add_argument('--dtype', choices=('f8', 'f4'), default='f8',
+                     help='coordinate type: f8 (float64) or f4 (float32, map frame near the map origin)')
+    sim.add_argument('--scan-period', type=float, default=0.1, help='seconds of data per bag message (default 0.1)')
+    sim.add_argument('--topic', default='/points', help='PointCloud2 topic in bags (default /points)')
+    sim.add_argument('--range-noise', type=float, help='range noise sigma, metres (default 0.02)')
+    sim.add_argument('--outlier-share', type=float, help='share of building returns turned into outliers (default 0.01)')
+    sim.add_argument('--range-max', type=float, help='range limit, metres (default 60)')
+    sim.add_argument('--angular-step', type=float, help='angle between shots, degrees')
+    sim.add_argument('--scan-rate', type=float, help='profiles per second per scanner')
+    sim.add_argument('--speed', type=float, help='driving speed, m/s (default 5)')
+    sim.add_argument('--cityjson', help='CityJSON file for --scene zurich (default: the shared Zurich subset)')
+    sim.add_argument('--force', action='store_true', help='replace existing output files')
+    sim.add_argument('--quiet', action='store_true', help='no progress bar')
+    sim.set_defaults(func=cmd_simulate)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line; returns the exit status (0 ok, 2 bad input, 1 I/O failure)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if getattr(args, 'campaigns', 1) < 1:
+        parser.error('--campaigns must be at least 1')
+    try:
+        return int(args.func(args))
+    except FacadeMapError as exc:
+        print(f'{PROG}: error: {exc}', file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f'{PROG}: error: {exc.strerror or exc}{f": {exc.filename}" if exc.filename else ""}', file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f'{PROG}: interrupted', file=sys.stderr)
+        return 130
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,190 @@
+"""The one configuration of node and command line: a ROS 2 parameter file.
+
+The file has the form ROS 2 nodes read with ``--params-file``::
+
+    facade_mapper:
+      ros__parameters:
+        input:
+          class_field: class
+          ...
+
+Nested keys are parameter names joined by dots (``input.class_field``), as rclpy
+flattens them. :func:`load_config` reads such a file into :class:`Config`, a tree of
+frozen dataclasses; unknown names, wrong types and out-of-range values raise
+:class:`~uncertain_facade_map.errors.InputError` naming the parameter. The node declares
+every parameter from the same dataclasses (:func:`parameter_items`), so both read one
+source of truth.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator, get_args, get_origin, get_type_hints
+
+import yaml
+
+from .errors import InputError
+
+NODE_NAME = 'facade_mapper'
+#: The default parameter file shipped in ``config/``.
+DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / 'config' / f'{NODE_NAME}.yaml'
+
+
+def _meta(description: str, lo: float | None = None, hi: float | None = None) -> dict:
+    return {'description': description, 'range': (lo, hi)}
+
+
+@dataclass(frozen=True)
+class InputConfig:
+    """Which points of a classified cloud are mapped, and in which frame."""
+
+    class_field: str = field(default='class', metadata=_meta('point field holding the semantic class'))
+    building_classes: tuple[int, ...] = field(
+        default=(1,), metadata=_meta('class values that mean "building"; a cloud without the class field is all building'))
+    building_id_field: str = field(default='building_id', metadata=_meta('point field with a building id, used when present'))
+    frame_id: str = field(default='map', metadata=_meta('frame of the map; clouds must be in it'))
+    map_origin: tuple[float, float, float] = field(
+        default=(0.0, 0.0, 0.0), metadata=_meta('georeference of the map frame, metres (georeferenced = map + origin)'))
+
+
+@dataclass(frozen=True)
+class Config:
+    """All parameters, by section."""
+
+    input: InputConfig = field(default_factory=InputConfig)
+
+
+def _sections(cls: type = Config) -> Iterator[tuple[str, type]]:
+    hints = get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        yield f.name, hints[f.name]
+
+
+def parameter_items(config: Config | None = None) -> Iterator[tuple[str, Any, str, tuple]]:
+    """Every parameter as (dotted name, value, description, (min, max)).
+
+    Args:
+        config: values to list; the defaults if None.
+    """
+    config = config or Config()
+    for section, cls in _sections():
+        sub = getattr(config, section)
+        for f in dataclasses.fields(cls):
+            yield f'{section}.{f.name}', getattr(sub, f.name), f.metadata.get('description', ''), \
+                f.metadata.get('range', (None, None))
+
+
+def _coerce(name: str, value: Any, typ: Any, bounds: tuple) -> Any:
+    origin = get_origin(typ)
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise InputError(f'parameter {name}: expected a list, got {value!r}')
+        args = get_args(typ)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(name, v, args[0], bounds) for v in value)
+        if len(value) != len(args):
+            raise InputError(f'parameter {name}: expected {len(args)} values, got {len(value)}')
+        return tuple(_coerce(name, v, a, bounds) for v, a in zip(value, args))
+    if typ is bool:
+        if not isinstance(value, bool):
+            raise InputError(f'parameter {name}: expected true or false, got {value!r}')
+        return value
+    if typ is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise InputError(f'parameter {name}: expected an integer, got {value!r}')
+    elif typ is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise InputError(f'parameter {name}: expected a number, got {value!r}')
+        value = float(value)
+        if value != value or value in (float('inf'), float('-inf')):
+            raise InputError(f'parameter {name}: must be finite, got {value!r}')
+    elif typ is str:
+        if not isinstance(value, str):
+            raise InputError(f'parameter {name}: expected a string, got {value!r}')
+        return value
+    lo, hi = bounds
+    if lo is not None and value < lo or hi is not None and value > hi:
+        raise InputError(f'parameter {name}: {value!r} is outside [{lo}, {hi}]')
+    return value
+
+
+def config_from_parameters(params: dict[str, Any]) -> Config:
+    """Build a :class:`Config` from flat dotted parameter names (as rclpy gives them).
+
+    Args:
+        params: ``{'section.name': value}``; missing names keep their defaults.
+
+    Raises:
+        InputError: an unknown name or a value of the wrong type or range.
+    """
+    known = {name: (section, f) for section, cls in _sections() for f in dataclasses.fields(cls)
+             for name in [f'{section}.{f.name}']}
+    unknown = sorted(set(params) - set(known))
+    if unknown:
+        raise InputError(f'unknown parameter {unknown[0]} (known: {", ".join(sorted(known))})')
+    values: dict[str, dict[str, Any]] = {}
+    for name, value in params.items():
+        section, f = known[name]
+        cls = dict(_sections())[section]
+        typ = get_type_hints(cls)[f.name]
+        values.setdefault(section, {})[f.name] = _coerce(name, value, typ, f.metadata.get('range', (None, None)))
+    return Config(**{section: cls(**values.get(section, {})) for section, cls in _sections()})
+
+
+def _flatten(tree: dict, prefix: str = '') -> dict[str, Any]:
+    flat: dict[str, Any] = {}
+    for key, value in tree.items():
+        name = f'{prefix}{key}'
+        if isinstance(value, dict):
+            flat.update(_flatten(value, f'{name}.'))
+        else:
+            flat[name] = value
+    return flat
+
+
+def load_config(path: str | Path | None = None, node_name: str = NODE_NAME) -> Config:
+    """Read a ROS 2 parameter file into a :class:`Config`.
+
+    Args:
+        path: YAML file; the shipped ``config/facade_mapper.yaml`` if None.
+        node_name: the node's section; ``/**`` (all nodes) is read too.
+
+    Returns:
+        The configuration (defaults for parameters the file does not set).
+
+    Raises:
+        InputError: missing file, invalid YAML, no section for the node, unknown or invalid parameters.
+    """
+    path = Path(path) if path is not None else DEFAULT_CONFIG
+    try:
+        tree = yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise InputError(f'no such file: {path}') from None
+    except yaml.YAMLError as exc:
+        raise InputError(f'{path}: invalid YAML ({str(exc).splitlines()[0]})') from None
+    if not isinstance(tree, dict):
+        raise InputError(f'{path}: not a ROS 2 parameter file (expected "{node_name}: ros__parameters:")')
+    params: dict[str, Any] = {}
+    found = False
+    for key in ('/**', node_name, f'/{node_name}'):
+        node = tree.get(key)
+        if isinstance(node, dict) and isinstance(node.get('ros__parameters'), dict):
+            params.update(_flatten(node['ros__parameters']))
+            found = True
+    if not found:
+        raise InputError(f'{path}: no "{node_name}: ros__parameters:" section')
+    try:
+        return config_from_parameters(params)
+    except InputError as exc:
+        raise InputError(f'{path}: {exc}') from None
+
+
+def dump_config(config: Config, node_name: str = NODE_NAME) -> str:
+    """The configuration as a ROS 2 parameter file (YAML text)."""
+    tree: dict[str, Any] = {}
+    for name, value, _, _ in parameter_items(config):
+        section, key = name.split('.', 1)
+        tree.setdefault(section, {})[key] = list(value) if isinstance(value, tuple) else value
+    return yaml.safe_dump({node_name: {'ros__parameters': tree}}, sort_keys=False)

@@ -1,0 +1,231 @@
+"""Built-in scenes: ``street`` (default), ``small`` (for tests) and ``zurich`` (real footprints).
+
+Every scene is a straight street along +x with its centreline on y = 0, façade lines at
+y = +-``FACADE_LINE`` and buildings behind them; trees and poles stand on the pavements,
+cars are parked along the kerbs (drawn per campaign, see :mod:`.campaign`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ..errors import InputError
+from .facades import FacadeStyle, decorate
+from .scene import Building, Car, Facade, FacadeFrame, Occluder, Pole, Scene, Street, Tree
+
+#: Distance from the street centreline to the façade lines, metres.
+FACADE_LINE = 9.0
+#: Distance from the centreline to the kerb where cars park, metres.
+KERB = 5.6
+
+#: Default CityJSON file of the ``zurich`` scene (the shared data folder beside the repo).
+DEFAULT_CITYJSON = Path(__file__).resolve().parents[3] / 'shared' / 'data' / 'cityjson' / 'zurich_subset_lod2.json'
+
+
+def _rng(seed: int, *keys: int) -> np.random.Generator:
+    return np.random.default_rng([seed, *keys])
+
+
+def make_building(building_id: int, first_facade_id: int, polygon: np.ndarray, height: float,
+                  styles: dict[int, FacadeStyle], rng: np.random.Generator, source: str = 'synthetic',
+                  min_wall: float = 4.0) -> Building:
+    """Build a prism with a façade on every wall of at least ``min_wall`` metres.
+
+    Args:
+        building_id: index of the building in the scene.
+        first_facade_id: scene-wide index of its first façade.
+        polygon: (M, 2) counter-clockwise footprint, metres, map frame.
+        height: metres.
+        styles: special features per wall index; other walls get windows only.
+        rng: random source for the detail.
+        source: provenance of the footprint.
+        min_wall: walls shorter than this get no façade detail (still a façade).
+
+    Returns:
+        The building.
+    """
+    polygon = np.asarray(polygon, dtype=np.float64)
+    facades = []
+    for wall in range(len(polygon)):
+        a, b = polygon[wall], polygon[(wall + 1) % len(polygon)]
+        e = b - a
+        length = float(np.hypot(*e))
+        u = np.array([e[0], e[1], 0.0]) / length
+        n = np.array([u[1], -u[0], 0.0])
+        frame = FacadeFrame(np.array([a[0], a[1], 0.0]), u, n, length, height)
+        style = styles.get(wall, FacadeStyle())
+        features = decorate(length, height, style, rng) if length >= min_wall else ()
+        facades.append(Facade(first_facade_id + len(facades), building_id, wall, frame, features))
+    return Building(building_id, polygon, height, tuple(facades), source)
+
+
+def _rect(x0: float, x1: float, y0: float, y1: float) -> np.ndarray:
+    return np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], dtype=np.float64)
+
+
+def _street_furniture(x0: float, x1: float, rng: np.random.Generator, tree_every: float,
+                      pole_every: float) -> list[Occluder]:
+    occ: list[Occluder] = []
+    for side in (1.0, -1.0):
+        for x in np.arange(x0 + rng.uniform(2, tree_every), x1, tree_every):
+            occ.append(Tree(float(x + rng.normal(0, 1.0)), side * float(rng.uniform(6.6, 7.2)),
+                            float(rng.uniform(0.15, 0.25)), float(rng.uniform(2.5, 3.5)),
+                            float(rng.uniform(1.8, 3.0)), float(rng.uniform(0.4, 0.8))))
+        for x in np.arange(x0 + rng.uniform(3, pole_every), x1, pole_every):
+            occ.append(Pole(float(x), side * float(rng.uniform(6.0, 6.4)), float(rng.uniform(0.06, 0.1)),
+                            float(rng.uniform(3.0, 7.0)), sign=bool(rng.random() < 0.5)))
+    return occ
+
+
+def parked_cars(scene: Scene, rng: np.random.Generator, share: float = 0.45) -> list[Car]:
+    """Draw the cars parked along both kerbs for one campaign.
+
+    Args:
+        scene: the scene (its street gives the length).
+        rng: the campaign's random source.
+        share: probability that a parking slot is taken.
+
+    Returns:
+        Cars with their long side along the street.
+    """
+    x0, x1 = float(scene.street.centreline[0, 0]), float(scene.street.centreline[-1, 0])
+    cars = []
+    for side in (1.0, -1.0):
+        for x in np.arange(x0 + 6.0, x1 - 6.0, 6.0):
+            if rng.random() < share:
+                cars.append(Car(float(x + rng.normal(0, 0.5)), side * float(KERB + rng.uniform(0.8, 1.1)),
+                                float(rng.normal(0, 0.03)), float(rng.uniform(4.0, 5.0)),
+                                float(rng.uniform(1.7, 1.9)), float(rng.uniform(1.4, 1.9))))
+    return cars
+
+
+def street_scene(seed: int = 0) -> Scene:
+    """The default scene: a 150 m street with six buildings and about 20 façades in view.
+
+    North side (y > 0): three buildings, one L-shaped, one set back; south side: three.
+    Gaps between buildings expose their side walls to the oblique scanners.
+    """
+    rng = _rng(seed, 1)
+    north = [  # x0, x1, setback, depth, height, style of the street façade
+        (0.0, 26.0, 0.0, 14.0, 16.0, FacadeStyle(balconies=True, columns=True)),
+        (32.0, 58.0, 1.5, 13.0, 19.0, FacadeStyle(oriel=True, slope=True)),
+        (64.0, 96.0, 0.0, 15.0, 13.0, FacadeStyle(round_bay=True, balconies=True)),
+        (103.0, 135.0, 0.0, 12.0, 17.0, FacadeStyle(columns=True, oriel=True, windows=True)),
+    ]
+    south = [
+        (4.0, 34.0, 0.0, 14.0, 15.0, FacadeStyle(slope=True, round_bay=True)),
+        (40.0, 70.0, 0.0, 13.0, 18.0, FacadeStyle(oriel=True, columns=True)),
+        (77.0, 110.0, 1.0, 14.0, 14.0, FacadeStyle(balconies=True, round_bay=True, slope=True)),
+    ]
+    buildings: list[Building] = []
+    for k, (x0, x1, setback, depth, height, style) in enumerate(north):
+        y0 = FACADE_LINE + setback
+        if k == 2:  # L-shaped: a wing reaching back on the east side
+            poly = np.array([[x0, y0], [x1, y0], [x1, y0 + depth + 8.0], [x1 - 12.0, y0 + depth + 8.0],
+                             [x1 - 12.0, y0 + depth], [x0, y0 + depth]])
+        else:
+            poly = _rect(x0, x1, y0, y0 + depth)
+        # wall 0 runs along +x at y0 with outward normal -y: the street façade.
+        buildings.append(make_building(len(buildings), sum(len(b.facades) for b in buildings), poly, height,
+                                       {0: style}, rng))
+    for x0, x1, setback, depth, height, style in south:
+        y1 = -FACADE_LINE - setback
+        poly = _rect(x0, x1, y1 - depth, y1)
+        # wall 2 runs along -x at y1 with outward normal +y: the street façade.
+        buildings.append(make_building(len(buildings), sum(len(b.facades) for b in buildings), poly, height,
+                                       {2: style}, rng))
+    street = Street(np.array([[-10.0, 0.0], [145.0, 0.0]]))
+    occluders = _street_furniture(-5.0, 140.0, rng, tree_every=17.0, pole_every=23.0)
+    return Scene('street', seed, buildings, occluders, street, map_origin=np.array([550_000.0, 5_804_000.0, 55.0]))
+
+
+def small_scene(seed: int = 0) -> Scene:
+    """A 40 m street with two buildings on one side, every kind of façade detail, one of
+    each occluder; at most 50 000 points a campaign (for tests)."""
+    rng = _rng(seed, 2)
+    buildings = [
+        make_building(0, 0, _rect(0.0, 17.0, FACADE_LINE, FACADE_LINE + 10.0), 12.0,
+                      {0: FacadeStyle(balconies=True, oriel=True, columns=True)}, rng),
+    ]
+    buildings.append(make_building(1, len(buildings[0].facades), _rect(23.0, 40.0, FACADE_LINE, FACADE_LINE + 10.0),
+                                   11.0, {0: FacadeStyle(slope=True, columns=True, round_bay=True)}, rng))
+    occluders: list[Occluder] = [Tree(9.0, 7.0, 0.2, 3.0, 2.2, 0.6), Pole(31.0, 6.2, 0.08, 5.0, sign=True)]
+    street = Street(np.array([[-5.0, 0.0], [45.0, 0.0]]))
+    return Scene('small', seed, buildings, occluders, street, map_origin=np.array([550_000.0, 5_804_000.0, 55.0]))
+
+
+def zurich_scene(seed: int = 0, path: str | Path | None = None, count: int = 8) -> Scene:
+    """A street lined with real buildings: Zurich LoD2 footprints and eave heights.
+
+    The footprints keep their shape and size; each is turned so that its longest wall faces
+    the street and placed along it with gaps of 3 to 8 m. Every wall of 4 m or more gets
+    façade detail; the wall facing the street gets special features.
+
+    Args:
+        seed: chooses the buildings, their order and their detail.
+        path: CityJSON file; defaults to the shared Zurich subset.
+        count: number of buildings to place.
+
+    Raises:
+        InputError: the file cannot be read or has too few usable buildings.
+    """
+    from .cityjson import load_footprints
+
+    rng = _rng(seed, 3)
+    footprints = load_footprints(path or DEFAULT_CITYJSON)
+    usable = []
+    for fp in footprints:
+        ext = fp.polygon.max(axis=0) - fp.polygon.min(axis=0)
+        area = 0.5 * float(np.sum(fp.polygon[:, 0] * np.roll(fp.polygon[:, 1], -1)
+                                  - np.roll(fp.polygon[:, 0], -1) * fp.polygon[:, 1]))
+        if 8.0 <= ext.max() <= 45.0 and 80.0 <= area <= 1200.0 and 5.0 <= fp.eave_height <= 30.0:
+            usable.append(fp)
+    if len(usable) < count:
+        raise InputError(f'{path or DEFAULT_CITYJSON}: only {len(usable)} buildings fit a street scene, need {count}')
+    chosen = [usable[i] for i in rng.choice(len(usable), size=count, replace=False)]
+    styles = [FacadeStyle(balconies=True, columns=True), FacadeStyle(oriel=True, slope=True),
+              FacadeStyle(round_bay=True, balconies=True), FacadeStyle(slope=True, columns=True)]
+    buildings: list[Building] = []
+    cursor = {1.0: 0.0, -1.0: 0.0}
+    for k, fp in enumerate(chosen):
+        side = 1.0 if k % 2 == 0 else -1.0
+        poly = fp.polygon - fp.polygon.mean(axis=0)
+        edges = np.roll(poly, -1, axis=0) - poly
+        longest = int(np.argmax(np.hypot(edges[:, 0], edges[:, 1])))
+        # Turn the longest wall's outward normal to face the street (-y for north, +y for south).
+        e = edges[longest]
+        normal_angle = np.arctan2(-e[0], e[1])
+        target = -np.pi / 2 if side > 0 else np.pi / 2
+        rot = target - normal_angle
+        c, s = np.cos(rot), np.sin(rot)
+        poly = poly @ np.array([[c, s], [-s, c]])
+        x_shift = cursor[side] - poly[:, 0].min()
+        y_shift = (FACADE_LINE - poly[:, 1].min()) if side > 0 else (-FACADE_LINE - poly[:, 1].max())
+        poly = poly + np.array([x_shift, y_shift])
+        cursor[side] = float(poly[:, 0].max() + rng.uniform(3.0, 8.0))
+        styles_by_wall = {longest: styles[k % len(styles)]}
+        buildings.append(make_building(len(buildings), sum(len(b.facades) for b in buildings), poly,
+                                       float(fp.eave_height), styles_by_wall, rng, source=fp.building_id))
+    x_end = max(cursor.values())
+    street = Street(np.array([[-10.0, 0.0], [x_end + 5.0, 0.0]]))
+    occluders = _street_furniture(-5.0, x_end, rng, tree_every=19.0, pole_every=25.0)
+    return Scene('zurich', seed, buildings, occluders, street, map_origin=np.array([2_683_000.0, 1_247_000.0, 400.0]))
+
+
+SCENES: dict[str, Callable[[int], Scene]] = {'street': street_scene, 'small': small_scene, 'zurich': zurich_scene}
+
+
+def build_scene(name: str, seed: int = 0) -> Scene:
+    """Build a named scene.
+
+    Raises:
+        InputError: unknown scene name.
+    """
+    try:
+        factory = SCENES[name]
+    except KeyError:
+        raise InputError(f'unknown scene {name!r}; choose one of {", ".join(SCENES)}') from None
+    return factory(seed)
