@@ -23,7 +23,7 @@ $(STAMP): requirements.lock setup.py
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/uncertain-facade-map simulate --scene street --out $(OUT)
+	$(VENV)/bin/uncertain-facade-map simulate --scene street --out $(OUT) --force
 
 test: $(STAMP)
 	$(PY) -m pytest
