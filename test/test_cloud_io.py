@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import struct
 import zipfile
 from pathlib import Path
 
@@ -15,7 +16,8 @@ from plyfile import PlyData, PlyElement
 
 from uncertain_facade_map.cloud import Cloud, simulated_dtype
 from uncertain_facade_map.cloud_io import (
-    NPZ_FORMAT, PLY_TYPES, read_cloud, read_npz, read_ply, write_cloud, write_npz, write_ply,
+    LAS_SCALE, NPZ_FORMAT, PCD_ENCODINGS, PLY_TYPES, read_cloud, read_las, read_npz, read_pcd,
+    read_ply, write_cloud, write_las, write_npz, write_pcd, write_ply,
 )
 from uncertain_facade_map.errors import InputError
 
@@ -395,12 +397,13 @@ def test_directory_is_not_a_file(tmp_path: Path) -> None:
     assert 'not a file' in one_line_error(read_cloud, tmp_path / 'd.ply')
 
 
-@pytest.mark.parametrize('name', ['c.las', 'c', 'c.ply.gz', 'c.txt'])
+@pytest.mark.parametrize('name', ['c.xyz', 'c', 'c.ply.gz', 'c.txt', 'c.las.gz'])
 def test_unknown_suffix(tmp_path: Path, name: str) -> None:
     (tmp_path / name).write_bytes(b'x')
     for message in (one_line_error(read_cloud, tmp_path / name),
                     one_line_error(write_cloud, tmp_path / name, Cloud(xyz_points()))):
         assert 'unsupported file type' in message and '.npz' in message and '.ply' in message
+        assert '.las' in message and '.laz' in message and '.pcd' in message
 
 
 @pytest.mark.parametrize('binary', [True, False])
@@ -539,4 +542,475 @@ def test_ply_refuses_unsupported_fields(tmp_path: Path, dtype: list, message: st
 def test_unwritable_path(tmp_path: Path) -> None:
     cloud = Cloud(xyz_points())
     for name in ('no/such/dir/c.ply', 'no/such/dir/c.npz'):
+        assert 'cannot write' in one_line_error(write_cloud, tmp_path / name, cloud)
+
+
+# --------------------------------------------------------------------------------------
+# PCD
+
+
+@SETTINGS
+@given(cloud=clouds(), encoding=st.sampled_from(['binary', 'binary_compressed']))
+def test_binary_pcd_round_trip_is_bit_exact(tmp_path: Path, cloud: Cloud, encoding: str) -> None:
+    path = tmp_path / 'c.pcd'
+    write_pcd(path, cloud, encoding=encoding)
+    assert f'\nDATA {encoding}\n'.encode() in path.read_bytes()
+    back = read_pcd(path)
+    assert back.same_as(cloud)
+    assert back.fields == cloud.fields
+    assert back.map_origin.tobytes() == cloud.map_origin.tobytes()
+
+
+@settings(SETTINGS, max_examples=30)
+@given(cloud=raw_clouds(), encoding=st.sampled_from(['binary', 'binary_compressed']))
+def test_binary_pcd_keeps_every_bit_pattern(tmp_path: Path, cloud: Cloud, encoding: str) -> None:
+    write_pcd(tmp_path / 'c.pcd', cloud, encoding=encoding)
+    assert read_pcd(tmp_path / 'c.pcd').same_as(cloud)
+
+
+@SETTINGS
+@given(cloud=clouds())
+def test_ascii_pcd_round_trip_is_exact_up_to_nan_payloads(tmp_path: Path, cloud: Cloud) -> None:
+    path = tmp_path / 'c.pcd'
+    write_pcd(path, cloud, encoding='ascii')
+    assert b'\nDATA ascii\n' in path.read_bytes()
+    back = read_pcd(path)
+    assert values_equal_nan_canonical(back.points, cloud.points)  # every other bit exact
+    assert back.map_origin.tobytes() == cloud.map_origin.tobytes()
+
+
+@pytest.mark.parametrize('encoding', PCD_ENCODINGS)
+def test_pcd_special_values_integers_and_byte_order(tmp_path: Path, encoding: str) -> None:
+    pts = np.zeros(6, dtype=[('x', '>f8'), ('y', 'f4'), ('z', 'f8'), ('i', '>i8'), ('u', 'u8'),
+                             ('flag', '?'), ('s', '>i2')])
+    pts['x'] = [-0.0, np.inf, -np.inf, 5e-324, np.finfo(np.float64).max, 0.1]
+    pts['y'] = [1e-45, -0.0, np.finfo(np.float32).max, np.nan, 3.4028235e38, -1.5]
+    pts['i'] = [-2**63, 2**63 - 1, 0, -1, 7, 1]
+    pts['u'] = [2**64 - 1, 0, 1, 2**63, 5, 6]
+    pts['flag'] = [True, False, True, False, True, False]
+    pts['s'] = [-32768, 32767, 0, 1, -1, 2]
+    cloud = Cloud(pts, [2683000.123, -1247000.456, 1e-300])
+    write_pcd(tmp_path / 'c.pcd', cloud, encoding=encoding)
+    back = read_pcd(tmp_path / 'c.pcd')
+    assert all(back.points.dtype[n].isnative for n in back.fields)
+    assert back.points.dtype['flag'] == np.dtype('u1')
+    assert back.points['flag'].tolist() == [1, 0, 1, 0, 1, 0]
+    expected = {n: pts[n].astype(pts.dtype[n].newbyteorder('=')) for n in pts.dtype.names if n != 'flag'}
+    for name, values in expected.items():
+        if encoding == 'ascii' and values.dtype.kind == 'f':
+            assert np.array_equal(np.isnan(back.points[name]), np.isnan(values))
+            keep = ~np.isnan(values)
+            assert back.points[name][keep].tobytes() == values[keep].tobytes(), name
+        else:
+            assert back.points[name].tobytes() == values.tobytes(), name
+    assert np.signbit(back.points['x'][0]) and np.signbit(back.points['y'][1])
+    assert back.map_origin.tolist() == [2683000.123, -1247000.456, 1e-300]
+
+
+def test_pcd_header_is_pcl_style(tmp_path: Path) -> None:
+    pts = np.zeros(3, dtype=[('x', 'f8'), ('y', 'f8'), ('z', 'f4'), ('class', 'u1'), ('t', 'i2')])
+    write_pcd(tmp_path / 'c.pcd', Cloud(pts, [2683000.1, 0.3, -0.0]))
+    header = (tmp_path / 'c.pcd').read_bytes().split(b'DATA binary\n')[0].decode()
+    assert header.startswith('# .PCD v0.7')
+    for line in ('VERSION 0.7', 'FIELDS x y z class t', 'SIZE 8 8 4 1 2', 'TYPE F F F U I',
+                 'COUNT 1 1 1 1 1', 'WIDTH 3', 'HEIGHT 1', 'POINTS 3',
+                 'VIEWPOINT 2683000.1 0.3 -0.0 1.0 0.0 0.0 0.0'):
+        assert f'\n{line}\n' in header, line
+
+
+def test_empty_cloud_in_every_pcd_encoding(tmp_path: Path) -> None:
+    cloud = Cloud(xyz_points(0), [1.0, 2.0, 3.0])
+    for encoding in PCD_ENCODINGS:
+        write_pcd(tmp_path / 'e.pcd', cloud, encoding=encoding)
+        assert read_pcd(tmp_path / 'e.pcd').same_as(cloud), encoding
+
+
+def pcl_header(fields: str, size: str, type_: str, count: str, width: int, height: int,
+               data: str, viewpoint: str = '0 0 0 1 0 0 0') -> bytes:
+    """A PCD header as PCL writes it."""
+    return (f'# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS {fields}\nSIZE {size}\n'
+            f'TYPE {type_}\nCOUNT {count}\nWIDTH {width}\nHEIGHT {height}\nVIEWPOINT {viewpoint}\n'
+            f'POINTS {width * height}\nDATA {data}\n').encode()
+
+
+def test_organized_pcl_cloud_with_padding_and_counts(tmp_path: Path) -> None:
+    raw = np.zeros(4, dtype=[('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('pad', 'u1', (4,)),
+                             ('normal', '<f4', (3,)), ('label', '<u4')])
+    raw['x'] = [1, 2, 3, np.nan]
+    raw['pad'] = 0xAB
+    raw['normal'] = np.arange(12).reshape(4, 3)
+    raw['label'] = [7, 8, 9, 10]
+    (tmp_path / 'o.pcd').write_bytes(
+        pcl_header('x y z _ normal label', '4 4 4 1 4 4', 'F F F U F U', '1 1 1 4 3 1', 2, 2, 'binary')
+        + raw.tobytes())
+    cloud = read_cloud(tmp_path / 'o.pcd')
+    assert cloud.fields == ('x', 'y', 'z', 'normal__0000', 'normal__0001', 'normal__0002', 'label')
+    assert np.array_equal(cloud.points['x'], raw['x'], equal_nan=True)
+    assert cloud.points['normal__0002'].tolist() == [2, 5, 8, 11]
+    assert cloud.points['label'].tolist() == [7, 8, 9, 10]
+    assert cloud.map_origin.tolist() == [0.0, 0.0, 0.0]
+
+
+def test_ascii_pcd_with_one_point_and_viewpoint_translation(tmp_path: Path) -> None:
+    (tmp_path / 'a.pcd').write_bytes(
+        pcl_header('x y z intensity', '4 4 4 2', 'F F F U', '1 1 1 1', 1, 1, 'ascii',
+                   viewpoint='10.5 -3 2e+06 1 0 0 0') + b'0.25 -1.5 3 65535\n')
+    cloud = read_pcd(tmp_path / 'a.pcd')
+    assert cloud.xyz.tolist() == [[0.25, -1.5, 3.0]]
+    assert cloud.points['intensity'].tolist() == [65535]
+    assert cloud.map_origin.tolist() == [10.5, -3.0, 2e6]
+
+
+def test_pcd_viewpoint_with_rotation_is_refused(tmp_path: Path) -> None:
+    (tmp_path / 'r.pcd').write_bytes(
+        pcl_header('x y z', '4 4 4', 'F F F', '1 1 1', 1, 1, 'ascii',
+                   viewpoint='1 2 3 0.7071068 0 0 0.7071068') + b'1 2 3\n')
+    assert 'VIEWPOINT has a rotation' in one_line_error(read_cloud, tmp_path / 'r.pcd')
+
+
+def test_pcd_without_z(tmp_path: Path) -> None:
+    (tmp_path / 'n.pcd').write_bytes(
+        pcl_header('x y intensity', '4 4 4', 'F F F', '1 1 1', 1, 1, 'ascii') + b'1 2 3\n')
+    assert 'PCD file has no field z (fields: x, y, intensity)' in one_line_error(read_pcd, tmp_path / 'n.pcd')
+
+
+@pytest.mark.parametrize('encoding', PCD_ENCODINGS)
+def test_truncated_pcd(tmp_path: Path, encoding: str) -> None:
+    pts = np.zeros(20, dtype=simulated_dtype())
+    pts['x'] = np.random.default_rng(5).normal(size=20)
+    write_pcd(tmp_path / 'c.pcd', Cloud(pts), encoding=encoding)
+    data = (tmp_path / 'c.pcd').read_bytes()
+    body = data.index(f'DATA {encoding}\n'.encode()) + len(f'DATA {encoding}\n')
+    cuts = [0, 3, 30, body - 5, body]
+    if encoding == 'ascii':  # whole lines: a cut inside the last value cannot be noticed
+        cuts += [i + 1 for i in range(body, len(data) - 1) if data[i] == ord('\n')][::5]
+    else:
+        cuts += [body + 4, body + 11, (body + len(data)) // 2, len(data) - 1]
+    for cut in cuts:
+        (tmp_path / 't.pcd').write_bytes(data[:cut])
+        assert 'cannot read PCD file' in one_line_error(read_cloud, tmp_path / 't.pcd'), cut
+
+
+@pytest.mark.parametrize('body', [
+    b'',
+    b'ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n1\n',
+    b'VERSION 0.7\nFIELDS x y z\nSIZE 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 1\nHEIGHT 1\nPOINTS 1\nDATA ascii\n1 2 3\n',
+    b'VERSION 0.7\nFIELDS x y z\nSIZE 4 4 2\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 1\nHEIGHT 1\nPOINTS 1\nDATA ascii\n1 2 3\n',
+    b'VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F X\nCOUNT 1 1 1\nWIDTH 1\nHEIGHT 1\nPOINTS 1\nDATA ascii\n1 2 3\n',
+    b'VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 1\nHEIGHT 1\nPOINTS 1\nDATA ascii\n1 2 abc\n',
+    b'VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 1\nHEIGHT 1\nPOINTS 3\nDATA ascii\n1 2 3\n',
+    b'VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 1\nHEIGHT 1\nPOINTS 1\nDATA ascii\n1 2 3\n4 5 6\n',
+    b'VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 1\nHEIGHT 1\nPOINTS -1\nDATA ascii\n',
+    b'VERSION 0.7\nFIELDS x x z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 1\nHEIGHT 1\nPOINTS 1\nDATA binary\n' + bytes(12),
+    b'VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 1\nHEIGHT 1\nPOINTS 1\nDATA binary_compressed\n'
+    + b'\x05\x00\x00\x00\x0c\x00\x00\x00garbage',
+    b'VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 1\nHEIGHT 1\nPOINTS 1\nDATA binary_compressed\n'
+    + b'\xff\xff\x00\x00\xff\xff\xff\x00',
+    b'VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 1\nHEIGHT 1\nPOINTS 1\nDATA lzma\n' + bytes(12),
+    b'VERSION 0.7\nFIELDS x y z\ncomment \xff\xfe\n',
+])
+def test_malformed_pcd(tmp_path: Path, body: bytes) -> None:
+    (tmp_path / 'm.pcd').write_bytes(body)
+    assert 'cannot read PCD file' in one_line_error(read_pcd, tmp_path / 'm.pcd')
+
+
+@pytest.mark.parametrize('dtype, message', [
+    ([('x', 'f2'), ('y', 'f8'), ('z', 'f8')], "'x' has type float16"),
+    ([('x', 'f8'), ('y', 'f8'), ('z', 'f8'), ('rgb', 'u1', (3,))], "'rgb'"),
+    ([('x', 'f8'), ('y', 'f8'), ('z', 'f8'), ('s', 'U3')], "'s'"),
+    ([('x', 'f8'), ('y', 'f8'), ('z', 'f8'), ('a b', 'f4')], "'a b' cannot be a PCD field name"),
+    ([('x', 'f8'), ('y', 'f8'), ('z', 'f8'), ('é', 'f4')], 'cannot be a PCD field name'),
+    ([('x', 'f8'), ('y', 'f8'), ('z', 'f8'), ('_', 'f4')], 'cannot be a PCD field name'),
+])
+def test_pcd_refuses_unsupported_fields(tmp_path: Path, dtype: list, message: str) -> None:
+    cloud = Cloud(np.zeros(2, dtype=dtype))
+    assert message in one_line_error(write_pcd, tmp_path / 'u.pcd', cloud)
+    assert not (tmp_path / 'u.pcd').exists()
+
+
+def test_pcd_unknown_encoding(tmp_path: Path) -> None:
+    message = one_line_error(write_pcd, tmp_path / 'u.pcd', Cloud(xyz_points()), encoding='binaryscompressed')
+    assert 'unknown PCD encoding' in message and 'binary_compressed' in message
+
+
+# --------------------------------------------------------------------------------------
+# LAS / LAZ
+
+LAS_FIELD_NAMES = ['building_id', 'gt_facade', 'ring', 'r', 'g', 'b', 'origin_x', 'a_1', 'Z2',
+                   'class', 'time']
+
+
+@st.composite
+def las_clouds(draw: st.DrawFn) -> Cloud:
+    """Clouds LAS can hold: coordinates within 200 km of the origin, any other fields."""
+    extra = draw(st.lists(st.sampled_from(LAS_FIELD_NAMES), max_size=6, unique=True))
+    names = draw(st.permutations(['x', 'y', 'z'] + extra))
+    dtype = np.dtype([(n, draw(st.sampled_from(['f4', 'f8'] if n in 'xyz' else TYPES))) for n in names])
+    n = draw(st.integers(0, 100))
+    points = np.zeros(n, dtype=dtype)
+    for name in names:
+        ftype = dtype[name]
+        if name in ('x', 'y', 'z'):
+            width = 8 * ftype.itemsize
+            points[name] = draw(hnp.arrays(ftype, n, elements=st.floats(-2e5, 2e5, width=width)))
+        elif name == 'class' and draw(st.booleans()):
+            points[name] = draw(hnp.arrays(ftype, n, elements=st.integers(0, 127)))
+        else:
+            points[name] = draw(hnp.arrays(ftype, n))
+    origin = draw(st.lists(st.floats(-1e7, 1e7), min_size=3, max_size=3))
+    return Cloud(points, np.array(origin))
+
+
+def fits_classification(values: np.ndarray) -> bool:
+    """Whether write_las may put ``class`` into the u1 classification dimension."""
+    if values.size == 0:
+        return True
+    if values.dtype.kind == 'f' and not (np.isfinite(values).all() and np.array_equal(values, np.trunc(values))):
+        return False
+    return bool(values.min() >= 0 and values.max() <= 255)
+
+
+@settings(SETTINGS, max_examples=30)
+@given(cloud=las_clouds(), suffix=st.sampled_from(['.las', '.laz', '.LAZ']))
+def test_las_round_trip(tmp_path: Path, cloud: Cloud, suffix: str) -> None:
+    path = tmp_path / ('c' + suffix)
+    write_cloud(path, cloud)
+    assert path.read_bytes()[:4] == b'LASF'
+    back = read_cloud(path)
+    assert back.map_origin.tobytes() == cloud.map_origin.tobytes()
+    assert back.points.dtype['x'] == np.float64
+    assert np.all(np.abs(back.xyz - cloud.xyz) <= LAS_SCALE / 2 + 1e-9)
+    for name in cloud.fields:
+        if name in ('x', 'y', 'z'):
+            continue
+        values = cloud.points[name]
+        if name == 'time':  # into gps_time (f8), and back
+            assert back.points['time'].dtype == np.float64
+            assert back.points['time'].tobytes() == values.astype(np.float64).tobytes()
+        elif name == 'class' and fits_classification(values):  # into classification (u1)
+            assert back.points['class'].dtype == np.uint8
+            assert np.array_equal(back.points['class'], values)
+            assert 'classification' not in back.fields
+        else:  # extra bytes, bit for bit
+            assert back.points[name].dtype == values.dtype, name
+            assert back.points[name].tobytes() == values.tobytes(), name
+            if name == 'class':
+                assert not back.points['classification'].any()
+    assert 'intensity' in back.fields and 'return_number' in back.fields
+
+
+def test_las_header_and_class_field(tmp_path: Path) -> None:
+    import laspy
+
+    pts = np.zeros(4, dtype=[('x', 'f8'), ('y', 'f8'), ('z', 'f8'), ('class', 'u1'),
+                             ('building_id', 'i4'), ('intensity', 'u2'), ('return_number', 'u1')])
+    pts['x'] = [0.0, 1.23456, -1000.00004, 214000.0]
+    pts['class'] = [1, 6, 2, 255]
+    pts['building_id'] = [-1, 3, 3, 2**31 - 1]
+    pts['intensity'] = [0, 1, 65535, 7]
+    pts['return_number'] = [0, 1, 15, 2]
+    cloud = Cloud(pts, [2683000.123, 1247000.456, 408.789])
+    write_las(tmp_path / 'c.las', cloud)
+    las = laspy.read(tmp_path / 'c.las')
+    assert las.header.point_format.id == 6 and str(las.header.version) == '1.4'
+    assert las.header.offsets.tolist() == [2683000.123, 1247000.456, 408.789]
+    assert las.header.scales.tolist() == [LAS_SCALE] * 3
+    assert list(las.point_format.extra_dimension_names) == ['building_id']
+    assert las.classification.tolist() == [1, 6, 2, 255]
+    assert las.X.tolist() == [0, 12346, -10000000, 2140000000]
+    back = read_las(tmp_path / 'c.las')
+    assert back.points['class'].tolist() == [1, 6, 2, 255]
+    assert back.points['intensity'].tolist() == [0, 1, 65535, 7]
+    assert back.points['return_number'].tolist() == [0, 1, 15, 2]
+    assert back.points['building_id'].tolist() == [-1, 3, 3, 2**31 - 1]
+    assert back.points['x'].tolist() == [0.0, 1.2346, -1000.0, 214000.0]
+
+
+def test_class_that_does_not_fit_classification_stays_extra_bytes(tmp_path: Path) -> None:
+    pts = np.zeros(3, dtype=[('x', 'f4'), ('y', 'f4'), ('z', 'f4'), ('class', 'i4'), ('time', 'f4')])
+    pts['class'] = [-1, 300, 6]
+    pts['time'] = [0.5, np.inf, -2.0]
+    write_cloud(tmp_path / 'c.laz', Cloud(pts))
+    back = read_cloud(tmp_path / 'c.laz')
+    assert back.points['class'].dtype == np.int32 and back.points['class'].tolist() == [-1, 300, 6]
+    assert back.points['classification'].tolist() == [0, 0, 0]
+    assert back.points['time'].tolist() == [0.5, np.inf, -2.0]
+    assert 'gps_time' not in back.fields
+
+
+def test_foreign_las_format_1_with_scaled_and_array_extra_bytes(tmp_path: Path) -> None:
+    import laspy
+
+    header = laspy.LasHeader(point_format=1, version='1.2')
+    header.offsets = np.array([2683000.0, 1247000.0, 400.0])
+    header.scales = np.array([0.01, 0.01, 0.001])
+    header.add_extra_dims([laspy.ExtraBytesParams('range', 'u2', scales=np.array([0.005]),
+                                                  offsets=np.array([1.0])),
+                           laspy.ExtraBytesParams('normal', '3f4')])
+    las = laspy.LasData(header)
+    las.points = laspy.ScaleAwarePointRecord.zeros(3, header=header)
+    las.X = [100, -250, 123456]
+    las.Y = [0, 1, 2]
+    las.Z = [5000, 5001, -5002]
+    las.classification = [2, 6, 31]
+    las.gps_time = [3.5e8, 3.5e8 + 0.25, 3.5e8 + 1e-6]
+    las.intensity = [10, 20, 30]
+    las['range'] = np.array([1.0, 2.0, 328.675])
+    las['normal'] = np.arange(9, dtype=np.float32).reshape(3, 3)
+    las.write(tmp_path / 'f.laz')
+    cloud = read_cloud(tmp_path / 'f.laz')
+    assert cloud.map_origin.tolist() == [2683000.0, 1247000.0, 400.0]
+    assert cloud.points['x'].tolist() == [1.0, -2.5, 1234.56]
+    assert cloud.points['z'].tolist() == [5.0, 5.001, -5.002]
+    assert cloud.points['class'].tolist() == [2, 6, 31]
+    assert cloud.points['time'].tolist() == [3.5e8, 3.5e8 + 0.25, 3.5e8 + 1e-6]
+    assert 'classification' not in cloud.fields and 'gps_time' not in cloud.fields
+    assert cloud.points['scan_angle_rank'].dtype == np.int8
+    assert np.allclose(cloud.points['range'], [1.0, 2.0, 328.675], atol=0.0025)
+    assert [cloud.points[f'normal_{k}'].tolist() for k in range(3)] == [[0, 3, 6], [1, 4, 7], [2, 5, 8]]
+    georeferenced = cloud.xyz + cloud.map_origin
+    assert np.allclose(georeferenced, np.column_stack([las.x, las.y, las.z]), rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize('points, message', [
+    ({'x': [0.0, np.nan, 1.0]}, '1 of 3 points have a x that LAS cannot store'),
+    ({'z': [np.inf, 0.0, 0.0]}, '1 of 3 points have a z'),
+    ({'y': [3e5, -3e5, 0.0]}, '2 of 3 points have a y'),
+])
+def test_las_refuses_coordinates_it_cannot_store(tmp_path: Path, points: dict, message: str) -> None:
+    pts = np.zeros(3, dtype=[('x', 'f8'), ('y', 'f8'), ('z', 'f8')])
+    for name, values in points.items():
+        pts[name] = values
+    assert message in one_line_error(write_las, tmp_path / 'c.las', Cloud(pts))
+    assert not (tmp_path / 'c.las').exists()
+
+
+@pytest.mark.parametrize('field, values, message', [
+    (('intensity', 'f4'), [0.5, 1], "'intensity' (float32) does not fit the LAS dimension intensity"),
+    (('intensity', 'i4'), [-1, 1], 'an integer in [0, 65535]'),
+    (('return_number', 'u1'), [16, 1], 'LAS dimension return_number, which holds an integer in [0, 15]'),
+    (('rgb', 'u1', (3,)), [(1, 2, 3), (4, 5, 6)], "'rgb'"),
+    (('h', 'f2'), [1, 2], "'h' has type float16"),
+    (('X', 'f8'), [1, 2], "'X' is reserved"),
+    (('n' * 33, 'u1'), [1, 2], 'cannot be a LAS extra-bytes name'),
+    (('é', 'u1'), [1, 2], 'cannot be a LAS extra-bytes name'),
+])
+def test_las_refuses_fields_it_cannot_store(tmp_path: Path, field: tuple, values: list, message: str) -> None:
+    pts = np.zeros(2, dtype=[('x', 'f8'), ('y', 'f8'), ('z', 'f8'), field])
+    pts[field[0]] = values
+    assert message in one_line_error(write_las, tmp_path / 'c.las', Cloud(pts))
+    assert not (tmp_path / 'c.las').exists()
+
+
+def test_simulated_cloud_through_las_laz_and_pcd(tmp_path: Path) -> None:
+    pts = np.zeros(50, dtype=simulated_dtype('f4'))
+    rng = np.random.default_rng(1)
+    for name in pts.dtype.names:
+        pts[name] = rng.integers(0, 5, 50)
+    pts['x'] = rng.normal(size=50)
+    cloud = Cloud(pts, [2683000.0, 1247000.0, 400.0])
+    for name in ('a.pcd', 'A.PCD'):
+        write_cloud(tmp_path / name, cloud)
+        assert read_cloud(tmp_path / name).same_as(cloud)
+    for name in ('a.las', 'a.laz', 'A.LAS'):
+        write_cloud(tmp_path / name, cloud)
+        back = read_cloud(tmp_path / name)
+        assert np.all(np.abs(back.xyz - cloud.xyz) <= LAS_SCALE / 2 + 1e-9)
+        for field in cloud.fields[3:]:
+            assert np.array_equal(back.points[field], cloud.points[field]), field
+
+
+@pytest.mark.parametrize('suffix', ['.las', '.laz'])
+def test_truncated_las(tmp_path: Path, suffix: str) -> None:
+    pts = np.zeros(300, dtype=simulated_dtype())
+    pts['x'] = np.random.default_rng(2).normal(size=300)
+    write_cloud(tmp_path / ('c' + suffix), Cloud(pts, [1.0, 2.0, 3.0]))
+    data = (tmp_path / ('c' + suffix)).read_bytes()
+    for cut in (0, 3, 100, 226, 300, 400, len(data) // 2, len(data) - 9, len(data) - 1):
+        (tmp_path / ('t' + suffix)).write_bytes(data[:cut])
+        assert 'cannot read LAS file' in one_line_error(read_cloud, tmp_path / ('t' + suffix)), cut
+
+
+def damaged(data: bytes, offset: int, fmt: str, value: int) -> bytes:
+    """``data`` with ``value`` packed at ``offset``."""
+    raw = bytearray(data)
+    struct.pack_into(fmt, raw, offset, value)
+    return bytes(raw)
+
+
+def test_las_with_impossible_counts(tmp_path: Path) -> None:
+    """Counts that laspy or lazrs would trust: a VLR loop of hours, huge allocations, aborts."""
+    cloud = Cloud(np.zeros(20, dtype=simulated_dtype('f4')), [1.0, 2.0, 3.0])
+    write_cloud(tmp_path / 'c.las', cloud)
+    write_cloud(tmp_path / 'c.laz', cloud)
+    las = (tmp_path / 'c.las').read_bytes()
+    laz = (tmp_path / 'c.laz').read_bytes()
+    chunk_table = struct.unpack_from('<q', laz, struct.unpack_from('<I', laz, 96)[0])[0]
+    cases = [
+        ('v.las', damaged(las, 100, '<I', 2**32 - 1), 'VLRs, more than the file'),
+        ('e.las', damaged(las, 243, '<I', 2**32 - 1), 'EVLRs, more than the file'),
+        ('p.las', damaged(las, 247, '<Q', 2**60), 'header announces 1152921504606846976 points'),
+        ('v.laz', damaged(laz, 100, '<I', 2**31), 'VLRs, more than the file'),
+        ('c.laz', damaged(laz, chunk_table + 4, '<I', 2**32 - 16), 'LAZ chunk table announces'),
+        ('g.las', b'LASF' + bytes(10), 'cannot read LAS file'),
+        ('t.laz', b'not a LAS file at all\n' * 20, 'cannot read LAS file'),
+    ]
+    for name, data, message in cases:
+        (tmp_path / name).write_bytes(data)
+        assert message in one_line_error(read_cloud, tmp_path / name), name
+
+
+def test_laz_with_absurd_chunk_size_does_not_abort(tmp_path: Path) -> None:
+    """lazrs' parallel decoder aborts the process on this; the sequential one copes."""
+    cloud = Cloud(np.zeros(20, dtype=simulated_dtype('f4')), [1.0, 2.0, 3.0])
+    write_cloud(tmp_path / 'c.laz', cloud)
+    laz = (tmp_path / 'c.laz').read_bytes()
+    vlr_data = laz.index(b'laszip encoded') - 2 + 54
+    for chunk_size in (2**32 - 16, 1, 0):
+        (tmp_path / 'k.laz').write_bytes(damaged(laz, vlr_data + 12, '<I', chunk_size))
+        try:
+            back = read_cloud(tmp_path / 'k.laz')
+        except InputError as err:
+            assert 'cannot read LAS file' in str(err) and '\n' not in str(err)
+        else:
+            assert len(back) == 20
+
+
+@settings(SETTINGS, max_examples=60)
+@given(data=st.data())
+def test_damaged_las_and_pcd_raise_only_input_errors(tmp_path: Path, data: st.DataObject) -> None:
+    """Random truncation and byte damage (LAZ: truncation only, see read_las on lazrs)."""
+    kind = data.draw(st.sampled_from(['las', 'laz', 'ascii', 'binary', 'binary_compressed']))
+    pts = np.zeros(8, dtype=simulated_dtype('f4'))
+    pts['x'] = np.arange(8)
+    cloud = Cloud(pts, [1.0, 2.0, 3.0])
+    path = tmp_path / ('d.' + (kind if kind in ('las', 'laz') else 'pcd'))
+    if kind in ('las', 'laz'):
+        write_cloud(path, cloud)
+    else:
+        write_pcd(path, cloud, encoding=kind)
+    raw = bytearray(path.read_bytes())
+    raw = raw[:data.draw(st.integers(0, len(raw)))]
+    if kind != 'laz':
+        for _ in range(data.draw(st.integers(0, 4))):
+            if raw:
+                raw[data.draw(st.integers(0, len(raw) - 1))] = data.draw(st.integers(0, 255))
+    path.write_bytes(bytes(raw))
+    try:
+        back = read_cloud(path)
+    except InputError as err:
+        assert '\n' not in str(err)
+    else:
+        assert isinstance(back, Cloud)
+
+
+@pytest.mark.parametrize('reader', [read_cloud, read_las, read_pcd])
+@pytest.mark.parametrize('name', ['missing.las', 'missing.laz', 'missing.pcd'])
+def test_missing_las_and_pcd(tmp_path: Path, reader, name: str) -> None:
+    assert one_line_error(reader, tmp_path / name) == f'no such file: {tmp_path / name}'
+
+
+def test_unwritable_las_and_pcd(tmp_path: Path) -> None:
+    cloud = Cloud(xyz_points())
+    for name in ('no/such/dir/c.las', 'no/such/dir/c.laz', 'no/such/dir/c.pcd'):
         assert 'cannot write' in one_line_error(write_cloud, tmp_path / name, cloud)
