@@ -647,6 +647,8 @@ def _las_fits(values: np.ndarray, dim: Any) -> bool:
     if kind not in 'iuf' or values.ndim != 1:
         return False
     if dim.dtype is not None and np.dtype(dim.dtype).kind == 'f':
+        if kind == 'f' and np.any((values == 0) & np.signbit(values)):
+            return False  # the LAZ GPS-time codec does not keep the sign of zero; use extra bytes
         if kind == 'f':
             return values.dtype.itemsize <= 8
         return values.dtype.itemsize <= 4 or bool(
