@@ -84,3 +84,79 @@ def test_console_script_is_installed(tmp_path):
     assert script.exists(), 'run make venv (pip install -e .)'
     result = subprocess.run([str(script), 'simulate', '--help'], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0 and '--campaigns' in result.stdout
+
+
+@pytest.fixture(scope='module')
+def built(simulated):
+    out = simulated / 'map.npz'
+    assert main(['build', str(simulated / 'campaign0.npz'), '--out', str(out), '--quiet']) == 0
+    return out
+
+
+def test_build_from_a_bag_gives_the_same_map(simulated, built):
+    from uncertain_facade_map.map_file import load_map
+
+    out = simulated / 'map_bag.npz'
+    assert main(['build', str(simulated / 'campaign0_mcap'), '--out', str(out), '--quiet']) == 0
+    a, b = load_map(built), load_map(out)
+    assert len(a.facades) == len(b.facades) > 0
+    for fa, fb in zip(a.facades, b.facades):
+        np.testing.assert_array_equal(fa.surface.mean, fb.surface.mean)
+
+
+def test_query_contract(simulated, built, tmp_path):
+    pts = read_npz(simulated / 'campaign0.npz').xyz[::50]
+    np.save(tmp_path / 'p.npy', pts)
+    assert main(['query', str(built), '--points', str(tmp_path / 'p.npy'), '--out', str(tmp_path / 'r.npz'),
+                 '--resolution', '0.05']) == 0
+    with np.load(tmp_path / 'r.npz') as r:
+        assert set(r.files) == {'facade', 'mean_depth', 'variance', 'noise_variance', 'signed_distance', 'p_occupied'}
+        assert all(r[k].shape == (len(pts),) for k in r.files)
+        assert np.issubdtype(r['facade'].dtype, np.integer)
+        on = r['facade'] >= 0
+        assert on.mean() > 0.3
+        assert np.nanmedian(np.abs(r['signed_distance'][on])) < 0.05
+
+
+def test_cloud_without_class_is_all_building(tmp_path, simulated):
+    from uncertain_facade_map.cloud import Cloud
+    from uncertain_facade_map.cloud_io import write_npz
+
+    cloud = read_npz(simulated / 'campaign0.npz')
+    pts = cloud.points[cloud.points['class'] == 1][['x', 'y', 'z']]
+    write_npz(tmp_path / 'plain.npz', Cloud(pts.copy(), cloud.map_origin))
+    assert main(['build', str(tmp_path / 'plain.npz'), '--out', str(tmp_path / 'm.npz'), '--quiet']) == 0
+
+
+@pytest.mark.parametrize('case', ['missing input', 'nan points', 'float32 points', 'bad map', 'empty cloud',
+                                  'missing config', 'bad config'])
+def test_build_and_query_bad_input_one_line_exit_2(tmp_path, built, simulated, capsys, case):
+    from uncertain_facade_map.cloud import Cloud
+    from uncertain_facade_map.cloud_io import write_npz
+
+    good_points = tmp_path / 'p.npy'
+    np.save(good_points, np.zeros((3, 3)))
+    if case == 'missing input':
+        args = ['build', str(tmp_path / 'nope.ply'), '--out', str(tmp_path / 'm.npz')]
+    elif case == 'nan points':
+        np.save(tmp_path / 'n.npy', np.array([[0.0, np.nan, 1.0]]))
+        args = ['query', str(built), '--points', str(tmp_path / 'n.npy'), '--out', str(tmp_path / 'r.npz')]
+    elif case == 'float32 points':
+        np.save(tmp_path / 'f.npy', np.zeros((3, 3), np.float32))
+        args = ['query', str(built), '--points', str(tmp_path / 'f.npy'), '--out', str(tmp_path / 'r.npz')]
+    elif case == 'bad map':
+        (tmp_path / 'bad.npz').write_bytes(b'garbage')
+        args = ['query', str(tmp_path / 'bad.npz'), '--points', str(good_points), '--out', str(tmp_path / 'r.npz')]
+    elif case == 'empty cloud':
+        write_npz(tmp_path / 'e.npz', Cloud(np.zeros(0, dtype=[('x', 'f8'), ('y', 'f8'), ('z', 'f8')])))
+        args = ['build', str(tmp_path / 'e.npz'), '--out', str(tmp_path / 'm.npz')]
+    elif case == 'missing config':
+        args = ['build', str(simulated / 'campaign0.npz'), '--out', str(tmp_path / 'm.npz'), '--config', 'nope.yaml']
+    else:
+        (tmp_path / 'c.yaml').write_text('facade_mapper:\n  ros__parameters:\n    gp:\n      c_min: 2.0\n')
+        args = ['build', str(simulated / 'campaign0.npz'), '--out', str(tmp_path / 'm.npz'), '--config',
+                str(tmp_path / 'c.yaml')]
+    code = main([*args, '--quiet'] if args[0] == 'build' else args)
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert err.count('\n') == 1 and err.startswith('uncertain-facade-map: error:'), err

@@ -1,8 +1,9 @@
 """Draw the README's pictures of the simulator (``python tools/readme_figures.py``).
 
 Writes docs/simulated_street.png (top view of the mapped campaign of the default street,
-coloured by class) and docs/simulated_facade.png (one façade in its own frame, coloured
-by depth: recesses, balconies, an oriel, columns and the shadow of a tree).
+coloured by class), docs/simulated_facade.png (one façade in its own frame, coloured
+by depth: recesses, balconies, an oriel, columns and the shadow of a tree) and
+docs/facade_model.png (the model of that façade: mean depth and standard deviation).
 """
 
 from pathlib import Path
@@ -63,7 +64,35 @@ def main() -> None:
     fig.tight_layout()
     fig.savefig(DOCS / 'simulated_facade.png', dpi=110)
     plt.close(fig)
-    print(f'wrote {DOCS / "simulated_street.png"} and {DOCS / "simulated_facade.png"}')
+    draw_model(cloud, facade)
+    print(f'wrote {DOCS}/simulated_street.png, simulated_facade.png and facade_model.png')
+
+
+def draw_model(cloud, truth_facade) -> None:
+    """Map the first building of the street and draw its street façade's mean and std."""
+    from uncertain_facade_map.facade_map import build_map
+
+    pts = cloud.points[(cloud.points['class'] == 1) & (cloud.points['building_id'] == truth_facade.building_id)]
+    fmap = build_map(np.stack([pts['x'], pts['y'], pts['z']], 1), pts['building_id'],
+                     np.stack([pts['origin_x'], pts['origin_y'], pts['origin_z']], 1))
+    model = min(fmap.facades, key=lambda f: np.linalg.norm(f.frame.normal - truth_facade.frame.n))
+    r = model.surface
+    h, w = r.mean.shape
+    extent = (r.origin[0], r.origin[0] + w * r.cell, r.origin[1], r.origin[1] + h * r.cell)
+    fig, axs = plt.subplots(2, 1, figsize=(11, 9))
+    im = axs[0].imshow(r.mean, origin='lower', extent=extent, cmap='coolwarm', vmin=-0.3, vmax=1.5)
+    fig.colorbar(im, ax=axs[0], label='mean depth [m]')
+    axs[0].set_title(f'façade model: mean surface depth ({model.layers.n_layers} GMM layers, '
+                     f'{model.facets.n_facets} facets)')
+    im = axs[1].imshow(np.sqrt(r.var) * 100, origin='lower', extent=extent, cmap='viridis', vmin=0, vmax=30)
+    fig.colorbar(im, ax=axs[1], label='standard deviation [cm]')
+    axs[1].set_title('standard deviation of the surface (occluded and unscanned parts high)')
+    for ax in axs:
+        ax.set_xlabel('u [m]')
+        ax.set_ylabel('v [m]')
+    fig.tight_layout()
+    fig.savefig(DOCS / 'facade_model.png', dpi=100)
+    plt.close(fig)
 
 
 if __name__ == '__main__':

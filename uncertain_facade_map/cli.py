@@ -2,6 +2,8 @@
 
 Sub-commands:
     simulate   scan a built-in scene in one or more campaigns and write clouds and bags
+    build      build a façade map from classified point clouds or bags
+    query      answer point queries against a map
 
 Every error a user can cause ends in one line on stderr and exit status 2; nothing ends in
 a traceback. Bag formats need ``msg_adapters`` (rosbags), imported only when asked for.
@@ -115,6 +117,88 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_build(args: argparse.Namespace) -> int:
+    """Build a map from inputs and save it (see ``build --help``)."""
+    import numpy as np
+
+    from .config import load_config, map_params
+    from .facade_map import FacadeMap
+    from .inputs import load_inputs, select_building_points
+    from .map_file import save_map
+
+    config = load_config(args.config)
+    out = Path(args.out)
+    if not out.parent.exists():
+        raise CliError(f'output folder {out.parent} does not exist')
+    started = time.perf_counter()
+    cloud = load_inputs(args.inputs, topic=args.topic)
+    points = select_building_points(cloud, config.input)
+    read_s = time.perf_counter() - started
+    fmap = FacadeMap(map_params(config), points.map_origin)
+    bar = None
+    if not args.quiet:
+        from tqdm import tqdm
+
+        bar = tqdm(desc='buildings', unit='building', leave=False, file=sys.stderr)
+
+    def update(done: int, total: int) -> None:
+        if bar is not None:
+            bar.total = total
+            bar.update(done - bar.n)
+
+    try:
+        fmap.add_points(points.xyz, points.building_id, points.sensor_origins, progress=update)
+    finally:
+        if bar is not None:
+            bar.close()
+    build_s = time.perf_counter() - started - read_s
+    save_map(fmap, out)
+    total_s = time.perf_counter() - started
+    stats = [f.stats for f in fmap.facades]
+    print(f'read     {len(cloud):,} points ({len(points):,} building) from {len(args.inputs)} input(s) in {read_s:.1f} s')
+    print(f'mapped   {len(fmap.buildings)} buildings, {len(fmap.facades)} façades in {build_s:.1f} s '
+          f'({len(cloud) / max(build_s, 1e-9):,.0f} points/s)')
+    print(f'gp       {sum(s["training"] for s in stats):,} training points, '
+          f'{sum(s["outliers_removed"] for s in stats):,} removed as outliers')
+    var = np.concatenate([f.surface.var[f.surface.source == 2].ravel() for f in fmap.facades] or [np.empty(0)])
+    if len(var):
+        print(f'surface  median std {np.sqrt(np.median(var)) * 100:.1f} cm where observed')
+    print(f'map      {out} ({out.stat().st_size / 1e6:.1f} MB, {total_s:.1f} s in all)')
+    return 0
+
+
+def cmd_query(args: argparse.Namespace) -> int:
+    """Answer point queries (see ``query --help``)."""
+    import numpy as np
+
+    from .config import load_config
+    from .map_file import load_map
+    from .queries import query_points
+
+    fmap = load_map(args.map)
+    path = Path(args.points)
+    if not path.exists():
+        raise CliError(f'no such file: {path}')
+    try:
+        xyz = np.load(path, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise CliError(f'{path}: not a .npy array ({exc})') from None
+    if xyz.dtype != np.float64 or xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise CliError(f'{path}: expected a float64 (N, 3) array, got {xyz.dtype} {xyz.shape}')
+    resolution = args.resolution if args.resolution is not None else load_config(args.config).query.resolution
+    started = time.perf_counter()
+    result = query_points(fmap.facades, xyz, resolution, fmap.params.extraction.band_back,
+                          fmap.params.extraction.band_front)
+    seconds = time.perf_counter() - started
+    out = Path(args.out)
+    with open(out, 'wb') as fh:
+        np.savez(fh, **result.as_dict())
+    print(f'queried  {len(xyz):,} points in {seconds:.2f} s ({len(xyz) / max(seconds, 1e-9):,.0f} points/s), '
+          f'{int((result.facade >= 0).sum()):,} on a façade')
+    print(f'answers  {out}')
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of all sub-commands."""
     parser = argparse.ArgumentParser(prog=PROG, description='Façade maps with calibrated uncertainty.')
@@ -148,6 +232,28 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument('--force', action='store_true', help='replace existing output files')
     sim.add_argument('--quiet', action='store_true', help='no progress bar')
     sim.set_defaults(func=cmd_simulate)
+
+    build = sub.add_parser('build', help='build a façade map from classified point clouds or bags',
+                           description='Build the uncertain façade map from PLY, LAS/LAZ, PCD, NPZ files or ROS bags '
+                                       '(ROS 1 .bag, ROS 2 folders, .db3, .mcap) of PointCloud2. A cloud without the '
+                                       'class field is taken as all building points.')
+    build.add_argument('inputs', nargs='+', metavar='INPUT', help='point clouds or bags')
+    build.add_argument('--out', required=True, metavar='MAP', help='map file to write (.npz)')
+    build.add_argument('--config', metavar='YAML', help='ROS 2 parameter file (default: config/facade_mapper.yaml)')
+    build.add_argument('--topic', help='PointCloud2 topic of bag inputs (default: the only one)')
+    build.add_argument('--quiet', action='store_true', help='no progress bar')
+    build.set_defaults(func=cmd_build)
+
+    query = sub.add_parser('query', help='answer point queries against a map',
+                           description='For each point of P.npy (float64 (N, 3), map frame) write to R.npz: facade '
+                                       '(-1 for none), mean_depth, variance, noise_variance, signed_distance '
+                                       '(positive outside the building) and p_occupied.')
+    query.add_argument('map', metavar='MAP', help='map file from build')
+    query.add_argument('--points', required=True, metavar='P.npy', help='float64 (N, 3) points, map frame')
+    query.add_argument('--out', required=True, metavar='R.npz', help='answers to write')
+    query.add_argument('--resolution', type=float, metavar='R', help='voxel side for p_occupied, metres (default 0.1)')
+    query.add_argument('--config', metavar='YAML', help='ROS 2 parameter file (for the default resolution)')
+    query.set_defaults(func=cmd_query)
     return parser
 
 

@@ -19,13 +19,20 @@ source of truth.
 from __future__ import annotations
 
 import dataclasses
+import inspect
+import re
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 from typing import Any, Iterator, get_args, get_origin, get_type_hints
 
 import yaml
 
 from .errors import InputError
+from .facade_extraction import ExtractionParams
+from .gp_blocks import GPParams
+from .layers import LayerParams
+from .outliers import OutlierParams
 
 NODE_NAME = 'facade_mapper'
 #: The default parameter file shipped in ``config/``.
@@ -50,10 +57,65 @@ class InputConfig:
 
 
 @dataclass(frozen=True)
+class QueryConfig:
+    """Answers to point queries.
+
+    Attributes:
+        resolution: default voxel side of the occupancy probability, metres.
+    """
+
+    resolution: float = field(default=0.1, metadata=_meta('default voxel side of the occupancy probability, metres',
+                                                           1e-3, 10.0))
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """The map as a whole.
+
+    Attributes:
+        seed: seed of every random draw of the modelling (EM subsample, RANSAC, subsets).
+    """
+
+    seed: int = 0
+
+
+@dataclass(frozen=True)
 class Config:
-    """All parameters, by section."""
+    """All parameters, by section (one section per pipeline stage)."""
 
     input: InputConfig = field(default_factory=InputConfig)
+    extraction: ExtractionParams = field(default_factory=ExtractionParams)
+    layers: LayerParams = field(default_factory=LayerParams)
+    gp: GPParams = field(default_factory=GPParams)
+    outliers: OutlierParams = field(default_factory=OutlierParams)
+    query: QueryConfig = field(default_factory=QueryConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+
+
+def map_params(config: Config):
+    """The modelling parameters of :class:`~uncertain_facade_map.facade_map.MapParams` from a config."""
+    from .facade_map import MapParams
+
+    return MapParams(extraction=config.extraction, layers=config.layers, gp=config.gp, outliers=config.outliers,
+                     seed=config.model.seed)
+
+
+@lru_cache(maxsize=None)
+def _attribute_docs(cls: type) -> dict[str, str]:
+    """Descriptions of a dataclass's fields from the ``Attributes:`` section of its docstring."""
+    doc = inspect.getdoc(cls) or ''
+    match = re.search(r'^Attributes:\n(.*?)(?:\n\S|\Z)', doc, flags=re.S | re.M)
+    out: dict[str, str] = {}
+    if match:
+        name = None
+        for line in match.group(1).splitlines():
+            head = re.match(r'^    (\w+)(?: \(.*?\))?: (.*)$', line)
+            if head:
+                name = head.group(1)
+                out[name] = head.group(2).strip()
+            elif name and line.strip():
+                out[name] += ' ' + line.strip()
+    return out
 
 
 def _sections(cls: type = Config) -> Iterator[tuple[str, type]]:
@@ -71,8 +133,9 @@ def parameter_items(config: Config | None = None) -> Iterator[tuple[str, Any, st
     config = config or Config()
     for section, cls in _sections():
         sub = getattr(config, section)
+        docs = _attribute_docs(cls)
         for f in dataclasses.fields(cls):
-            yield f'{section}.{f.name}', getattr(sub, f.name), f.metadata.get('description', ''), \
+            yield f'{section}.{f.name}', getattr(sub, f.name), f.metadata.get('description', docs.get(f.name, '')), \
                 f.metadata.get('range', (None, None))
 
 
@@ -130,7 +193,7 @@ def config_from_parameters(params: dict[str, Any]) -> Config:
         cls = dict(_sections())[section]
         typ = get_type_hints(cls)[f.name]
         values.setdefault(section, {})[f.name] = _coerce(name, value, typ, f.metadata.get('range', (None, None)))
-    return Config(**{section: cls(**values.get(section, {})) for section, cls in _sections()})
+    return Config(**{section: cls(**values.get(section, {})) for section, cls in _sections()})  # validates ranges
 
 
 def _flatten(tree: dict, prefix: str = '') -> dict[str, Any]:
@@ -181,10 +244,33 @@ def load_config(path: str | Path | None = None, node_name: str = NODE_NAME) -> C
         raise InputError(f'{path}: {exc}') from None
 
 
-def dump_config(config: Config, node_name: str = NODE_NAME) -> str:
-    """The configuration as a ROS 2 parameter file (YAML text)."""
-    tree: dict[str, Any] = {}
-    for name, value, _, _ in parameter_items(config):
-        section, key = name.split('.', 1)
-        tree.setdefault(section, {})[key] = list(value) if isinstance(value, tuple) else value
-    return yaml.safe_dump({node_name: {'ros__parameters': tree}}, sort_keys=False)
+def dump_config(config: Config, node_name: str = NODE_NAME, comments: bool = False) -> str:
+    """The configuration as a ROS 2 parameter file (YAML text), optionally with descriptions."""
+    lines = [f'{node_name}:', '  ros__parameters:']
+    section = None
+    for name, value, description, _ in parameter_items(config):
+        sec, key = name.split('.', 1)
+        if sec != section:
+            lines.append(f'    {sec}:')
+            section = sec
+        text = yaml.safe_dump(list(value) if isinstance(value, tuple) else value, default_flow_style=True,
+                              width=1000).strip()
+        if text.endswith('\n...'):
+            text = text[:-4].strip()
+        text = text.removesuffix('...').strip()
+        line = f'      {key}: {text}'
+        if comments and description:
+            line = f'{line:46s} # {description}'
+        lines.append(line)
+    return '\n'.join(lines) + '\n'
+
+
+if __name__ == '__main__':
+    import sys
+
+    sys.stdout.write('# Parameters of the facade_mapper node and of the uncertain-facade-map command line, at their\n'
+                     "# defaults (the paper's where it gives them). ROS 2 parameter-file form:\n"
+                     '#   ros2 run uncertain_facade_map facade_mapper --ros-args --params-file config/facade_mapper.yaml\n'
+                     '#   uncertain-facade-map build INPUT... --out MAP --config config/facade_mapper.yaml\n'
+                     '# Regenerate with: python -m uncertain_facade_map.config > config/facade_mapper.yaml\n')
+    sys.stdout.write(dump_config(Config(), comments=True))

@@ -1,0 +1,39 @@
+"""Chi-squared outlier threshold and the occupancy conversion."""
+
+import numpy as np
+import pytest
+
+from uncertain_facade_map.errors import InputError
+from uncertain_facade_map.occupancy import UNKNOWN, occupancy_probability
+from uncertain_facade_map.outliers import OutlierParams, chi2_threshold, flag_outliers
+
+
+def test_threshold_is_the_chi2_quantile():
+    assert chi2_threshold(0.05) == pytest.approx(3.841, abs=1e-3)
+    assert chi2_threshold(0.01) == pytest.approx(6.635, abs=1e-3)
+
+
+def test_false_alarm_rate_on_gaussian_data():
+    rng = np.random.default_rng(0)
+    z2 = rng.normal(size=200_000) ** 2
+    for alpha in (0.01, 0.05):
+        assert flag_outliers(z2, alpha).mean() == pytest.approx(alpha, rel=0.05)
+    assert not flag_outliers(np.array([np.nan]), 0.05).any()
+
+
+def test_bad_alpha():
+    with pytest.raises(InputError):
+        OutlierParams(alpha=1.5)
+
+
+def test_occupancy_is_a_cumulative_gaussian_of_the_signed_distance():
+    s = np.array([-1.0, 0.0, 0.05, 0.1, 1.0, np.nan])
+    p = occupancy_probability(s, np.full(6, 0.0), 0.02**2, 0.1)
+    assert p[0] == pytest.approx(1.0) and p[4] == pytest.approx(0.0)
+    assert p[2] == pytest.approx(0.5)  # the voxel's outer face on the surface
+    assert p[1] > 0.99 and p[3] < 0.01
+    assert p[5] == UNKNOWN
+    assert np.all(np.diff(p[:5]) <= 0), 'occupancy falls with the distance outside'
+    wide = occupancy_probability(np.array([0.2]), np.array([0.04]), 0.0, 0.1)
+    narrow = occupancy_probability(np.array([0.2]), np.array([0.0001]), 0.0, 0.1)
+    assert wide[0] > narrow[0], 'more variance, less certainty of free space'
