@@ -42,7 +42,7 @@ def test_every_observed_facade_is_modelled(mapped):
 
 def test_accuracy_in_observed_areas(evaluation):
     assert evaluation.n_observed > 10_000
-    assert evaluation.observed_rmse < 0.04, evaluation.observed_rmse  # issue: <= 1.5 sigma_eta = 0.03
+    assert evaluation.observed_rmse < 0.036, evaluation.observed_rmse  # issue: <= 1.5 sigma_eta = 0.03
     assert evaluation.all_rmse < 0.13  # depth steps included
 
 
@@ -69,7 +69,7 @@ def test_injected_outliers_are_removed(mapped):
         false_alarms += rejected[~outlier].sum()
         inliers += (~outlier).sum()
     assert total > 100
-    assert removed / total >= 0.85, removed / total  # issue: >= 0.9
+    assert removed / total >= 0.86, removed / total  # issue: >= 0.9
     assert false_alarms / inliers < 0.05
 
 

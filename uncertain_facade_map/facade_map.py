@@ -121,14 +121,16 @@ def select_training(depth: np.ndarray, normal_cos: np.ndarray, layer: np.ndarray
         gp: thresholds (inlier_sigmas, alpha_z_deg).
 
     Returns:
-        (N,) bool, True for training points: |d - mu_k| > 1.96 sigma_k or n_z < cos(alpha_z),
-        and every point of a layer too wide to be planar (sigma_k > max_planar_sigma: the
-        GMM also puts components on slopes and round bays, which the paper models by GP).
+        (N,) bool, True for training points: |d - mu_k| > 1.96 sigma_k or n_z < cos(alpha_z).
+        For a layer wider than ``max_planar_sigma`` (EM also fits components to slopes,
+        round bays and to a wall merged with shallow recesses), sigma_k in the first test is
+        replaced by ``max_planar_sigma``: only the points that a plane of that spread
+        explains are left to the layer, the rest go to the GP.
     """
-    far = np.abs(depth - layers.means_[layer]) > gp.inlier_sigmas * layers.sigmas_[layer]
+    spread = np.minimum(layers.sigmas_[layer], gp.max_planar_sigma)
+    far = np.abs(depth - layers.means_[layer]) > gp.inlier_sigmas * spread
     tilted = normal_cos < np.cos(np.deg2rad(gp.alpha_z_deg))
-    wide = layers.sigmas_[layer] > gp.max_planar_sigma
-    return far | tilted | wide
+    return far | tilted
 
 
 def _thin_planar(uv: np.ndarray, facet: np.ndarray, candidates: np.ndarray, origin: np.ndarray,
@@ -289,19 +291,15 @@ class FacadeMap:
             self.sensor_origins[b] = so if old is None else (None if so is None or old_so is None
                                                              else np.vstack([old_so, so]))
             changed.append(b)
+        fitted: dict[int, list[FacadeModel]] = {}
         for done, b in enumerate(changed, 1):
-            self._refit_building(b)
+            fitted[b] = fit_building(self.points[b], self.sensor_origins.get(b), self.params, b)
             if progress is not None:
                 progress(done, len(changed))
-        return changed
-
-    def _refit_building(self, building: int) -> None:
-        rng = np.random.default_rng([self.params.seed, building])
-        extracted, _ = extract_facades(self.points[building], self.params.extraction,
-                                       sensor_origins=self.sensor_origins.get(building), rng=rng)
-        kept = [f for f in self.facades if f.building != building]
-        new = [fit_facade(e, self.params, rng, building=building) for e in extracted]
+        kept = [f for f in self.facades if f.building not in fitted]
+        new = [m for b in changed for m in fitted[b]]
         self.facades = [_with_id(f, i) for i, f in enumerate(kept + new)]
+        return changed
 
     def rejected(self, building: int) -> np.ndarray:
         """(N,) bool over a building's points: on no façade, or removed by the outlier test."""
@@ -318,6 +316,24 @@ class FacadeMap:
     def buildings(self) -> list[int]:
         """Labels of the mapped buildings."""
         return sorted(self.points)
+
+
+def fit_building(points: np.ndarray, sensor_origins: np.ndarray | None, params: MapParams,
+                 building: int) -> list[FacadeModel]:
+    """Extract the façades of one building and fit each one's surface.
+
+    Args:
+        points: (N, 3) the building's points, metres, map frame.
+        sensor_origins: (N, 3) their sensor origins, or None.
+        params: modelling parameters.
+        building: building label (also seeds the random draws).
+
+    Returns:
+        The building's façade models (ids to be set by the caller).
+    """
+    rng = np.random.default_rng([params.seed, building])
+    extracted, _ = extract_facades(points, params.extraction, sensor_origins=sensor_origins, rng=rng)
+    return [fit_facade(e, params, rng, building=building) for e in extracted]
 
 
 def _with_id(model: FacadeModel, facade_id: int) -> FacadeModel:

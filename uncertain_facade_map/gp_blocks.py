@@ -50,8 +50,9 @@ class GPParams:
             normal is a training point (paper eq. 8: 25 degrees).
         inlier_sigmas: a point further than this many sigma_k from its layer is a training
             point (paper eq. 7: 1.96).
-        max_planar_sigma: a layer spread wider than this is no planar layer (a slope, a round
-            bay, clutter); all points of its facets are training points, metres.
+        max_planar_sigma: spread of a planar layer at most; a wider layer (a slope, a round
+            bay, merged recesses) leaves only the points within inlier_sigmas of this to the
+            plane, the rest are training points, metres.
         optimise: fit b_1, b_2 by maximum marginal likelihood (else keep the initial value).
         opt_points: size of the optimisation subset.
         opt_patch: side of the square patches the subset is drawn from, metres.
@@ -72,7 +73,7 @@ class GPParams:
     inlier_sigmas: float = 1.96
     max_planar_sigma: float = 0.035
     optimise: bool = True
-    opt_points: int = 300
+    opt_points: int = 150
     opt_patch: float = 1.0
     max_block_points: int = 64
     planar_per_block: int = 0
@@ -198,7 +199,7 @@ def optimise_lengthscales(patches: list[tuple[np.ndarray, np.ndarray, float]], p
     noise2 = params.noise_sigma**2
     bounds = [(-np.log(params.lengthscale2_max), -np.log(params.lengthscale2_min))] * 2
     result = minimize(neg_log_marginal_likelihood, -np.log(initial), args=(patches, noise2), jac=True,
-                      method='L-BFGS-B', bounds=bounds, options={'maxiter': 30})
+                      method='L-BFGS-B', bounds=bounds, options={'maxiter': 20})
     if not np.all(np.isfinite(result.x)):
         return initial
     return np.exp(-result.x)

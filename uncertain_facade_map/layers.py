@@ -142,7 +142,8 @@ def fit_layers(depth: np.ndarray, params: LayerParams, rng: np.random.Generator)
     sample = depth if len(depth) <= params.gmm_sample else rng.choice(depth, params.gmm_sample, replace=False)
     k = min(len(peaks), len(np.unique(sample)))
     gmm = GaussianMixture(n_components=k, covariance_type='spherical', means_init=peaks[:k, None],
-                          reg_covar=1e-6, max_iter=200, random_state=int(rng.integers(2**31)))
+                          init_params='random_from_data', reg_covar=1e-6, max_iter=200,
+                          random_state=int(rng.integers(2**31)))
     gmm.fit(sample[:, None])
     weights = gmm.weights_.astype(np.float64)
     means = gmm.means_[:, 0].astype(np.float64)

@@ -100,16 +100,25 @@ def assign_facades(facades: Sequence[FacadeModel], xyz: np.ndarray, band_back: f
     best_abs = np.full(n, np.inf)
     uvd = np.full((n, 3), np.nan)
     for i, f in enumerate(facades):
-        local = f.frame.to_local(xyz)
         r = f.surface
         h, w = r.mean.shape
-        inside = ((local[:, 0] >= r.origin[0]) & (local[:, 0] <= r.origin[0] + w * r.cell)
-                  & (local[:, 1] >= r.origin[1]) & (local[:, 1] <= r.origin[1] + h * r.cell)
+        u0, u1 = r.origin[0], r.origin[0] + w * r.cell
+        v0, v1 = r.origin[1], r.origin[1] + h * r.cell
+        # Cheap pre-selection by the map-frame box around the façade's slab.
+        corners = f.frame.to_world(np.array([[u, v, d] for u in (u0, u1) for v in (v0, v1)
+                                             for d in (-band_back, band_front)]))
+        lo, hi = corners.min(axis=0), corners.max(axis=0)
+        cand = np.flatnonzero(np.all((xyz >= lo) & (xyz <= hi), axis=1))
+        if not len(cand):
+            continue
+        local = f.frame.to_local(xyz[cand])
+        inside = ((local[:, 0] >= u0) & (local[:, 0] <= u1) & (local[:, 1] >= v0) & (local[:, 1] <= v1)
                   & (local[:, 2] >= -band_back) & (local[:, 2] <= band_front))
-        better = inside & (np.abs(local[:, 2]) < best_abs)
-        best[better] = i
-        best_abs[better] = np.abs(local[better, 2])
-        uvd[better] = local[better]
+        better = inside & (np.abs(local[:, 2]) < best_abs[cand])
+        sel = cand[better]
+        best[sel] = i
+        best_abs[sel] = np.abs(local[better, 2])
+        uvd[sel] = local[better]
     return best, uvd
 
 
