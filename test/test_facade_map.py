@@ -105,3 +105,39 @@ def test_deterministic(scene, mapped):
     for a, b in zip(fmap.facades, again.facades):
         np.testing.assert_array_equal(a.surface.mean, b.surface.mean)
         np.testing.assert_array_equal(a.surface.var, b.surface.var)
+
+
+def test_sloped_and_round_parts_are_followed(scene, mapped):
+    """On the slope and the round bay of building 1, the mean surface follows the truth."""
+    from uncertain_facade_map.queries import assign_facades, surface_at
+    from uncertain_facade_map.simulation.scene import Round, Slope
+
+    fmap, _ = mapped
+    band = (fmap.params.extraction.band_back, fmap.params.extraction.band_front)
+    checked = set()
+    for truth_facade in scene.facades:
+        for feature in truth_facade.features:
+            if isinstance(feature, Slope):
+                u0, u1, v0, v1 = feature.u0, feature.u1, feature.v0, feature.v1
+            elif isinstance(feature, Round) and feature.kind == 'bay':
+                half = np.sqrt(feature.radius**2 - feature.nc**2)
+                u0, u1, v0, v1 = feature.uc - half, feature.uc + half, feature.v0, feature.v1
+            else:
+                continue
+            # Sample the middle of the part (away from its outline), on its true surface.
+            g = np.stack(np.meshgrid(np.linspace(u0, u1, 12)[2:-2], np.linspace(v0, v1, 12)[2:-2]), -1).reshape(-1, 2)
+            depth = scene.true_depth(truth_facade.facade_id, g[:, 0], g[:, 1])
+            world = truth_facade.frame.to_world(np.c_[g, depth])
+            models = [f for f in fmap.facades if f.building == truth_facade.building_id]
+            which, uvd = assign_facades(models, world, *band)
+            assert (which >= 0).all()
+            errors = []
+            for i in np.unique(which):
+                sel = which == i
+                mean, _ = surface_at(models[i].surface, uvd[sel, :2])
+                errors.append(mean - uvd[sel, 2])
+            err = np.concatenate(errors)
+            name = type(feature).__name__
+            assert np.sqrt(np.mean(err**2)) < 0.06, (name, np.sqrt(np.mean(err**2)))
+            checked.add(name)
+    assert checked == {'Slope', 'Round'}
