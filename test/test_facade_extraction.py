@@ -1,8 +1,10 @@
 """Façade extraction against the simulator's truth and synthetic planes.
 
-Figures on the simulated scenes (seed 0, campaign 0, sensor origins given): every true
-façade with >= 2000 points is found with its normal within 0.4 degrees of the truth and
->= 99.6 % of its non-outlier points allocated to it; the tests assert 2 degrees and 97 %.
+Figures (seed 0, campaign 0, sensor origins given; rng seed 0): on ``small`` both street
+façades are found with normals within 0.02 degrees of the truth and 100 % of their
+non-outlier points allocated to them; on ``street`` all 19 façades with >= 2000 points
+are found, normals within 0.09 degrees (median 0.004), >= 99.65 % of each one's
+non-outlier points allocated to it. The tests assert 2 degrees and 97 %.
 """
 
 from __future__ import annotations

@@ -195,10 +195,11 @@ class ExtractedFacade:
         normal_cos: (M,) float64 ``|cos|`` of the angle between each point's normal and the
             façade normal, in [0, 1] (paper eq. 8's ``n_z``).
         extent: (u_min, u_max, v_min, v_max) of the allocated points, metres, façade frame.
-        plane_extent: (u_min, u_max, v_min, v_max) of the allocated points within
-            ``ransac_threshold`` of the plane (the wall itself, without balconies or
-            clutter), metres, façade frame: the extent the allocation rule of
-            :func:`assign_to_facades` uses. None: the same as ``extent``.
+        plane_extent: (u_min, u_max, v_min, v_max) of the building's points within
+            ``ransac_threshold`` of the plane near the façade (the wall itself, without
+            balconies or clutter; robust to a few strays), metres, façade frame: the
+            extent the allocation rule of :func:`assign_to_facades` grows by
+            ``extent_margin``. None (e.g. a façade built from stored fields): ``extent``.
     """
 
     frame: FacadeFrame
@@ -229,6 +230,8 @@ def _check_xyz(xyz: np.ndarray, name: str = 'xyz', *, allow_empty: bool = False)
         raise InputError(f'{name} must have shape (N, 3), got {arr.shape}')
     if not allow_empty and arr.shape[0] == 0:
         raise InputError(f'{name} is empty: no points to extract façades from')
+    if np.isfinite(arr).all():
+        return arr
     bad = ~np.isfinite(arr).all(axis=1)
     if bad.any():
         raise InputError(f'{name}: {int(bad.sum())} of {arr.shape[0]} points have NaN or infinite coordinates')
@@ -265,24 +268,27 @@ def _smallest_eigenvectors(a00: np.ndarray, a11: np.ndarray, a22: np.ndarray, a0
     phi = np.arccos(np.clip(r, -1.0, 1.0)) / 3.0
     lam = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)  # the smallest eigenvalue
     d00, d11, d22 = a00 - lam, a11 - lam, a22 - lam
-    # Rows r0 = (d00, a01, a02), r1 = (a01, d11, a12), r2 = (a02, a12, d22).
-    c01 = np.stack([a01 * a12 - a02 * d11, a02 * a01 - d00 * a12, d00 * d11 - a01 * a01], axis=1)
-    c02 = np.stack([a01 * d22 - a02 * a12, a02 * a02 - d00 * d22, d00 * a12 - a01 * a02], axis=1)
-    c12 = np.stack([d11 * d22 - a12 * a12, a12 * a02 - a01 * d22, a01 * a12 - d11 * a02], axis=1)
-    n01 = np.einsum('ij,ij->i', c01, c01)
-    n02 = np.einsum('ij,ij->i', c02, c02)
-    n12 = np.einsum('ij,ij->i', c12, c12)
-    vec = np.where((n01 >= n02)[:, None], c01, c02)
-    norm2 = np.maximum(n01, n02)
-    use12 = n12 > norm2
-    vec[use12] = c12[use12]
-    norm2 = np.maximum(norm2, n12)
+    # Rows r0 = (d00, a01, a02), r1 = (a01, d11, a12), r2 = (a02, a12, d22); their cross
+    # products r0 x r1, r0 x r2, r1 x r2, component by component.
+    c01 = (a01 * a12 - a02 * d11, a02 * a01 - d00 * a12, d00 * d11 - a01 * a01)
+    c02 = (a01 * d22 - a02 * a12, a02 * a02 - d00 * d22, d00 * a12 - a01 * a02)
+    c12 = (d11 * d22 - a12 * a12, a12 * a02 - a01 * d22, a01 * a12 - d11 * a02)
+    n01 = c01[0] * c01[0] + c01[1] * c01[1] + c01[2] * c01[2]
+    n02 = c02[0] * c02[0] + c02[1] * c02[1] + c02[2] * c02[2]
+    n12 = c12[0] * c12[0] + c12[1] * c12[1] + c12[2] * c12[2]
+    first = n01 >= n02
+    norm2 = np.where(first, n01, n02)
+    last = n12 > norm2
+    norm2 = np.where(last, n12, norm2)
     # Trust the closed form only when the cross product is well above round-off.
     scale2 = a00 * a00 + a11 * a11 + a22 * a22 + 2.0 * p1
-    tol = 1e-12 if vec.dtype == np.float64 else 1e-6
+    tol = 1e-12 if norm2.dtype == np.float64 else 1e-6
     good = norm2 > tol * scale2 * scale2
-    vec = vec.astype(np.float64)
-    vec[good] /= np.sqrt(norm2[good].astype(np.float64))[:, None]
+    vec = np.empty((len(a00), 3), dtype=np.float64)
+    for i in range(3):
+        vec[:, i] = np.where(last, c12[i], np.where(first, c01[i], c02[i]))
+    # Normalised in float64, so that the normals are unit vectors to round-off.
+    vec[good] /= np.sqrt(np.einsum('ij,ij->i', vec[good], vec[good]))[:, None]
     if not good.all():
         bad = np.flatnonzero(~good)
         cov = np.empty((len(bad), 3, 3))
@@ -313,7 +319,12 @@ def point_normals(xyz: np.ndarray, k: int) -> np.ndarray:
     n = xyz.shape[0]
     if n < 3:
         raise InputError(f'point_normals needs at least 3 points, got {n}')
-    k = int(min(k, n))
+    return _point_normals(xyz, int(min(k, n)))
+
+
+def _point_normals(xyz: np.ndarray, k: int) -> np.ndarray:
+    """:func:`point_normals` of checked (N, 3) float64 points, 3 <= k <= N."""
+    n = xyz.shape[0]
     tree = cKDTree(xyz, balanced_tree=False, compact_nodes=False)
     # Query in the tree's own order so that consecutive queries touch the same memory.
     order = tree.indices
@@ -924,7 +935,7 @@ def extract_facades(xyz: np.ndarray, params: ExtractionParams, *, sensor_origins
         return [], unallocated
     # Final frames from the subsample's allocation (the subsample pins a plane down to
     # well under 0.01 degree; the full cloud would only cost time).
-    normals = point_normals(local, min(params.normal_neighbours, n))
+    normals = _point_normals(local, min(params.normal_neighbours, n))
     which = _Bands(sub_xyz, [p.frame for p in planes], params).allocate([p.box for p in planes])
     frames: list[FacadeFrame] = []
     boxes: list[tuple[float, float, float, float]] = []
