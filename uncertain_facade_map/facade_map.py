@@ -209,7 +209,9 @@ def fit_facade(extracted: ExtractedFacade, params: MapParams, rng: np.random.Gen
     centres = raster.centres()
     cell_facet = facets.facet_at(centres)
     mean = np.full(len(centres), layers.means_[layers.main_])
-    global_var = float(np.var(depth))
+    # The global prior is centred on the main layer, so its variance is the spread of all
+    # depths about that layer (not about their own mean): paper, Section III.C.
+    global_var = float(np.mean((depth - layers.means_[layers.main_]) ** 2))
     var = np.full(len(centres), global_var)
     source = np.full(len(centres), SOURCE_GLOBAL, np.int8)
     inside = cell_facet >= 0

@@ -4,8 +4,10 @@ For every façade model, the cell centres of its raster inside the extent of its
 are compared with the true surface along the model's own normal
 (:meth:`~.scene.Scene.true_surface_along`). Cells within ``observed_radius`` of one of
 the façade's points (on the plane) are *observed*; cells further than
-``occluded_radius`` are *occluded* (shadows, gaps). Truth further than the façade's band
-from its plane belongs to another façade (around a corner) and is left out.
+``occluded_radius`` are *occluded* (shadows, gaps). Truth that belongs to another façade
+of the scene than the one the model façade stands for (around a corner, beyond the end of
+a side wall) is left out; the model façade stands for the scene façade facing the same
+way whose plane is nearest.
 
 Depth steps (a window edge, a balcony's outline) are scored apart: a cell is *at a step*
 when the truth ``step_radius`` to its left, right, below or above differs from its own by
@@ -36,8 +38,11 @@ class SurfaceEvaluation:
         observed_rmse: RMSE of the mean surface in observed cells, metres.
         observed_coverage: share of observed true surface points inside the 95 % interval.
         occluded_coverage: the same in occluded cells.
-        occluded_distance: (M,) distance of each occluded cell to the nearest point, metres.
+        occluded_distance: (M,) distance of each compared cell (near or far) to the nearest
+            point of its façade, metres.
         occluded_var: (M,) variance there, m^2.
+        occluded_var_share: (M,) that variance over its façade's global prior variance (the
+            most a façade's variance can be), so that façades can be compared.
         all_rmse: RMSE over all observed cells, steps included, metres.
         all_coverage: coverage over all observed cells, steps included.
         n_observed: number of observed cells off the steps compared.
@@ -50,20 +55,35 @@ class SurfaceEvaluation:
     occluded_coverage: float
     occluded_distance: np.ndarray
     occluded_var: np.ndarray
+    occluded_var_share: np.ndarray
     all_rmse: float
     all_coverage: float
     n_observed: int
     n_occluded: int
     per_facade: dict = field(default_factory=dict)
 
-    def variance_by_distance(self, edges: tuple[float, ...] = (0.3, 0.6, 1.2, 2.4, 100.0)) -> list[tuple[float, float, int]]:
-        """Mean variance of occluded cells per distance bin: [(lower edge, mean var, count)]."""
+    def variance_by_distance(self, edges: tuple[float, ...] = (0.0, 0.1, 0.2, 0.3, 0.6, 100.0)
+                             ) -> list[tuple[float, float, int]]:
+        """Mean variance share (variance over the façade's global prior variance) of cells per
+        distance bin to the data: [(lower edge, mean share, count)]."""
         out = []
         for lo, hi in zip(edges[:-1], edges[1:]):
             m = (self.occluded_distance >= lo) & (self.occluded_distance < hi)
             if m.any():
-                out.append((lo, float(self.occluded_var[m].mean()), int(m.sum())))
+                out.append((lo, float(self.occluded_var_share[m].mean()), int(m.sum())))
         return out
+
+
+def _matching_facade(scene: Scene, model) -> int:
+    """The scene façade a model façade stands for: facing the same way, nearest plane."""
+    best, best_gap = -1, np.inf
+    for truth in scene.facades:
+        if truth.building_id != model.building or truth.frame.n @ model.frame.normal < 0.9:
+            continue
+        gap = abs((model.frame.origin - truth.frame.origin) @ truth.frame.n)
+        if gap < best_gap:
+            best, best_gap = truth.facade_id, gap
+    return best
 
 
 def evaluate_surface(fmap: FacadeMap, scene: Scene, observed_radius: float = 0.1, occluded_radius: float = 0.3,
@@ -86,7 +106,7 @@ def evaluate_surface(fmap: FacadeMap, scene: Scene, observed_radius: float = 0.1
     """
     rng = np.random.default_rng(seed)
     band_back, band_front = fmap.params.extraction.band_back, fmap.params.extraction.band_front
-    errs, cover, occ_cover, occ_dist, occ_var, all_errs, all_cover = [], [], [], [], [], [], []
+    errs, cover, occ_cover, occ_dist, occ_var, occ_share, all_errs, all_cover = [], [], [], [], [], [], [], []
     per_facade = {}
     for b in fmap.buildings:
         points = fmap.points[b]
@@ -105,8 +125,9 @@ def evaluate_surface(fmap: FacadeMap, scene: Scene, observed_radius: float = 0.1
             mean, var = surface_at(f.surface, cells)
             world = f.frame.to_world(np.c_[cells, np.zeros(len(cells))])
             normals = np.tile(f.frame.normal, (len(cells), 1))
-            truth = scene.true_surface_along(world, normals, f.building, reach=band_front + 1.0)
-            ok = np.isfinite(truth) & (truth >= -band_back) & (truth <= band_front)
+            truth, hit_facade = scene.true_surface_hits(world, normals, f.building, reach=band_front + 1.0)
+            ok = (np.isfinite(truth) & (truth >= -band_back) & (truth <= band_front)
+                  & (hit_facade == _matching_facade(scene, f)))
             smooth = np.ones(len(cells), dtype=bool)
             for axis in range(2):
                 for sign in (-1.0, 1.0):
@@ -124,8 +145,10 @@ def evaluate_surface(fmap: FacadeMap, scene: Scene, observed_radius: float = 0.1
             errs.append(err[obs])
             cover.append(inside[obs])
             occ_cover.append(inside[occ])
-            occ_dist.append(dist[occ])
-            occ_var.append(var[occ])
+            every = ok  # distance-variance relation over all compared cells, near and far
+            occ_dist.append(dist[every])
+            occ_var.append(var[every])
+            occ_share.append(var[every] / f.global_var_)
             if obs.any():
                 per_facade[f.facade_id] = (int(obs.sum()), float(np.sqrt(np.mean(err[obs] ** 2))),
                                            float(inside[obs].mean()))
@@ -140,6 +163,7 @@ def evaluate_surface(fmap: FacadeMap, scene: Scene, observed_radius: float = 0.1
         occluded_coverage=float(oc.mean()) if len(oc) else float('nan'),
         occluded_distance=np.concatenate(occ_dist) if occ_dist else np.empty(0),
         occluded_var=np.concatenate(occ_var) if occ_var else np.empty(0),
+        occluded_var_share=np.concatenate(occ_share) if occ_share else np.empty(0),
         all_rmse=float(np.sqrt(np.mean(ae**2))) if len(ae) else float('nan'),
         all_coverage=float(ac.mean()) if len(ac) else float('nan'),
         n_observed=int(len(e)), n_occluded=int(len(oc)), per_facade=per_facade)
@@ -179,8 +203,8 @@ def main(argv: list[str] | None = None) -> int:
           f'({ev.n_observed:,} cells)')
     print(f'observed, all:       RMSE {ev.all_rmse:.4f} m, 95 % coverage {ev.all_coverage:.3f}')
     print(f'occluded:            95 % coverage {ev.occluded_coverage:.3f} ({ev.n_occluded:,} cells)')
-    print('occluded variance by distance to data: '
-          + ', '.join(f'>= {lo:g} m: {v:.4f} m^2 ({n})' for lo, v, n in ev.variance_by_distance()))
+    print('variance / global prior variance by distance to data: '
+          + ', '.join(f'>= {lo:g} m: {v:.3f} ({n})' for lo, v, n in ev.variance_by_distance()))
     print(f'outliers removed: {removed}/{total} = {removed / max(total, 1):.3f}; '
           f'inliers removed {false_alarms / max(len(pts) - total, 1):.3f}')
     return 0

@@ -609,10 +609,20 @@ class Scene:
             (K,) offset ``s`` such that ``points + s * normals`` lies on the true surface,
             metres; NaN where the line misses the building.
         """
+        return self.true_surface_hits(points, normals, building_id, reach=reach)[0]
+
+    def true_surface_hits(self, points: np.ndarray, normals: np.ndarray, building_id: int, *,
+                          reach: float = 5.0) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`true_surface_along`, and the scene façade each line meets.
+
+        Returns:
+            ``(offset, facade_id)``: (K,) as in :meth:`true_surface_along`, and (K,) int32
+            the scene-wide façade the surface belongs to (-1 for a roof or none).
+        """
         points = np.asarray(points, dtype=np.float64)
         normals = np.asarray(normals, dtype=np.float64)
         hits = self._truth_caster(building_id).cast(points + reach * normals, -normals)
-        return np.where(np.isfinite(hits.t), reach - hits.t, np.nan)
+        return np.where(np.isfinite(hits.t), reach - hits.t, np.nan), hits.facade_id
 
     def inside_building(self, points: np.ndarray) -> np.ndarray:
         """(K,) bool: True for points inside any building's solid (for tests)."""
