@@ -142,3 +142,25 @@ def test_sloped_and_round_parts_are_followed(scene, mapped):
             assert np.sqrt(np.mean(err**2)) < 0.06, (name, np.sqrt(np.mean(err**2)))
             checked.add(name)
     assert checked == {'Slope', 'Round'}
+
+
+@pytest.mark.slow
+def test_street_scene_reaches_the_issue_figures():
+    """The default scene, at its full density: the issue's figures as they stand."""
+    scene = build_scene('street', 0)
+    cloud = simulate_campaign(scene, 0)
+    pts = cloud.points[cloud.points['class'] == 1]
+    fmap = build_map(np.stack([pts['x'], pts['y'], pts['z']], 1), pts['building_id'],
+                     np.stack([pts['origin_x'], pts['origin_y'], pts['origin_z']], 1), MapParams(), cloud.map_origin)
+    ev = evaluate_surface(fmap, scene)
+    assert ev.observed_rmse <= 0.03, ev.observed_rmse  # 1.5 sigma_eta, off depth steps
+    assert 0.92 <= ev.all_coverage <= 0.98, ev.all_coverage
+    assert ev.occluded_coverage >= 0.90, ev.occluded_coverage
+    shares = [share for _, share, _ in ev.variance_by_distance()]
+    assert all(a < b for a, b in zip(shares, shares[1:])), shares
+    removed = total = 0
+    for b in fmap.buildings:
+        outlier = pts['gt_outlier'][pts['building_id'] == b] == 1
+        removed += fmap.rejected(b)[outlier].sum()
+        total += outlier.sum()
+    assert removed / total >= 0.90, removed / total
