@@ -84,7 +84,8 @@ class FacadeModel:
         facets: facets of the layers on the plane.
         lengthscale2_: (K, 2) fitted 1/b_1, 1/b_2 per layer, m^2.
         global_mean_: main layer's mean depth, metres (global prior mean).
-        global_var_: variance of all depths of the façade, m^2 (global prior variance).
+        global_var_: mean squared deviation of all the façade's depths from the main layer,
+            m^2 (global prior variance).
         noise_var: sigma_eta^2, m^2.
         surface: the predicted raster.
         point_index: (M,) int64 indices of the façade's points in its building's points.
