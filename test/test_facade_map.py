@@ -1,7 +1,7 @@
 """End to end on the simulated `small` scene: the figures of the façade model against the truth.
 
-The thresholds are the figures this version reaches, with a margin; the issue's targets
-and where they are not reached yet are stated in the README ("Figures").
+The issue's figures, on the sparse test scene (a third of the street's density); the
+street scene is checked by the slow test at the end.
 """
 
 import numpy as np
@@ -42,7 +42,7 @@ def test_every_observed_facade_is_modelled(mapped):
 
 def test_accuracy_in_observed_areas(evaluation):
     assert evaluation.n_observed > 10_000
-    assert evaluation.observed_rmse < 0.036, evaluation.observed_rmse  # issue: <= 1.5 sigma_eta = 0.03
+    assert evaluation.observed_rmse <= 0.03, evaluation.observed_rmse  # 1.5 sigma_eta, off depth steps
     assert evaluation.all_rmse < 0.13  # depth steps included
 
 
@@ -70,7 +70,7 @@ def test_injected_outliers_are_removed(mapped):
         false_alarms += rejected[~outlier].sum()
         inliers += (~outlier).sum()
     assert total > 100
-    assert removed / total >= 0.86, removed / total  # issue: >= 0.9
+    assert removed / total >= 0.90, removed / total
     assert false_alarms / inliers < 0.05
 
 

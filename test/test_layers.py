@@ -65,3 +65,16 @@ def test_too_few_points():
 
     with pytest.raises(InputError):
         fit_layers(np.array([0.1]), LayerParams(), np.random.default_rng(0))
+
+
+def test_a_lone_outlier_cell_is_no_facet():
+    rng = np.random.default_rng(4)
+    uv = rng.uniform([0, 0], [4, 4], (4000, 2))
+    uv = uv[np.abs(uv - 2.05).max(axis=1) > 0.15]  # a gap of 3 x 3 cells around (2.05, 2.05)
+    label = np.zeros(len(uv), dtype=np.int64)
+    uv = np.vstack([uv, [[2.05, 2.05]]])  # one return of clutter in it, voted to layer 1
+    label = np.r_[label, 1]
+    facets = find_facets(uv, label, 2, (0, 4, 0, 4), LayerParams())
+    assert facets.n_facets == 1 and facets.layer_of_facet.tolist() == [0]
+    kept = find_facets(uv, label, 2, (0, 4, 0, 4), LayerParams(min_facet_cells=1))
+    assert kept.n_facets == 2

@@ -43,6 +43,9 @@ class LayerParams:
         gmm_sample: EM is fitted on at most this many depths.
         facet_cell: raster cell of the facets, metres.
         fill_distance: empty cells this close to a voted cell join its facet, metres.
+        min_facet_cells: a connected region with fewer voted cells than this is no facet (a
+            lone outlier or a stray vote); its cells join the nearest real facet within
+            fill_distance.
     """
 
     histogram_bin: float = 0.01
@@ -51,6 +54,7 @@ class LayerParams:
     gmm_sample: int = 20000
     facet_cell: float = 0.10
     fill_distance: float = 0.30
+    min_facet_cells: int = 2
 
     def __post_init__(self) -> None:
         for name in ('histogram_bin', 'facet_cell'):
@@ -62,6 +66,8 @@ class LayerParams:
             raise InputError('layers.max_layers must be >= 1 and layers.gmm_sample >= 10')
         if self.fill_distance < 0:
             raise InputError(f'layers.fill_distance must be >= 0, got {self.fill_distance}')
+        if self.min_facet_cells < 1:
+            raise InputError(f'layers.min_facet_cells must be >= 1, got {self.min_facet_cells}')
 
 
 @dataclass(frozen=True, eq=False)
@@ -228,6 +234,7 @@ def find_facets(uv: np.ndarray, labels: np.ndarray, n_layers: int, extent: tuple
     voted = votes.sum(axis=1) > 0
     layer = np.where(voted, votes.argmax(axis=1), -1).reshape(height, width)
     layer = _despeckle(layer, n_layers)
+    layer = _dissolve_small(layer, n_layers, params.min_facet_cells, params.fill_distance / cell)
     # Empty cells take the layer of the nearest voted cell within fill_distance.
     dist, (ri, ci) = ndimage.distance_transform_edt(layer < 0, return_indices=True)
     filled = layer[ri, ci]
@@ -240,6 +247,27 @@ def find_facets(uv: np.ndarray, labels: np.ndarray, n_layers: int, extent: tuple
             facet[comp > 0] = comp[comp > 0] - 1 + len(layer_of_facet)
             layer_of_facet += [k] * n
     return Facets(origin, cell, facet, np.asarray(layer_of_facet, dtype=np.int32))
+
+
+def _dissolve_small(layer: np.ndarray, n_layers: int, min_cells: int, reach_cells: float) -> np.ndarray:
+    """Relabel voted regions (8-connected, one layer) of fewer than ``min_cells`` cells to the
+    layer of the nearest cell outside such regions, if that cell is within ``reach_cells``."""
+    if min_cells <= 1:
+        return layer
+    small = np.zeros(layer.shape, dtype=bool)
+    for k in range(n_layers):
+        comp, n = ndimage.label(layer == k, structure=np.ones((3, 3)))
+        if n:
+            sizes = np.bincount(comp.ravel(), minlength=n + 1)
+            small |= (sizes[comp] < min_cells) & (comp > 0)
+    keep = (layer >= 0) & ~small
+    if not small.any() or not keep.any():
+        return layer
+    dist, (ri, ci) = ndimage.distance_transform_edt(~keep, return_indices=True)
+    near = small & (dist <= reach_cells)
+    out = layer.copy()
+    out[near] = layer[ri[near], ci[near]]
+    return out
 
 
 def _despeckle(layer: np.ndarray, n_layers: int) -> np.ndarray:
