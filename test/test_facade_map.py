@@ -9,7 +9,7 @@ import pytest
 
 from uncertain_facade_map.facade_map import SOURCE_GP, MapParams, build_map
 from uncertain_facade_map.simulation.campaign import simulate_campaign
-from uncertain_facade_map.simulation.evaluation import evaluate_surface
+from uncertain_facade_map.simulation.evaluation import evaluate_surface, outlier_removal
 from uncertain_facade_map.simulation.scenes import build_scene
 
 
@@ -61,14 +61,7 @@ def test_occluded_areas_keep_wide_intervals(evaluation):
 
 def test_injected_outliers_are_removed(mapped):
     fmap, pts = mapped
-    removed, total, false_alarms, inliers = 0, 0, 0, 0
-    for b in fmap.buildings:
-        rejected = fmap.rejected(b)
-        outlier = pts['gt_outlier'][pts['building_id'] == b] == 1
-        removed += rejected[outlier].sum()
-        total += outlier.sum()
-        false_alarms += rejected[~outlier].sum()
-        inliers += (~outlier).sum()
+    removed, total, false_alarms, inliers = outlier_removal(fmap, pts)
     assert total > 100
     assert removed / total >= 0.90, removed / total
     assert false_alarms / inliers < 0.05
@@ -158,9 +151,5 @@ def test_street_scene_reaches_the_issue_figures():
     assert ev.occluded_coverage >= 0.90, ev.occluded_coverage
     shares = [share for _, share, _ in ev.variance_by_distance()]
     assert all(a < b for a, b in zip(shares, shares[1:])), shares
-    removed = total = 0
-    for b in fmap.buildings:
-        outlier = pts['gt_outlier'][pts['building_id'] == b] == 1
-        removed += fmap.rejected(b)[outlier].sum()
-        total += outlier.sum()
+    removed, total, _, _ = outlier_removal(fmap, pts)
     assert removed / total >= 0.90, removed / total

@@ -74,6 +74,28 @@ class SurfaceEvaluation:
         return out
 
 
+def outlier_removal(fmap: FacadeMap, points: np.ndarray) -> tuple[int, int, int, int]:
+    """How many injected outliers and inliers the map rejected.
+
+    Args:
+        fmap: the map, built from ``points`` in their order, labelled by ``building_id``.
+        points: structured building points with the fields ``building_id`` and ``gt_outlier``.
+
+    Returns:
+        ``(outliers rejected, outliers, inliers rejected, inliers)``; rejected means on no
+        façade or removed by the outlier test (:meth:`FacadeMap.rejected`).
+    """
+    removed = total = false_alarms = inliers = 0
+    for b in fmap.buildings:
+        rejected = fmap.rejected(b)
+        outlier = points['gt_outlier'][points['building_id'] == b] == 1
+        removed += int(rejected[outlier].sum())
+        total += int(outlier.sum())
+        false_alarms += int(rejected[~outlier].sum())
+        inliers += int((~outlier).sum())
+    return removed, total, false_alarms, inliers
+
+
 def _matching_facade(scene: Scene, model) -> int:
     """The scene façade a model façade stands for: facing the same way, nearest plane."""
     best, best_gap = -1, np.inf
@@ -190,13 +212,7 @@ def main(argv: list[str] | None = None) -> int:
                      np.stack([pts['origin_x'], pts['origin_y'], pts['origin_z']], 1), MapParams(), cloud.map_origin)
     seconds = time.perf_counter() - started
     ev = evaluate_surface(fmap, scene)
-    removed = total = false_alarms = 0
-    for b in fmap.buildings:
-        rejected = fmap.rejected(b)
-        outlier = pts['gt_outlier'][pts['building_id'] == b] == 1
-        removed += int(rejected[outlier].sum())
-        total += int(outlier.sum())
-        false_alarms += int(rejected[~outlier].sum())
+    removed, total, false_alarms, inliers = outlier_removal(fmap, pts)
     print(f'scene {args.scene} seed {args.seed}: {len(cloud):,} points, {len(pts):,} building, '
           f'{len(fmap.facades)} façades, built in {seconds:.1f} s')
     print(f'observed, off steps: RMSE {ev.observed_rmse:.4f} m, 95 % coverage {ev.observed_coverage:.3f} '
@@ -206,7 +222,7 @@ def main(argv: list[str] | None = None) -> int:
     print('variance / global prior variance by distance to data: '
           + ', '.join(f'>= {lo:g} m: {v:.3f} ({n})' for lo, v, n in ev.variance_by_distance()))
     print(f'outliers removed: {removed}/{total} = {removed / max(total, 1):.3f}; '
-          f'inliers removed {false_alarms / max(len(pts) - total, 1):.3f}')
+          f'inliers removed {false_alarms / max(inliers, 1):.3f}')
     return 0
 
 
