@@ -328,6 +328,8 @@ def loo_statistic(system: BlockSystem) -> np.ndarray:
 # ----------------------------------------------------------------------------------------
 _NB = np.int64(1 << 20)  # codes: (facet * NB + bu) * NB + bv, block indices offset by NB/2
 _HALF = np.int64(1 << 19)
+#: Code offsets of a block's extended block: itself and its 8 neighbours (same facet).
+_NEIGHBOURS = np.array([du * _NB + dv for du in (-1, 0, 1) for dv in (-1, 0, 1)], dtype=np.int64)
 #: Padded sizes of block systems; a block with n points goes to the first size >= n.
 BUCKETS = (8, 16, 32, 48, 64, 96, 128, 192, 256)
 #: Blocks factorised at once (bounds memory: 1000 x 64 x 64 doubles = 33 MB).
@@ -374,8 +376,7 @@ def gather_blocks(blocks: np.ndarray, train_codes: np.ndarray, cap: int, rng: np
     """
     order = np.argsort(train_codes, kind='stable')
     sorted_codes = train_codes[order]
-    offsets = np.array([(du * _NB + dv) for du in (-1, 0, 1) for dv in (-1, 0, 1)], dtype=np.int64)
-    neighbours = blocks[:, None] + offsets[None, :]  # (B, 9); facet stays, |du|,|dv| <= 1
+    neighbours = blocks[:, None] + _NEIGHBOURS[None, :]  # (B, 9); facet stays, |du|,|dv| <= 1
     start = np.searchsorted(sorted_codes, neighbours, side='left')
     count = np.searchsorted(sorted_codes, neighbours, side='right') - start
     counts = count.ravel()
@@ -383,7 +384,7 @@ def gather_blocks(blocks: np.ndarray, train_codes: np.ndarray, cap: int, rng: np
     block = np.repeat(np.repeat(np.arange(len(blocks)), 9), counts)
     first = np.repeat(start.ravel() - (np.cumsum(counts) - counts), counts)
     point = order[first + np.arange(total)]
-    central = np.repeat(np.tile(offsets == 0, len(blocks)), counts)
+    central = np.repeat(np.tile(_NEIGHBOURS == 0, len(blocks)), counts)
     key = rng.random(total) + np.where(central, 0.0, 1.0)
     arrange = np.lexsort((key, block))
     block, point = block[arrange], point[arrange]
@@ -571,7 +572,6 @@ def fit_surface(data: BlockData, uv: np.ndarray, facet: np.ndarray, params: GPPa
         removed |= flagged
         active &= ~flagged
         # Blocks whose extended block held a removed point are solved again.
-        offsets = np.array([(du * _NB + dv) for du in (-1, 0, 1) for dv in (-1, 0, 1)], dtype=np.int64)
-        hit = np.unique(train_codes[flagged][:, None] + offsets[None, :])
+        hit = np.unique(train_codes[flagged][:, None] + _NEIGHBOURS[None, :])
         todo = np.flatnonzero(np.isin(blocks, hit))
     return mean, var, seen, removed

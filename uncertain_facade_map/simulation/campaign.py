@@ -119,11 +119,10 @@ def campaign(scene: Scene, index: int) -> Campaign:
                     EPOCH + index * CAMPAIGN_SPACING)
 
 
-def _trajectory(scene: Scene, drive: Campaign, speed: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+def _trajectory(scene: Scene, drive: Campaign) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """Arc-length parametrised lane polyline: vertices (K, 2), cumulative length (K,), headings (K-1,), length."""
     line = scene.street.centreline[::-1] if drive.reverse else scene.street.centreline
     seg = np.diff(line, axis=0)
-    seg_len = np.hypot(seg[:, 0], seg[:, 1])
     heading = np.arctan2(seg[:, 1], seg[:, 0])
     left = np.stack([-np.sin(heading), np.cos(heading)], axis=1)
     # Offset every vertex by the lane to its left (mitre offsets at joints).
@@ -148,7 +147,7 @@ def poses(scene: Scene, drive: Campaign, sensor: SensorConfig, times: np.ndarray
         ``(xy, yaw)``: (N, 2) vehicle position at ground level, metres, map frame, and
         (N,) heading, radians from +x.
     """
-    line, cum, heading, _ = _trajectory(scene, drive, sensor.speed)
+    line, cum, heading, _ = _trajectory(scene, drive)
     s = np.clip(times * sensor.speed, 0.0, cum[-1])
     k = np.clip(np.searchsorted(cum, s, side='right') - 1, 0, len(heading) - 1)
     frac = (s - cum[k]) / np.maximum(cum[k + 1] - cum[k], 1e-12)
@@ -158,7 +157,7 @@ def poses(scene: Scene, drive: Campaign, sensor: SensorConfig, times: np.ndarray
 
 def drive_duration(scene: Scene, drive: Campaign, sensor: SensorConfig) -> float:
     """Seconds the drive takes."""
-    return _trajectory(scene, drive, sensor.speed)[3] / sensor.speed
+    return _trajectory(scene, drive)[3] / sensor.speed
 
 
 def simulate_campaign(scene: Scene, index: int = 0, sensor: SensorConfig | None = None, *,

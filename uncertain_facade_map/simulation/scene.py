@@ -18,7 +18,8 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from ..cloud import CLASS_BUILDING, CLASS_NAMES
-from .raycast import INF, inverse_directions, ray_aabb, ray_convex, ray_prism, ray_sphere, ray_vertical_cylinder
+from .raycast import (INF, inverse_directions, points_in_polygon, ray_aabb, ray_convex, ray_prism, ray_sphere,
+                      ray_vertical_cylinder)
 
 CLASS_GROUND = 2
 CLASS_VEGETATION = 3
@@ -626,8 +627,6 @@ class Scene:
 
     def inside_building(self, points: np.ndarray) -> np.ndarray:
         """(K,) bool: True for points inside any building's solid (for tests)."""
-        from .raycast import points_in_polygon
-
         points = np.asarray(points, dtype=np.float64)
         inside = np.zeros(len(points), dtype=bool)
         for leaves in self._building_leaves.values():
