@@ -1,8 +1,8 @@
 """Python packaging for uncertain_facade_map.
 
-The project's own environment installs it with ``pip install -e .`` (``make venv``);
-in a colcon workspace CMakeLists.txt installs the same Python packages next to the
-generated interfaces.
+The project's own environment installs it with ``pip install -e .`` in setuptools' compat
+mode (``make venv``; the ROS interfaces are built by CMake, see the Makefile); in a colcon
+workspace CMakeLists.txt installs the same Python packages next to the generated interfaces.
 """
 
 from setuptools import find_packages, setup
@@ -15,7 +15,8 @@ setup(
     description='Façade maps with calibrated uncertainty: GMM depth layers + local GP blocks (ROS 2 Jazzy)',
     license='MIT',
     python_requires='==3.11.*',
-    packages=find_packages(include=[PACKAGE, f'{PACKAGE}.*', 'msg_adapters', 'msg_adapters.*']),
+    packages=find_packages(include=[PACKAGE, f'{PACKAGE}.*', 'msg_adapters', 'msg_adapters.*',
+                                    'uncertain_facade_map_node', 'uncertain_facade_map_node.*']),
     package_data={PACKAGE: ['py.typed']},
     data_files=[
         ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
@@ -26,6 +27,7 @@ setup(
     entry_points={
         'console_scripts': [
             'uncertain-facade-map = uncertain_facade_map.cli:main',
+            'facade_mapper = uncertain_facade_map_node.node:main',
         ],
     },
 )

@@ -6,3 +6,4 @@ conversion lives in the sibling package ``msg_adapters``.
 """
 
 __version__ = '0.1.0'
+__path__ = __import__('pkgutil').extend_path(__path__, __name__)
