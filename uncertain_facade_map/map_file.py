@@ -5,8 +5,15 @@ An open format any numpy (or any zip + .npy reader) can read, no pickle. It hold
 - ``meta``: a JSON document (format name, version, map origin, parameters, façade list);
 - per façade ``i``: ``facade/<i>/<name>`` arrays (frame, layers, facets, length scales,
   surface raster: mean, variance, facet, source);
-- per building ``b``: ``building/<b>/points`` and, if known, ``building/<b>/sensor_origins``
-  (kept so that a loaded map can go on mapping).
+- ``pending/xyz`` (and ``pending/building_id``, ``pending/sensor_origins``): points
+  received but held back for the next update (live mapping);
+- per building ``b``: ``building/<b>/points``, ``building/<b>/normals`` and, if known,
+  ``building/<b>/sensor_origins`` (kept so that a loaded map goes on mapping exactly as
+  the map that was saved would have).
+
+Version 2 added what incremental mapping needs (per façade the wall's ``plane_extent``,
+the block grid's ``anchor`` and the points at the last whole fit; per building the point
+normals and the pool size at the last RANSAC run); version 1 files are upgraded on load.
 
 Loading gives back every array bit for bit. A file of a newer version is refused with a
 message saying so; older versions are upgraded by the functions in :data:`MIGRATIONS`.
@@ -27,14 +34,14 @@ import numpy as np
 
 from .errors import InputError
 from .facade_extraction import ExtractionParams
-from .facade_map import FacadeMap, FacadeModel, MapParams, SurfaceRaster
+from .facade_map import FacadeMap, FacadeModel, MapParams, SurfaceRaster, UpdateParams
 from .frames import FacadeFrame
 from .gp_blocks import GPParams
 from .layers import DepthLayers, Facets, LayerParams
 from .outliers import OutlierParams
 
 FORMAT = 'uncertain_facade_map.map'
-VERSION = 1
+VERSION = 2
 #: Upgrades of older files: version -> function(meta, arrays) returning the next version's.
 MIGRATIONS: dict[int, Callable[[dict, dict], tuple[dict, dict]]] = {}
 
@@ -52,6 +59,7 @@ def _params_from_dict(data: dict) -> MapParams:
                      layers=build(LayerParams, data.get('layers', {})),
                      gp=build(GPParams, data.get('gp', {})),
                      outliers=build(OutlierParams, data.get('outliers', {})),
+                     update=build(UpdateParams, data.get('update', {})),
                      seed=int(data.get('seed', 0)))
 
 
@@ -73,6 +81,8 @@ def _facade_arrays(f: FacadeModel) -> dict[str, np.ndarray]:
         p + 'surface_source': s.source,
         p + 'point_index': f.point_index,
         p + 'outlier_index': f.outlier_index,
+        p + 'plane_extent': np.asarray(f.plane_extent, dtype=np.float64),
+        p + 'anchor': np.asarray(f.anchor, dtype=np.float64),
     }
 
 
@@ -95,16 +105,28 @@ def save_map(fmap: FacadeMap, path: str | Path) -> Path:
         'facades': [{'facade_id': f.facade_id, 'building': f.building, 'main_layer': f.layers.main_,
                      'facet_cell': f.facets.cell, 'surface_cell': f.surface.cell,
                      'global_mean': f.global_mean_, 'global_var': f.global_var_, 'noise_var': f.noise_var,
-                     'stats': f.stats} for f in fmap.facades],
+                     'fitted_points': f.fitted_points, 'stats': f.stats} for f in fmap.facades],
+        'pool_checked': {str(b): int(n) for b, n in fmap.pool_checked.items()},
     }
     arrays: dict[str, np.ndarray] = {'meta': np.array(json.dumps(meta))}
     for f in fmap.facades:
         arrays.update(_facade_arrays(f))
     for b in fmap.buildings:
         arrays[f'building/{b}/points'] = fmap.points[b]
+        arrays[f'building/{b}/normals'] = fmap.normals[b]
         so = fmap.sensor_origins.get(b)
         if so is not None:
             arrays[f'building/{b}/sensor_origins'] = so
+    if fmap.pending:
+        # Points held back for the next update, as one batch (merging is what the next
+        # update does first, so the loaded map goes on exactly as this one would).
+        xyz = np.vstack([p[0] for p in fmap.pending])
+        arrays['pending/xyz'] = xyz
+        if any(p[1] is not None for p in fmap.pending):
+            arrays['pending/building_id'] = np.concatenate(
+                [p[1] if p[1] is not None else np.full(len(p[0]), -1, np.int64) for p in fmap.pending])
+        if all(p[2] is not None for p in fmap.pending):
+            arrays['pending/sensor_origins'] = np.vstack([p[2] for p in fmap.pending])
     fd, tmp = tempfile.mkstemp(prefix=f'.{path.name}.', suffix='.tmp', dir=path.parent)
     try:
         with os.fdopen(fd, 'wb') as fh:
@@ -173,7 +195,44 @@ def _from_records(meta: dict, arrays: dict[str, np.ndarray]) -> FacadeMap:
                                    FacadeFrame.from_array(arrays[p + 'frame']), extent, layers, facets,
                                    arrays[p + 'lengthscale2'], float(info['global_mean']), float(info['global_var']),
                                    float(info['noise_var']), surface, arrays[p + 'point_index'],
-                                   arrays[p + 'outlier_index'], info.get('stats', {})))
+                                   arrays[p + 'outlier_index'], info.get('stats', {}),
+                                   tuple(float(x) for x in arrays[p + 'plane_extent']), arrays[p + 'anchor'],
+                                   int(info['fitted_points'])))
     points = {int(b): arrays[f'building/{b}/points'] for b in meta['buildings']}
     origins = {int(b): arrays.get(f'building/{b}/sensor_origins') for b in meta['buildings']}
-    return FacadeMap(params, np.asarray(meta['map_origin'], dtype=np.float64), facades, points, origins)
+    normals = {int(b): arrays[f'building/{b}/normals'] for b in meta['buildings']}
+    pool = {int(b): int(n) for b, n in meta['pool_checked'].items()}
+    pending = []
+    if 'pending/xyz' in arrays:
+        pending.append((arrays['pending/xyz'], arrays.get('pending/building_id'), arrays.get('pending/sensor_origins')))
+    return FacadeMap(params, np.asarray(meta['map_origin'], dtype=np.float64), facades, points, origins, normals,
+                     pool, pending=pending)
+
+
+def _upgrade_1(meta: dict, arrays: dict[str, np.ndarray]) -> tuple[dict, dict]:
+    """Version 1 -> 2: plane extents are the façades' extents, anchors the rasters'
+    origins, every façade counts as fitted whole, normals are estimated from the points, and
+    the pools count as checked."""
+    from .facade_extraction import point_normals
+
+    k = int(meta['params'].get('extraction', {}).get('normal_neighbours', 10))
+    for info in meta['facades']:
+        p = f'facade/{info["facade_id"]}/'
+        arrays[p + 'plane_extent'] = arrays[p + 'extent']
+        arrays[p + 'anchor'] = arrays[p + 'surface_origin']
+        info['fitted_points'] = int(len(arrays[p + 'point_index']))
+    pool = {}
+    for b in meta['buildings']:
+        pts = arrays[f'building/{b}/points']
+        arrays[f'building/{b}/normals'] = point_normals(pts - pts.mean(axis=0), k) if len(pts) >= 3 else \
+            np.tile([0.0, 0.0, 1.0], (len(pts), 1))
+        owned = np.zeros(len(pts), dtype=bool)
+        for info in meta['facades']:
+            if int(info['building']) == int(b):
+                owned[arrays[f'facade/{info["facade_id"]}/point_index']] = True
+        pool[str(b)] = int((~owned).sum())
+    meta = dict(meta, version=2, pool_checked=pool)
+    return meta, arrays
+
+
+MIGRATIONS[1] = _upgrade_1

@@ -196,21 +196,41 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
     import time
 
-    from ..facade_map import MapParams, build_map
+    from ..facade_map import FacadeMap, MapParams
     from .campaign import simulate_campaign
     from .scenes import build_scene
 
     parser = argparse.ArgumentParser(description='Map a simulated scene and print its figures against the truth.')
     parser.add_argument('--scene', default='small', choices=('small', 'street', 'zurich'))
     parser.add_argument('--seed', type=int, default=0)
+    parser.add_argument('--batch', type=float, default=0.0,
+                        help='map incrementally, in batches of this many seconds of the drive (default: one batch)')
     args = parser.parse_args(argv)
     scene = build_scene(args.scene, args.seed)
     cloud = simulate_campaign(scene, 0)
     pts = cloud.points[cloud.points['class'] == 1]
+    pts = pts[np.argsort(pts['time'], kind='stable')]
+    xyz = np.stack([pts['x'], pts['y'], pts['z']], 1)
+    origins = np.stack([pts['origin_x'], pts['origin_y'], pts['origin_z']], 1)
+    if args.batch > 0:
+        bounds = np.searchsorted(pts['time'], np.arange(pts['time'][0], pts['time'][-1] + args.batch, args.batch)[1:])
+        bounds = np.unique(np.r_[0, bounds, len(pts)])
+    else:
+        bounds = np.array([0, len(pts)])
+    fmap = FacadeMap(MapParams(), cloud.map_origin)
     started = time.perf_counter()
-    fmap = build_map(np.stack([pts['x'], pts['y'], pts['z']], 1), pts['building_id'],
-                     np.stack([pts['origin_x'], pts['origin_y'], pts['origin_z']], 1), MapParams(), cloud.map_origin)
+    slowest = 0.0
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        if b > a:
+            fmap.add_points(xyz[a:b], pts['building_id'][a:b], origins[a:b], defer=len(bounds) > 2)
+            slowest = max(slowest, fmap.last_update.get('seconds', 0.0))
+    streamed = time.perf_counter() - started
+    fmap.flush()
     seconds = time.perf_counter() - started
+    if len(bounds) > 2:
+        print(f'{len(bounds) - 1} batches of {args.batch:g} s (updates of >= {fmap.params.update.batch_points:,} '
+              f'points): {len(pts) / streamed:,.0f} building points/s while streaming, slowest update '
+              f'{slowest:.2f} s; final flush {seconds - streamed:.1f} s')
     ev = evaluate_surface(fmap, scene)
     removed, total, false_alarms, inliers = outlier_removal(fmap, pts)
     print(f'scene {args.scene} seed {args.seed}: {len(cloud):,} points, {len(pts):,} building, '
