@@ -279,3 +279,72 @@ def select_building_points(cloud: Cloud, config: InputConfig) -> BuildingPoints:
         index=index,
         map_origin=cloud.map_origin.copy(),
     )
+
+
+@dataclass(frozen=True, eq=False)
+class ScanPoints:
+    """The building points of one live scan, and what was left out.
+
+    Attributes:
+        xyz: (N, 3) float64 building points with finite coordinates, metres, frame of the scan.
+        building_id: (N,) int64 building ids, or None.
+        sensor_origins: (N, 3) float64 sensor positions, metres, or None.
+        nonfinite: number of points skipped for NaN or infinite coordinates.
+        not_building: number of finite points of another class.
+    """
+
+    xyz: np.ndarray
+    building_id: np.ndarray | None
+    sensor_origins: np.ndarray | None
+    nonfinite: int
+    not_building: int
+
+
+def select_scan_points(points: np.ndarray, config: InputConfig) -> ScanPoints:
+    """Building points of one scan (a PointCloud2 as a structured array), tolerant of gaps.
+
+    Unlike :func:`select_building_points` (whole inputs, where a NaN is an error), a live
+    scan may hold NaN or infinite points (no return): they are skipped and counted. A scan
+    without building points gives empty arrays. Used alike by the node and by offline
+    replay, so both map the same points.
+
+    Args:
+        points: (M,) structured array with at least float fields ``x``, ``y``, ``z``;
+            ``config.class_field``, ``config.building_id_field`` and ``origin_x``,
+            ``origin_y``, ``origin_z`` are used when present.
+        config: which class values are building.
+
+    Returns:
+        The building points.
+
+    Raises:
+        InputError: no x, y or z field (the message lists the fields), a coordinate or
+            class field that is not numeric, or a class or building id field that holds
+            non-integer values.
+    """
+    names = points.dtype.names or ()
+    missing = [c for c in ('x', 'y', 'z') if c not in names]
+    if missing:
+        raise InputError(f'no {", ".join(missing)} field (fields: {", ".join(names) or "none"})')
+    for c in ('x', 'y', 'z'):
+        if points.dtype[c].kind not in 'iuf' or points.dtype[c].shape:
+            raise InputError(f'field {c!r} must be a number, found type {points.dtype[c]}')
+    cloud = Cloud(points)
+    xyz = np.stack([points[c].astype(np.float64) for c in ('x', 'y', 'z')], axis=1)
+    keep = np.isfinite(xyz).all(axis=1)
+    nonfinite = int((~keep).sum())
+    not_building = 0
+    if config.class_field in names:
+        classes = _integer_values(cloud, config.class_field, 'class')
+        building = np.isin(classes, np.asarray(config.building_classes, dtype=np.int64))
+        not_building = int((keep & ~building).sum())
+        keep &= building
+    ids = None
+    if config.building_id_field in names:
+        ids = _integer_values(cloud, config.building_id_field, 'building id')[keep]
+    origins = None
+    if all(c in names for c in ('origin_x', 'origin_y', 'origin_z')):
+        origins = np.stack([points[c][keep].astype(np.float64) for c in ('origin_x', 'origin_y', 'origin_z')], 1)
+        if not np.isfinite(origins).all():
+            origins = None
+    return ScanPoints(xyz[keep], ids, origins, nonfinite, not_building)
