@@ -94,10 +94,16 @@ def assign_facades(facades: Sequence[FacadeModel], xyz: np.ndarray, band_back: f
     Returns:
         ``(facade, uvd)``: (N,) int32 index into ``facades`` (-1 for none) and (N, 3) the
         point in that façade's frame (NaN for none).
+
+    A point within several façades' slabs goes to the one with the smallest ``|d|`` among
+    those whose raster holds a facet at the point, else among all: near a corner, the air
+    in front of one wall lies in the margin of the other wall's raster, where only that
+    wall's global prior holds, and would otherwise read as that wall's solid.
     """
     n = len(xyz)
     best = np.full(n, -1, dtype=np.int32)
     best_abs = np.full(n, np.inf)
+    no_facet = 1e6  # added to |d| where the façade has no facet at the point
     uvd = np.full((n, 3), np.nan)
     for i, f in enumerate(facades):
         r = f.surface
@@ -114,10 +120,13 @@ def assign_facades(facades: Sequence[FacadeModel], xyz: np.ndarray, band_back: f
         local = f.frame.to_local(xyz[cand])
         inside = ((local[:, 0] >= u0) & (local[:, 0] <= u1) & (local[:, 1] >= v0) & (local[:, 1] <= v1)
                   & (local[:, 2] >= -band_back) & (local[:, 2] <= band_front))
-        better = inside & (np.abs(local[:, 2]) < best_abs[cand])
+        col = np.clip(((local[:, 0] - u0) / r.cell).astype(np.int64), 0, w - 1)
+        row = np.clip(((local[:, 1] - v0) / r.cell).astype(np.int64), 0, h - 1)
+        key = np.abs(local[:, 2]) + np.where(r.facet[row, col] >= 0, 0.0, no_facet)
+        better = inside & (key < best_abs[cand])
         sel = cand[better]
         best[sel] = i
-        best_abs[sel] = np.abs(local[better, 2])
+        best_abs[sel] = key[better]
         uvd[sel] = local[better]
     return best, uvd
 
