@@ -31,6 +31,7 @@ import yaml
 from .errors import InputError
 from .facade_extraction import ExtractionParams
 from .gp_blocks import GPParams
+from .facade_map import UpdateParams
 from .layers import LayerParams
 from .outliers import OutlierParams
 
@@ -80,16 +81,88 @@ class ModelConfig:
 
 
 @dataclass(frozen=True)
+class NodeConfig:
+    """The facade_mapper node's input handling (the command line ignores this section)."""
+
+    qos: str = field(default='sensor_data', metadata=_meta(
+        'QoS of the points subscription: sensor_data (best effort, as drivers publish) or reliable'))
+    queue_size: int = field(default=20, metadata=_meta(
+        'clouds waiting for the mapping worker at most; when full the oldest waiting cloud is dropped '
+        '(and counted), so the map follows the newest data', 1, 10000))
+    max_cloud_points: int = field(default=5_000_000, metadata=_meta(
+        'a cloud with more points is refused with a warning', 1, 1_000_000_000))
+    idle_flush: float = field(default=1.0, metadata=_meta(
+        'when no cloud has come for this long, the points held back (update.batch_points) are mapped and the '
+        'façades updated block by block are fitted whole, seconds (0: never)', 0.0, 3600.0))
+    pose_tolerance: float = field(default=0.05, metadata=_meta(
+        'a cloud in another frame is mapped with the sensor pose nearest its stamp if closer than this, seconds',
+        0.0, 3600.0))
+    pose_buffer: int = field(default=1000, metadata=_meta('sensor poses kept for clouds in another frame', 1, 1_000_000))
+
+
+@dataclass(frozen=True)
+class PublishConfig:
+    """What the node publishes, and how often."""
+
+    period: float = field(default=5.0, metadata=_meta(
+        'the maps are published at most this often after an update, seconds (0: after every update)', 0.0, 3600.0))
+    surface_step: float = field(default=0.1, metadata=_meta(
+        'grid step of the mean-surface cloud, metres (a multiple of gp.grid_resolution keeps the raster values)',
+        1e-3, 10.0))
+    mesh_step: float = field(default=0.2, metadata=_meta(
+        'grid step of the surface mesh, metres (RViz and the message size set the limit)', 1e-3, 10.0))
+    voxel_resolution: float = field(default=0.2, metadata=_meta('voxel side of the 3D occupancy map, metres',
+                                                                1e-3, 10.0))
+    voxel_shell: float = field(default=0.3, metadata=_meta(
+        'the 3D occupancy map holds the voxels within this distance of a mean surface, metres', 0.0, 10.0))
+    grid_resolution: float = field(default=0.1, metadata=_meta('cell of the 2D occupancy grid, metres', 1e-3, 10.0))
+    grid_z_min: float = field(default=0.5, metadata=_meta('lower end of the 2D grid\'s height band, metres, map frame'))
+    grid_z_max: float = field(default=2.0, metadata=_meta('upper end of the 2D grid\'s height band, metres, map frame'))
+    diagnostics_period: float = field(default=1.0, metadata=_meta('diagnostics are published this often, seconds',
+                                                                  0.01, 3600.0))
+
+
+@dataclass(frozen=True)
+class ServiceConfig:
+    """Limits of the node's services."""
+
+    max_query_points: int = field(default=1_000_000, metadata=_meta(
+        'a query with more points is refused (ask in batches)', 1, 100_000_000))
+
+
+@dataclass(frozen=True)
+class PersistenceConfig:
+    """Where the node keeps its map."""
+
+    map_path: str = field(default='', metadata=_meta(
+        'map file loaded at start when it exists, and the default of the save and load services ("" for none)'))
+    autosave_period: float = field(default=0.0, metadata=_meta(
+        'save the map to map_path this often when it changed, seconds (0: never)', 0.0, 1e6))
+
+
+@dataclass(frozen=True)
 class Config:
-    """All parameters, by section (one section per pipeline stage)."""
+    """All parameters, by section (one section per pipeline stage, then the node's)."""
 
     input: InputConfig = field(default_factory=InputConfig)
     extraction: ExtractionParams = field(default_factory=ExtractionParams)
     layers: LayerParams = field(default_factory=LayerParams)
     gp: GPParams = field(default_factory=GPParams)
     outliers: OutlierParams = field(default_factory=OutlierParams)
+    update: UpdateParams = field(default_factory=UpdateParams)
     query: QueryConfig = field(default_factory=QueryConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
+    node: NodeConfig = field(default_factory=NodeConfig)
+    publish: PublishConfig = field(default_factory=PublishConfig)
+    service: ServiceConfig = field(default_factory=ServiceConfig)
+    persistence: PersistenceConfig = field(default_factory=PersistenceConfig)
+
+    def __post_init__(self) -> None:
+        if self.node.qos not in ('sensor_data', 'reliable'):
+            raise InputError(f'parameter node.qos: expected sensor_data or reliable, got {self.node.qos!r}')
+        if self.publish.grid_z_max <= self.publish.grid_z_min:
+            raise InputError(f'parameter publish.grid_z_max ({self.publish.grid_z_max}) must exceed '
+                             f'publish.grid_z_min ({self.publish.grid_z_min})')
 
 
 def map_params(config: Config):
@@ -97,7 +170,32 @@ def map_params(config: Config):
     from .facade_map import MapParams
 
     return MapParams(extraction=config.extraction, layers=config.layers, gp=config.gp, outliers=config.outliers,
-                     seed=config.model.seed)
+                     update=config.update, seed=config.model.seed)
+
+
+#: Ranges of the modelling parameters (their dataclasses check finer conditions); the node
+#: declares them in its parameter descriptors.
+RANGES: dict[str, tuple[float, float]] = {
+    'extraction.ransac_threshold': (1e-4, 10.0), 'extraction.ransac_iterations': (1, 1_000_000),
+    'extraction.ransac_sample': (3, 1_000_000_000), 'extraction.min_facade_points': (3, 1_000_000_000),
+    'extraction.max_facades': (1, 10_000), 'extraction.max_tilt_deg': (0.0, 90.0),
+    'extraction.merge_angle_deg': (0.0, 90.0), 'extraction.merge_offset': (0.0, 1000.0),
+    'extraction.band_front': (0.0, 1000.0), 'extraction.band_back': (0.0, 1000.0),
+    'extraction.extent_margin': (0.0, 1000.0), 'extraction.normal_neighbours': (3, 10_000),
+    'extraction.building_cell': (1e-3, 1000.0),
+    'layers.histogram_bin': (1e-5, 10.0), 'layers.min_peak_share': (0.0, 1.0), 'layers.max_layers': (1, 1000),
+    'layers.gmm_sample': (2, 1_000_000_000), 'layers.facet_cell': (1e-3, 100.0), 'layers.fill_distance': (0.0, 100.0),
+    'layers.min_facet_cells': (1, 1_000_000),
+    'gp.noise_sigma': (1e-6, 100.0), 'gp.initial_lengthscale2': (1e-8, 1e4), 'gp.lengthscale2_min': (1e-8, 1e4),
+    'gp.lengthscale2_max': (1e-8, 1e4), 'gp.c_min': (1e-300, 1.0), 'gp.alpha_z_deg': (0.0, 90.0),
+    'gp.inlier_sigmas': (0.0, 1000.0), 'gp.max_planar_sigma': (0.0, 1000.0), 'gp.opt_points': (1, 1_000_000),
+    'gp.opt_patch': (1e-3, 1e4), 'gp.max_block_points': (1, 100_000), 'gp.planar_per_block': (0, 100_000),
+    'gp.grid_resolution': (1e-3, 100.0),
+    'outliers.alpha': (0.0, 1.0), 'outliers.iterations': (0, 1000),
+    'update.refit_growth': (1e-3, 1e3), 'update.extraction_growth': (1e-3, 1e3), 'update.normal_reach': (0.0, 1e3),
+    'update.batch_points': (1, 1_000_000_000),
+    'model.seed': (0, 2**31 - 1),
+}
 
 
 @lru_cache(maxsize=None)
@@ -135,8 +233,9 @@ def parameter_items(config: Config | None = None) -> Iterator[tuple[str, Any, st
         sub = getattr(config, section)
         docs = _attribute_docs(cls)
         for f in dataclasses.fields(cls):
-            yield f'{section}.{f.name}', getattr(sub, f.name), f.metadata.get('description', docs.get(f.name, '')), \
-                f.metadata.get('range', (None, None))
+            name = f'{section}.{f.name}'
+            yield name, getattr(sub, f.name), f.metadata.get('description', docs.get(f.name, '')), \
+                f.metadata.get('range', RANGES.get(name, (None, None)))
 
 
 def _coerce(name: str, value: Any, typ: Any, bounds: tuple) -> Any:
@@ -192,7 +291,8 @@ def config_from_parameters(params: dict[str, Any]) -> Config:
         section, f = known[name]
         cls = dict(_sections())[section]
         typ = get_type_hints(cls)[f.name]
-        values.setdefault(section, {})[f.name] = _coerce(name, value, typ, f.metadata.get('range', (None, None)))
+        values.setdefault(section, {})[f.name] = _coerce(name, value, typ,
+                                                         f.metadata.get('range', RANGES.get(name, (None, None))))
     return Config(**{section: cls(**values.get(section, {})) for section, cls in _sections()})  # validates ranges
 
 
