@@ -308,6 +308,8 @@ def test_every_scan_is_mapped_and_reported(client, mapped, scans):
     assert int(values['clouds_in']) == len(scans)
     assert int(values['clouds_mapped']) == len(scans)
     assert int(values['clouds_dropped']) == 0 and int(values['clouds_failed']) == 0
+    # One flush, after the stream: none in between (which would make another map).
+    assert int(values['flushes']) == 1
     assert int(values['facades']) >= 3 and int(values['buildings']) >= 2
     assert float(values['last_update_seconds']) > 0
 

@@ -90,7 +90,8 @@ class MapWorker:
 
     def __init__(self, fmap: FacadeMap, queue_size: int = 20,
                  on_change: Callable[[MapSnapshot], None] | None = None,
-                 on_error: Callable[[Cloud, BaseException], None] | None = None, idle_flush: float = 1.0) -> None:
+                 on_error: Callable[[Cloud, BaseException], None] | None = None, idle_flush: float = 1.0,
+                 on_flush: Callable[[int, list[int]], None] | None = None) -> None:
         if queue_size < 1:
             raise ValueError(f'queue_size must be >= 1, got {queue_size}')
         self._fmap = fmap
@@ -100,13 +101,15 @@ class MapWorker:
         self._cond = threading.Condition()
         self._on_change = on_change
         self._on_error = on_error
+        self._on_flush = on_flush
         self._stop = False
         self._busy = False
         self._stamp = 0
         self._idle_flush = idle_flush
         self._last_cloud = time.monotonic()
+        self._idle_since = time.monotonic()
         self.counters = {'clouds_in': 0, 'clouds_dropped': 0, 'clouds_mapped': 0, 'clouds_failed': 0,
-                         'points_in': 0, 'points_dropped': 0, 'points_mapped': 0}
+                         'points_in': 0, 'points_dropped': 0, 'points_mapped': 0, 'flushes': 0}
         self.last_update_seconds = 0.0
         self.pending_points = fmap.n_pending
         self.snapshot = self._snapshot(0)
@@ -208,7 +211,10 @@ class MapWorker:
             with self._cond:
                 while not self._queue and not self._stop:
                     if self._idle_flush > 0 and self._needs_flush():
-                        left = self._last_cloud + self._idle_flush - time.monotonic()
+                        # Idle since the last cloud came *and* since the last work ended: while
+                        # the worker was busy, clouds may have waited upstream (in DDS, for the
+                        # node's callbacks); they get idle_flush seconds to arrive.
+                        left = max(self._last_cloud, self._idle_since) + self._idle_flush - time.monotonic()
                         if left <= 0:
                             break
                         self._cond.wait(left)
@@ -217,7 +223,7 @@ class MapWorker:
                 if self._stop:
                     return
                 # An empty queue here means the idle time passed: flush.
-                item = self._queue.popleft() if self._queue else _Command(lambda m: (m.flush(), True))
+                item = self._queue.popleft() if self._queue else _Command(self._flush)
                 if isinstance(item, Cloud):
                     self._clouds -= 1
                 self._busy = True
@@ -229,8 +235,17 @@ class MapWorker:
             finally:
                 with self._cond:
                     self.pending_points = self._fmap.n_pending
+                    self._idle_since = time.monotonic()
                     self._busy = False
                     self._cond.notify_all()
+
+    def _flush(self, fmap: FacadeMap) -> tuple[Any, bool]:
+        pending = fmap.n_pending
+        refitted = fmap.flush()
+        self.counters['flushes'] += 1
+        if self._on_flush is not None:
+            self._on_flush(pending, refitted)
+        return refitted, True
 
     def _needs_flush(self) -> bool:
         fmap = self._fmap

@@ -116,7 +116,8 @@ def _node_class():
             self._publish_lock = threading.Lock()
 
             fmap = self._initial_map()
-            self.worker = MapWorker(fmap, cfg.node.queue_size, on_error=self._cloud_failed, idle_flush=cfg.node.idle_flush)
+            self.worker = MapWorker(fmap, cfg.node.queue_size, on_error=self._cloud_failed, idle_flush=cfg.node.idle_flush,
+                                   on_flush=self._flushed)
 
             latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                                  reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
@@ -269,6 +270,10 @@ def _node_class():
                                           f'({self.worker.counters["clouds_dropped"]} so far)',
                                           throttle_duration_sec=5.0)
 
+        def _flushed(self, points: int, refitted: list[int]) -> None:
+            self.get_logger().info(f'input idle: mapped the {points} points held back, fitted {len(refitted)} '
+                                   f'façades whole')
+
         def _cloud_failed(self, cloud: Cloud, exc: BaseException) -> None:
             self.last_error = f'mapping failed: {exc}'
             self.get_logger().error(f'a cloud of {len(cloud.xyz)} points could not be mapped: {exc}')
@@ -352,6 +357,7 @@ def _node_class():
             w = self.worker.counters
             values = {'clouds_in': w['clouds_in'], 'clouds_mapped': w['clouds_mapped'],
                       'clouds_dropped': w['clouds_dropped'], 'clouds_failed': w['clouds_failed'],
+                      'flushes': w['flushes'],
                       'clouds_rejected': self.counters['clouds_rejected'], 'clouds_queued': self.worker.queued,
                       'points_in': w['points_in'], 'points_dropped': w['points_dropped'],
                       'points_mapped': w['points_mapped'], 'points_pending': self.worker.pending_points,
