@@ -810,7 +810,8 @@ def triangle_marker_array(vertices: np.ndarray, triangles: np.ndarray, std: np.n
     levels = COLOUR_LEVELS
     level = np.full(n_v, levels, dtype=np.int64)
     ok = ~np.isnan(std)
-    level[ok] = np.rint(np.clip(std[ok] / std_max, 0.0, 1.0) * (levels - 1)).astype(np.int64)
+    with np.errstate(over='ignore'):  # a tiny std_max: the ratio overflows to inf, clipped to 1
+        level[ok] = np.rint(np.clip(std[ok] / std_max, 0.0, 1.0) * (levels - 1)).astype(np.int64)
     ramp = colour_ramp(np.linspace(0.0, 1.0, levels), 1.0)
     palette_rgb = np.vstack([ramp, _UNKNOWN_RGB]).tolist()
     a = float(alpha)
