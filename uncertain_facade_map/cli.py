@@ -4,6 +4,7 @@ Sub-commands:
     simulate   scan a built-in scene in one or more campaigns and write clouds and bags
     build      build a façade map from classified point clouds or bags
     query      answer point queries against a map
+    replay     replay bags into a map (offline) or to a running facade_mapper (publish)
 
 Every error a user can cause ends in one line on stderr and exit status 2; nothing ends in
 a traceback. Bag formats need ``msg_adapters`` (rosbags), imported only when asked for.
@@ -199,6 +200,80 @@ def cmd_query(args: argparse.Namespace) -> int:
     return 0
 
 
+def _read_bags(paths: Sequence[str], topic: str | None):
+    """Scans of the bags in order, their map origin and the topic read; checks the fields."""
+    from msg_adapters.bag_io import list_topics, read_bag
+
+    scans, origin, name = [], None, topic
+    for path in paths:
+        bag = read_bag(path, topic=topic)
+        if not bag.scans:
+            raise CliError(f'{path}: no messages on {bag.topic}')
+        names = bag.scans[0][1].dtype.names or ()
+        missing = [c for c in ('x', 'y', 'z') if c not in names]
+        if missing:
+            topics = ', '.join(f'{t} ({m})' for t, m in list_topics(path).items())
+            raise CliError(f'{path}: the clouds on {bag.topic} have no {", ".join(missing)} field (fields: '
+                           f'{", ".join(names)}); topics: {topics}')
+        scans += bag.scans
+        origin = bag.map_origin if origin is None else origin
+        name = bag.topic
+    return scans, origin, name
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    """Replay bags offline into a map, or publish them to a running node (see ``replay --help``)."""
+    from .config import load_config, map_params
+    from .facade_map import FacadeMap
+    from .live_mapping import map_scans
+    from .map_file import save_map
+
+    config = load_config(args.config)
+    if args.out and not Path(args.out).parent.exists():
+        raise CliError(f'output folder {Path(args.out).parent} does not exist')
+    scans, origin, topic = _read_bags(args.bags, args.topic)
+    if args.mode == 'publish':
+        from uncertain_facade_map_node.replay import publish_scans, select_window
+
+        window = select_window(scans, args.start, args.duration)
+        span = (window[-1][0] - window[0][0]) / 1e9
+        bar = None if args.quiet else __import__('tqdm').tqdm(total=len(window), desc='published', unit='scan',
+                                                              leave=False, file=sys.stderr)
+        try:
+            done = publish_scans(window, topic=args.publish_topic, frame_id=config.input.frame_id, rate=args.rate,
+                                 loop=args.loop, reliable=not args.best_effort,
+                                 progress=None if bar is None else (lambda n: bar.update(n - bar.n)))
+        finally:
+            if bar is not None:
+                bar.close()
+        print(f'published {done["published"]:,} scans of {topic} ({span:.1f} s of recording) on '
+              f'{args.publish_topic} in {done["seconds"]:.1f} s (rate {args.rate:g})')
+        return 0
+    if args.start or args.duration is not None or args.loop:
+        from uncertain_facade_map_node.replay import select_window
+
+        if args.loop:
+            raise CliError('--loop is for --mode publish')
+        scans = select_window(scans, args.start, args.duration)
+    fmap = FacadeMap(map_params(config), origin)
+    bar = None if args.quiet else __import__('tqdm').tqdm(total=len(scans), desc='mapped', unit='scan',
+                                                          leave=False, file=sys.stderr)
+    try:
+        summary = map_scans(fmap, (points for _, points in scans), config.input,
+                            None if bar is None else (lambda n: bar.update(n - bar.n)))
+    finally:
+        if bar is not None:
+            bar.close()
+    print(f'replayed {summary.scans:,} scans of {topic}: {summary.points:,} points, {summary.building_points:,} '
+          f'building, {summary.nonfinite:,} skipped (NaN/Inf)')
+    print(f'mapped   {summary.buildings} buildings, {summary.facades} façades in {summary.seconds:.1f} s '
+          f'({summary.points / max(summary.seconds, 1e-9):,.0f} points/s)')
+    if args.out:
+        save_map(fmap, args.out)
+        print(f'map      {args.out}')
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of all sub-commands."""
     parser = argparse.ArgumentParser(prog=PROG, description='Façade maps with calibrated uncertainty.')
@@ -254,6 +329,25 @@ def build_parser() -> argparse.ArgumentParser:
     query.add_argument('--resolution', type=float, metavar='R', help='voxel side for p_occupied, metres (default 0.1)')
     query.add_argument('--config', metavar='YAML', help='ROS 2 parameter file (for the default resolution)')
     query.set_defaults(func=cmd_query)
+
+    replay = sub.add_parser('replay', help='replay bags into a map (offline) or to a running facade_mapper (publish)',
+                            description='Replay the PointCloud2 scans of ROS 1 (.bag) and ROS 2 (folder, .db3, .mcap) '
+                                        'bags. offline: feed the mapper directly, as fast as it goes, as the node '
+                                        'would (the same map); publish: republish them to a running facade_mapper '
+                                        'with their recorded timing.')
+    replay.add_argument('bags', nargs='+', metavar='BAG', help='bags, replayed one after the other')
+    replay.add_argument('--topic', help='PointCloud2 topic to read (default: the only one)')
+    replay.add_argument('--mode', choices=('offline', 'publish'), default='offline', help='default offline')
+    replay.add_argument('--out', metavar='MAP', help='offline: map file to write')
+    replay.add_argument('--config', metavar='YAML', help='ROS 2 parameter file (default: config/facade_mapper.yaml)')
+    replay.add_argument('--rate', type=float, default=1.0, help='publish: speed factor of the recorded timing')
+    replay.add_argument('--loop', action='store_true', help='publish: start again after the last scan')
+    replay.add_argument('--start', type=float, default=0.0, help='seconds into the recording to start at')
+    replay.add_argument('--duration', type=float, help='seconds of recording to replay (default: all)')
+    replay.add_argument('--publish-topic', default='points', help='publish: topic to publish on (default points)')
+    replay.add_argument('--best-effort', action='store_true', help='publish: best-effort QoS (default reliable)')
+    replay.add_argument('--quiet', action='store_true', help='no progress bar')
+    replay.set_defaults(func=cmd_replay)
     return parser
 
 

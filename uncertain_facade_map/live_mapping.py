@@ -297,3 +297,67 @@ class ReplaceMap:
 
     fmap: FacadeMap
     result: Any = None
+
+
+@dataclass(frozen=True)
+class ReplaySummary:
+    """What feeding a recording to a map did.
+
+    Attributes:
+        scans: scans read.
+        points: points in the scans.
+        building_points: building points mapped.
+        nonfinite: points skipped for NaN or infinite coordinates.
+        buildings: buildings in the map.
+        facades: façades in the map.
+        seconds: wall time of mapping, flush included.
+    """
+
+    scans: int
+    points: int
+    building_points: int
+    nonfinite: int
+    buildings: int
+    facades: int
+    seconds: float
+
+
+def map_scans(fmap: FacadeMap, scans: Any, config: Any,
+              progress: Callable[[int], None] | None = None) -> ReplaySummary:
+    """Feed scans to a map one by one, as the node's worker does, then flush.
+
+    The node maps the clouds it receives exactly so (``add_points(defer=True)`` per
+    cloud, a flush when the input pauses), so a node fed the same scans without drops ends
+    with the same map.
+
+    Args:
+        fmap: the map to grow.
+        scans: iterable of structured arrays (one per scan, fields as a PointCloud2
+            gives them: x, y, z and optionally the class, building id and sensor origin
+            fields of ``config``), in the map frame.
+        config: an :class:`~uncertain_facade_map.config.InputConfig`.
+        progress: called with the number of scans done after each one.
+
+    Returns:
+        The summary.
+
+    Raises:
+        InputError: a scan without x, y, z or with a non-integer class field.
+    """
+    from .inputs import select_scan_points
+
+    started = time.perf_counter()
+    n_scans = n_points = n_building = n_bad = 0
+    for points in scans:
+        scan = select_scan_points(points, config)
+        n_scans += 1
+        n_points += len(points)
+        n_bad += scan.nonfinite
+        if len(scan.xyz):
+            n_building += len(scan.xyz)
+            fmap.add_points(scan.xyz, scan.building_id, scan.sensor_origins, defer=True)
+        if progress is not None:
+            progress(n_scans)
+    fmap.flush()
+    return ReplaySummary(n_scans, n_points, n_building, n_bad, len(fmap.points), len(fmap.facades),
+                         time.perf_counter() - started)
