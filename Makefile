@@ -1,5 +1,5 @@
 # One-command set-up: every target below creates the virtual environment on first use.
-#   make demo    simulate the default street scene and write its clouds and bags
+#   make demo    the main job: simulate the street drive, map it with the node, query, save, draw
 #   make test    run every test
 #   make bench   print throughput and peak memory of the hot paths
 PYTHON ?= python3
@@ -56,7 +56,7 @@ $(IFC_STAMP): $(STAMP) $(IFC_SRC)
 	touch $(IFC_STAMP)
 
 demo: $(STAMP) $(IFC_STAMP)
-	$(VENV)/bin/uncertain-facade-map simulate --scene street --out $(OUT) --force
+	$(PY) -m uncertain_facade_map_node.demo --out $(OUT)
 
 test: $(STAMP) $(IFC_STAMP)
 	$(PY) -m pytest
