@@ -3,7 +3,9 @@
 Writes docs/simulated_street.png (top view of the mapped campaign of the default street,
 coloured by class), docs/simulated_facade.png (one façade in its own frame, coloured
 by depth: recesses, balconies, an oriel, columns and the shadow of a tree) and
-docs/facade_model.png (the model of that façade: mean depth and standard deviation).
+docs/facade_model.png (the model of that façade: mean depth and standard deviation, drawn
+by uncertain_facade_map.plots, which also draws the full per-façade figures of
+``uncertain-facade-map plot``).
 """
 
 from pathlib import Path
@@ -15,6 +17,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from uncertain_facade_map.cloud import CLASS_NAMES  # noqa: E402
+from uncertain_facade_map.plots import draw_surface  # noqa: E402
 from uncertain_facade_map.simulation.campaign import simulate_campaign  # noqa: E402
 from uncertain_facade_map.simulation.scenes import build_scene  # noqa: E402
 
@@ -76,20 +79,12 @@ def draw_model(cloud, truth_facade) -> None:
     fmap = build_map(np.stack([pts['x'], pts['y'], pts['z']], 1), pts['building_id'],
                      np.stack([pts['origin_x'], pts['origin_y'], pts['origin_z']], 1))
     model = min(fmap.facades, key=lambda f: np.linalg.norm(f.frame.normal - truth_facade.frame.n))
-    r = model.surface
-    h, w = r.mean.shape
-    extent = (r.origin[0], r.origin[0] + w * r.cell, r.origin[1], r.origin[1] + h * r.cell)
     fig, axs = plt.subplots(2, 1, figsize=(11, 9))
-    im = axs[0].imshow(r.mean, origin='lower', extent=extent, cmap='coolwarm', vmin=-0.3, vmax=1.5)
-    fig.colorbar(im, ax=axs[0], label='mean depth [m]')
+    draw_surface(axs[0], model, 'mean', vmin=-0.3, vmax=1.5)
     axs[0].set_title(f'façade model: mean surface depth ({model.layers.n_layers} GMM layers, '
                      f'{model.facets.n_facets} facets)')
-    im = axs[1].imshow(np.sqrt(r.var) * 100, origin='lower', extent=extent, cmap='viridis', vmin=0, vmax=30)
-    fig.colorbar(im, ax=axs[1], label='standard deviation [cm]')
+    draw_surface(axs[1], model, 'std', vmin=0, vmax=30, unit='cm')
     axs[1].set_title('standard deviation of the surface (occluded and unscanned parts high)')
-    for ax in axs:
-        ax.set_xlabel('u [m]')
-        ax.set_ylabel('v [m]')
     fig.tight_layout()
     fig.savefig(DOCS / 'facade_model.png', dpi=100)
     plt.close(fig)

@@ -5,6 +5,7 @@ Sub-commands:
     build      build a façade map from classified point clouds or bags
     query      answer point queries against a map
     replay     replay bags into a map (offline) or to a running facade_mapper (publish)
+    plot       draw a map's façades and an overview as PNG figures
 
 Every error a user can cause ends in one line on stderr and exit status 2; nothing ends in
 a traceback. Bag formats need ``msg_adapters`` (rosbags), imported only when asked for.
@@ -274,6 +275,54 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
+def _facade_ids(text: str) -> list[int]:
+    """``0,3,5-7`` -> [0, 3, 5, 6, 7]."""
+    ids: list[int] = []
+    for item in (x.strip() for x in text.split(',')):
+        a, _, b = item.partition('-') if item.find('-') > 0 else (item, '', '')
+        try:
+            first, last = int(a), int(b or a)
+        except ValueError:
+            first, last = 0, -1
+        if last < first:
+            raise CliError(f'--facades takes façade ids like 0,3,5-7, got {text!r}')
+        ids += range(first, last + 1)
+    return ids
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    """Draw a map's façades and an overview (see ``plot --help``)."""
+    from .map_file import load_map
+    from .plots import DPI_RANGE, output_folder, plot_map, select_facades
+
+    if not DPI_RANGE[0] <= args.dpi <= DPI_RANGE[1]:
+        raise CliError(f'--dpi must be from {DPI_RANGE[0]} to {DPI_RANGE[1]}, got {args.dpi}')
+    ids = None if args.facades is None else _facade_ids(args.facades)
+    fmap = load_map(args.map)
+    ids = select_facades(fmap, ids)
+    output_folder(args.out)
+    if not fmap.facades:
+        print(f'{PROG}: note: {args.map} has no façades; writing only the overview', file=sys.stderr)
+    started = time.perf_counter()
+    bar = None
+    if not args.quiet:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(ids), desc='façades', unit='façade', leave=False, file=sys.stderr)
+    try:
+        paths = plot_map(fmap, args.out, ids, dpi=args.dpi,
+                         progress=None if bar is None else (lambda done, _total: bar.update(done - bar.n)))
+    finally:
+        if bar is not None:
+            bar.close()
+    for path in paths:
+        print(path)
+    if not args.quiet:
+        print(f'plotted  {len(paths) - 1} façades and the overview in {time.perf_counter() - started:.1f} s',
+              file=sys.stderr)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of all sub-commands."""
     parser = argparse.ArgumentParser(prog=PROG, description='Façade maps with calibrated uncertainty.')
@@ -348,6 +397,19 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument('--best-effort', action='store_true', help='publish: best-effort QoS (default reliable)')
     replay.add_argument('--quiet', action='store_true', help='no progress bar')
     replay.set_defaults(func=cmd_replay)
+
+    plot = sub.add_parser('plot', help="draw a map's façades and an overview as PNG figures",
+                          description='Write per façade facade_<id>.png (points by GMM layer, GP training points '
+                                      'and outliers, local GP blocks, mean surface, standard deviation, depth '
+                                      'histogram with the GMM) and overview.png (the map from above and in 3D, '
+                                      'coloured by standard deviation); print their paths. A map without façades '
+                                      'gives only the overview.')
+    plot.add_argument('map', metavar='MAP', help='map file from build')
+    plot.add_argument('--out', required=True, metavar='DIR', help='output folder (created if its parent exists)')
+    plot.add_argument('--facades', metavar='IDS', help='façade ids to draw, e.g. 0,3,5-7 (default: all)')
+    plot.add_argument('--dpi', type=int, default=100, help='resolution of the PNG files (default 100)')
+    plot.add_argument('--quiet', action='store_true', help='no progress bar')
+    plot.set_defaults(func=cmd_plot)
     return parser
 
 

@@ -32,7 +32,9 @@ def _config_file(out: Path) -> Path:
     from uncertain_facade_map.config import Config, dump_config
 
     config = Config()
+    # Maps are published every 20 s: drawing the street's maps takes seconds the mapping needs.
     config = dataclasses.replace(config, node=dataclasses.replace(config.node, qos='reliable', queue_size=2000),
+                                 publish=dataclasses.replace(config.publish, period=20.0),
                                  persistence=dataclasses.replace(config.persistence, map_path=str(out / 'map.npz')))
     path = out / 'facade_mapper.yaml'
     path.write_text(dump_config(config))
