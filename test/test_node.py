@@ -46,7 +46,9 @@ def node_config(tmp: Path, **overrides) -> Path:
     import dataclasses
 
     config = Config()
-    sections = {'node': {'qos': 'reliable', 'queue_size': 10000}}
+    # A long idle time: a loaded machine (CI) must not pause the stream long enough for a
+    # flush in the middle, which would make another map than the offline core's.
+    sections = {'node': {'qos': 'reliable', 'queue_size': 10000, 'idle_flush': 5.0}}
     for key, value in overrides.items():
         section, name = key.split('.')
         sections.setdefault(section, {})[name] = value

@@ -36,7 +36,8 @@ def recording(tmp_path_factory):
             for storage, name in (('rosbag1', 'drive.bag'), ('sqlite3', 'drive_sqlite3'), ('mcap', 'drive_mcap'))}
     config = Config()
     config = dataclasses.replace(config, update=UpdateParams(batch_points=BATCH),
-                                 node=dataclasses.replace(config.node, qos='reliable', queue_size=10000))
+                                 node=dataclasses.replace(config.node, qos='reliable', queue_size=10000,
+                                                          idle_flush=5.0))
     params = out / 'params.yaml'
     params.write_text(dump_config(config))
     return out, scans, bags, params, cloud.map_origin

@@ -91,7 +91,7 @@ class NodeConfig:
         '(and counted), so the map follows the newest data', 1, 10000))
     max_cloud_points: int = field(default=5_000_000, metadata=_meta(
         'a cloud with more points is refused with a warning', 1, 1_000_000_000))
-    idle_flush: float = field(default=1.0, metadata=_meta(
+    idle_flush: float = field(default=2.0, metadata=_meta(
         'when no cloud has come for this long, the points held back (update.batch_points) are mapped and the '
         'façades updated block by block are fitted whole, seconds (0: never)', 0.0, 3600.0))
     pose_tolerance: float = field(default=0.05, metadata=_meta(
