@@ -136,6 +136,7 @@ def main(argv: list[str] | None = None) -> int:
                 raise RuntimeError('the map did not settle within 15 minutes')
             time.sleep(0.5)
         diag = dict(loc.values)
+        settle_seconds = time.monotonic() - t_replayed
         print(f'[4/5] querying the map as a localisation node', flush=True)
         answers, query_seconds, n_query = _query(loc, out)
         print('[5/5] saving the map and drawing it', flush=True)
@@ -160,7 +161,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f'demo done in {time.monotonic() - started:.0f} s; everything is in {out}/')
     print(f'  drive    {bag} ({diag.get("clouds_in")} scans, {int(diag.get("points_in", 0)):,} building points)')
     print(f'  mapping  {diag.get("buildings")} buildings, {diag.get("facades")} façades; '
-          f'{diag.get("clouds_dropped")} scans dropped; settled {time.monotonic() - t_replayed:.0f} s after the replay')
+          f'{diag.get("clouds_dropped")} scans dropped; settled {settle_seconds:.0f} s after the replay')
     print(f'  queries  {n_query:,} points in {query_seconds:.2f} s: {on.mean():.0%} on a façade, surface std median '
           f'{np.median(std) * 100:.1f} cm (5-95 %: {np.quantile(std, 0.05) * 100:.1f}-'
           f'{np.quantile(std, 0.95) * 100:.1f} cm) -> {out / "queries.npz"}')
