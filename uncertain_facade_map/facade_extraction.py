@@ -390,6 +390,22 @@ def _grid_components(cells: np.ndarray) -> np.ndarray:
     return rank[inv.reshape(-1)]
 
 
+def check_building_ids(building_id: np.ndarray, n: int) -> np.ndarray:
+    """Building ids of n points as a new (n,) int64 array.
+
+    Raises:
+        InputError: another shape, or values that are not integers (floats must be
+            finite and integral).
+    """
+    ids = np.asarray(building_id)
+    if ids.shape != (n,):
+        raise InputError(f'building_id must have shape ({n},), got {ids.shape}')
+    if ids.dtype.kind not in 'iu':
+        if ids.dtype.kind != 'f' or not np.all(np.isfinite(ids)) or np.any(ids != np.round(ids)):
+            raise InputError('building_id must hold integers')
+    return ids.astype(np.int64)
+
+
 def split_buildings(xyz: np.ndarray, building_id: np.ndarray | None, cell: float) -> np.ndarray:
     """Building label of every point.
 
@@ -416,13 +432,7 @@ def split_buildings(xyz: np.ndarray, building_id: np.ndarray | None, cell: float
     if building_id is None:
         labels = np.full(n, -1, dtype=np.int64)
     else:
-        ids = np.asarray(building_id)
-        if ids.shape != (n,):
-            raise InputError(f'building_id must have shape ({n},), got {ids.shape}')
-        if ids.dtype.kind not in 'iu':
-            if ids.dtype.kind != 'f' or not np.all(np.isfinite(ids)) or np.any(ids != np.round(ids)):
-                raise InputError('building_id must hold integers')
-        labels = ids.astype(np.int64)
+        labels = check_building_ids(building_id, n)
         labels[labels < 0] = -1
     free = np.flatnonzero(labels < 0)
     if len(free):

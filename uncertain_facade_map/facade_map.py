@@ -34,8 +34,7 @@ from scipy import ndimage
 
 from .errors import InputError
 from .facade_extraction import (ExtractedFacade, ExtractionParams, _final_frame, _grid_components, _plane_box,
-                                _point_normals,
-                                assign_to_facades, extract_facades)
+                                _point_normals, assign_to_facades, check_building_ids, extract_facades)
 from .frames import FacadeFrame
 from .gp_blocks import (_NEIGHBOURS, BlockData, GPParams, _ranks, block_codes, block_size, fit_surface,
                         optimisation_patches, optimise_lengthscales)
@@ -363,9 +362,9 @@ def update_facade(model: FacadeModel, extracted: ExtractedFacade, new: np.ndarra
                   rng: np.random.Generator, raster_margin: float = 1.0) -> FacadeModel:
     """Update a façade with new points, recomputing only what they change.
 
-    Once the façade's points have grown by ``params.update.refit_growth`` since its last
-    whole fit, it is fitted whole (:func:`fit_facade`, same frame and anchor). Otherwise
-    the GMM layers and length scales are kept; the facets are found again on all points
+    The caller decides when a façade has grown enough to be fitted whole instead
+    (:meth:`FacadeMap._refit_whole`, at ``params.update.refit_growth``). Here the GMM
+    layers and length scales are kept; the facets are found again on all points
     (raster operations, cheap); and the local GPs (paper eqs. 4-6) and the outlier test
     are recomputed for the blocks whose extended block holds a new training point, plus
     the cells whose facet changed and one block around them. Points previously removed as
@@ -378,15 +377,13 @@ def update_facade(model: FacadeModel, extracted: ExtractedFacade, new: np.ndarra
             ``index`` sorted building indices, ``plane_extent`` the grown wall extent.
         new: (M,) bool over ``extracted``'s points, True for those added since ``model``.
         params: modelling parameters.
-        rng: random source (block caps; a whole refit's draws).
+        rng: random source (block caps).
         raster_margin: the raster reaches this far beyond the points' extent, metres.
 
     Returns:
         The updated model (same id, building, frame and anchor).
     """
     n = len(extracted.index)
-    if n >= (1.0 + params.update.refit_growth) * model.fitted_points:
-        return fit_facade(extracted, params, rng, model.facade_id, model.building, raster_margin, model.anchor)
     t0 = time.perf_counter()
     gp = params.gp
     uv, depth = extracted.uvd[:, :2], extracted.uvd[:, 2]
@@ -593,13 +590,7 @@ class FacadeMap:
                 raise InputError(f'sensor_origins must have the shape of the points {xyz.shape}, '
                                  f'got {sensor_origins.shape}')
         if building_id is not None:
-            ids = np.asarray(building_id)
-            if ids.shape != (len(xyz),):
-                raise InputError(f'building_id must have shape ({len(xyz)},), got {ids.shape}')
-            if ids.dtype.kind not in 'iu':
-                if ids.dtype.kind != 'f' or not np.all(np.isfinite(ids)) or np.any(ids != np.round(ids)):
-                    raise InputError('building_id must hold integers')
-            building_id = ids.astype(np.int64)
+            building_id = check_building_ids(building_id, len(xyz))
         return xyz, building_id, sensor_origins
 
     def _add(self, xyz: np.ndarray, building_id: np.ndarray | None, sensor_origins: np.ndarray | None,
@@ -741,9 +732,7 @@ class FacadeMap:
                 d = t.frame.to_local(pts[index])[:, 2]
                 fits = (d >= -ex.band_back) & (d <= ex.band_front)
                 owner[index[fits]] = target
-                box = t.frame.to_local(e.frame.to_world(np.array(
-                    [[e.plane_extent[i], e.plane_extent[j], 0.0] for i in (0, 1) for j in (2, 3)])))
-                grown[target] = _union(grown.get(target, t.plane_extent), _extent(box[:, :2]))
+                grown[target] = _union(grown.get(target, t.plane_extent), _extent(_plane_corners_in(e, t.frame)))
             self.pool_checked[b] = int((owner < 0).sum())
         new_ids = set(self.last_update['facades_new'])
         for fid in sorted(set(np.unique(owner[first:][owner[first:] >= 0]).tolist()) | set(grown)):
@@ -797,8 +786,7 @@ class FacadeMap:
         for f in self.facades:
             if f.building != b or float(e.frame.normal @ f.frame.normal) < cos_max:
                 continue
-            box = f.frame.to_local(e.frame.to_world(np.array(
-                [[e.plane_extent[i], e.plane_extent[j], 0.0] for i in (0, 1) for j in (2, 3)])))
+            box = _plane_corners_in(e, f.frame)
             d = float(f.frame.to_local(e.frame.origin[None])[0, 2])
             gap = max(f.plane_extent[0] - box[:, 0].max(), box[:, 0].min() - f.plane_extent[1], 0.0)
             if abs(d) < ex.merge_offset and gap <= ex.merge_offset:
@@ -826,6 +814,13 @@ class FacadeMap:
     def n_points(self) -> int:
         """Number of building points in the map."""
         return int(sum(len(p) for p in self.points.values()))
+
+
+def _plane_corners_in(e: ExtractedFacade, frame: FacadeFrame) -> np.ndarray:
+    """(4, 2) (u, v) in ``frame`` of the corners of ``e``'s wall extent (on its plane)."""
+    b = e.plane_extent
+    corners = np.array([[b[i], b[j], 0.0] for i in (0, 1) for j in (2, 3)])
+    return frame.to_local(e.frame.to_world(corners))[:, :2]
 
 
 def _union(a: tuple[float, float, float, float], b: tuple[float, float, float, float]
