@@ -14,11 +14,12 @@ a traceback. Bag formats need ``msg_adapters`` (rosbags), imported only when ask
 from __future__ import annotations
 
 import argparse
+import contextlib
 import shutil
 import sys
 import time
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable, Iterator, Sequence
 
 from .errors import FacadeMapError
 
@@ -55,6 +56,27 @@ def _progress_bar(total: float, desc: str, quiet: bool) -> tuple[Callable[[float
         bar.update(round(pos, 1) - bar.n)
 
     return update, bar.close
+
+
+@contextlib.contextmanager
+def _counter(desc: str, unit: str, quiet: bool, total: int | None = None) -> Iterator[Callable[..., None]]:
+    """A tqdm bar over counted items on stderr, as ``update(done, total=None)``; a no-op when quiet."""
+    if quiet:
+        yield lambda done, total=None: None
+        return
+    from tqdm import tqdm
+
+    bar = tqdm(total=total, desc=desc, unit=unit, leave=False, file=sys.stderr)
+
+    def update(done: int, total: int | None = None) -> None:
+        if total is not None:
+            bar.total = total
+        bar.update(done - bar.n)
+
+    try:
+        yield update
+    finally:
+        bar.close()
 
 
 def _output_path(out: Path, name: str, force: bool) -> Path:
@@ -137,22 +159,8 @@ def cmd_build(args: argparse.Namespace) -> int:
     points = select_building_points(cloud, config.input)
     read_s = time.perf_counter() - started
     fmap = FacadeMap(map_params(config), points.map_origin)
-    bar = None
-    if not args.quiet:
-        from tqdm import tqdm
-
-        bar = tqdm(desc='buildings', unit='building', leave=False, file=sys.stderr)
-
-    def update(done: int, total: int) -> None:
-        if bar is not None:
-            bar.total = total
-            bar.update(done - bar.n)
-
-    try:
+    with _counter('buildings', 'building', args.quiet) as update:
         fmap.add_points(points.xyz, points.building_id, points.sensor_origins, progress=update)
-    finally:
-        if bar is not None:
-            bar.close()
     build_s = time.perf_counter() - started - read_s
     save_map(fmap, out)
     total_s = time.perf_counter() - started
@@ -238,15 +246,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
         window = select_window(scans, args.start, args.duration)
         span = (window[-1][0] - window[0][0]) / 1e9
-        bar = None if args.quiet else __import__('tqdm').tqdm(total=len(window), desc='published', unit='scan',
-                                                              leave=False, file=sys.stderr)
-        try:
+        with _counter('published', 'scan', args.quiet, len(window)) as update:
             done = publish_scans(window, topic=args.publish_topic, frame_id=config.input.frame_id, rate=args.rate,
-                                 loop=args.loop, reliable=not args.best_effort,
-                                 progress=None if bar is None else (lambda n: bar.update(n - bar.n)))
-        finally:
-            if bar is not None:
-                bar.close()
+                                 loop=args.loop, reliable=not args.best_effort, progress=update)
         print(f'published {done["published"]:,} scans of {topic} ({span:.1f} s of recording) on '
               f'{args.publish_topic} in {done["seconds"]:.1f} s (rate {args.rate:g})')
         return 0
@@ -257,14 +259,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
             raise CliError('--loop is for --mode publish')
         scans = select_window(scans, args.start, args.duration)
     fmap = FacadeMap(map_params(config), origin)
-    bar = None if args.quiet else __import__('tqdm').tqdm(total=len(scans), desc='mapped', unit='scan',
-                                                          leave=False, file=sys.stderr)
-    try:
-        summary = map_scans(fmap, (points for _, points in scans), config.input,
-                            None if bar is None else (lambda n: bar.update(n - bar.n)))
-    finally:
-        if bar is not None:
-            bar.close()
+    with _counter('mapped', 'scan', args.quiet, len(scans)) as update:
+        summary = map_scans(fmap, (points for _, points in scans), config.input, update)
     print(f'replayed {summary.scans:,} scans of {topic}: {summary.points:,} points, {summary.building_points:,} '
           f'building, {summary.nonfinite:,} skipped (NaN/Inf)')
     print(f'mapped   {summary.buildings} buildings, {summary.facades} façades in {summary.seconds:.1f} s '
@@ -304,17 +300,8 @@ def cmd_plot(args: argparse.Namespace) -> int:
     if not fmap.facades:
         print(f'{PROG}: note: {args.map} has no façades; writing only the overview', file=sys.stderr)
     started = time.perf_counter()
-    bar = None
-    if not args.quiet:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(ids), desc='façades', unit='façade', leave=False, file=sys.stderr)
-    try:
-        paths = plot_map(fmap, args.out, ids, dpi=args.dpi,
-                         progress=None if bar is None else (lambda done, _total: bar.update(done - bar.n)))
-    finally:
-        if bar is not None:
-            bar.close()
+    with _counter('façades', 'façade', args.quiet, len(ids)) as update:
+        paths = plot_map(fmap, args.out, ids, dpi=args.dpi, progress=update)
     for path in paths:
         print(path)
     if not args.quiet:
