@@ -9,8 +9,10 @@ the same queries.
 
 from __future__ import annotations
 
+import concurrent.futures
 import json
 import os
+import queue
 import signal
 import subprocess
 import sys
@@ -29,7 +31,7 @@ pytest.importorskip('uncertain_facade_map.srv')
 import msg_adapters as ma  # noqa: E402
 from uncertain_facade_map.config import Config, InputConfig, dump_config, map_params  # noqa: E402
 from uncertain_facade_map.facade_map import FacadeMap  # noqa: E402
-from uncertain_facade_map.inputs import select_scan_points  # noqa: E402
+from uncertain_facade_map.live_mapping import map_scans  # noqa: E402
 from uncertain_facade_map.map_file import load_map  # noqa: E402
 from uncertain_facade_map.queries import query_points  # noqa: E402
 from uncertain_facade_map.simulation.campaign import simulate_campaign  # noqa: E402
@@ -117,17 +119,38 @@ class Client:
                                   reliability=ReliabilityPolicy.RELIABLE)
         self.clients = {}
         self.stopping = False
+        self._between_turns = queue.SimpleQueue()
         self.thread = threading.Thread(target=self._spin, daemon=True)
         self.thread.start()
 
     def _spin(self):
-        # A short timeout: entities created from the test thread join the wait set at the next turn.
+        # A short timeout: entities created between turns join the wait set at the next turn.
         while not self.stopping and self.context.ok():
             self.executor.spin_once(timeout_sec=0.05)
+            while True:
+                try:
+                    fn, future = self._between_turns.get_nowait()
+                except queue.Empty:
+                    break
+                try:
+                    future.set_result(fn())
+                except Exception as exc:  # noqa: BLE001 - handed to the waiting test thread
+                    future.set_exception(exc)
+
+    def on_spin_thread(self, fn, timeout=30.0):
+        """Run fn on the executor's thread between two turns and return its result.
+
+        Entities (subscriptions, clients) must not be created or destroyed from another thread
+        while the executor builds its wait set: rclpy raises InvalidHandle in the spinning
+        thread, which then dies and the client hears nothing more.
+        """
+        future = concurrent.futures.Future()
+        self._between_turns.put((fn, future))
+        return future.result(timeout)
 
     def call(self, srv_type, name, request, timeout=120.0):
         if name not in self.clients:
-            self.clients[name] = self.node.create_client(srv_type, name)
+            self.clients[name] = self.on_spin_thread(lambda: self.node.create_client(srv_type, name))
         client = self.clients[name]
         assert client.wait_for_service(timeout_sec=30.0), f'service {name} not available'
         future = client.call_async(request)
@@ -138,9 +161,8 @@ class Client:
 
     def forget_clients(self):
         """Drop the service clients (after the node was restarted)."""
-        for c in self.clients.values():
-            self.node.destroy_client(c)
-        self.clients = {}
+        clients, self.clients = list(self.clients.values()), {}
+        self.on_spin_thread(lambda: [self.node.destroy_client(c) for c in clients])
 
     def call_retrying(self, srv_type, name, request, attempts=6, timeout=10.0):
         """Call until answered: a killed server may still be known to discovery for a while."""
@@ -160,11 +182,12 @@ class Client:
             got.append(msg)
             event.set()
 
-        sub = self.node.create_subscription(msg_type, topic, callback, qos or self.latched)
+        sub = self.on_spin_thread(lambda: self.node.create_subscription(msg_type, topic, callback,
+                                                                        qos or self.latched))
         try:
             assert event.wait(timeout), f'no message on {topic} within {timeout} s'
         finally:
-            self.node.destroy_subscription(sub)
+            self.on_spin_thread(lambda: self.node.destroy_subscription(sub))
         return got[0]
 
     def wait_for_subscriber(self, timeout=30.0):
@@ -286,13 +309,8 @@ def offline_map(scans) -> FacadeMap:
 def _offline_map(scans) -> FacadeMap:
     """The offline core fed the same scans one by one, as the node's worker is, then flushed
     as the node does when the input pauses."""
-    config = Config()
-    fmap = FacadeMap(map_params(config), np.zeros(3))
-    for msg in scans:
-        scan = select_scan_points(ma.structured_from_pointcloud2(msg), InputConfig())
-        if len(scan.xyz):
-            fmap.add_points(scan.xyz, scan.building_id, scan.sensor_origins, defer=True)
-    fmap.flush()
+    fmap = FacadeMap(map_params(Config()), np.zeros(3))
+    map_scans(fmap, (ma.structured_from_pointcloud2(msg) for msg in scans), InputConfig())
     return fmap
 
 

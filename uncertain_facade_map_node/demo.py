@@ -5,7 +5,7 @@
 3. replay the bag to it in publish mode, with the recorded timing;
 4. act as a localisation node: wait for the map to settle, then query it with points
    along the façades through the ``query_points`` service;
-5. save the map through ``save_map`` and draw its figures;
+5. save the map through ``save_map`` and draw its figures (:mod:`uncertain_facade_map.plots`);
 6. print a short summary with the paths.
 
 Everything lands in one folder (default ``output/demo``).
@@ -196,15 +196,11 @@ def _query(loc: _Localisation, out: Path) -> tuple[dict[str, np.ndarray], float,
 
 
 def _figures(out: Path) -> list[Path]:
-    """The map's figures (``uncertain-facade-map plot``), when that command is there."""
-    from uncertain_facade_map.cli import build_parser, main as cli
+    """The map's figures (``uncertain-facade-map plot``)."""
+    from uncertain_facade_map.map_file import load_map
+    from uncertain_facade_map.plots import plot_map
 
-    choices = build_parser()._subparsers._group_actions[0].choices  # noqa: SLF001 - which commands exist
-    if 'plot' not in choices:
-        return []
-    if cli(['plot', str(out / 'map.npz'), '--out', str(out / 'figures'), '--quiet']) != 0:
-        return []
-    return sorted((out / 'figures').glob('*.png'))
+    return plot_map(load_map(out / 'map.npz'), out / 'figures')
 
 
 if __name__ == '__main__':
