@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from uncertain_facade_map.facade_map import FacadeMap, MapParams, build_map
+from uncertain_facade_map.facade_map import FacadeMap, MapParams, UpdateParams, build_map
 from uncertain_facade_map.map_file import load_map, save_map
 from uncertain_facade_map.simulation.campaign import simulate_campaign
 from uncertain_facade_map.simulation.evaluation import evaluate_surface
@@ -143,7 +143,7 @@ def test_deferred_points_are_kept_and_flushed(tmp_path, drive):
     """Live mapping holds scans back until update.batch_points have arrived; a map saved
     meanwhile keeps them, and flushing gives the map of one batch's quality."""
     batches, origin = drive
-    params = MapParams()
+    params = MapParams(update=UpdateParams(batch_points=20000))
     live = FacadeMap(params, origin)
     scans = [(xyz[i:i + 500], ids[i:i + 500], o[i:i + 500]) for xyz, ids, o in batches for i in range(0, len(xyz), 500)]
     for k, (xyz, ids, o) in enumerate(scans):

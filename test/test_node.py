@@ -43,21 +43,29 @@ ROOT = Path(__file__).resolve().parent.parent
 DRIVE_SECONDS = 4.0
 
 
-def node_config(tmp: Path, **overrides) -> Path:
-    """A parameter file: the defaults, reliable input and a big queue (nothing dropped), plus overrides."""
+def scenario_config(**overrides) -> Config:
+    """The defaults, with updates of 20 000 points (several in the drive's first seconds,
+    so that the node maps block by block before it flushes), plus ``section.name`` overrides."""
     import dataclasses
 
     config = Config()
-    # A long idle time: a loaded machine (CI) must not pause the stream long enough for a
-    # flush in the middle, which would make another map than the offline core's.
-    sections = {'node': {'qos': 'reliable', 'queue_size': 10000, 'idle_flush': 5.0}}
+    sections = {'update': {'batch_points': 20000}}
     for key, value in overrides.items():
         section, name = key.split('.')
         sections.setdefault(section, {})[name] = value
     for section, values in sections.items():
         config = dataclasses.replace(config, **{section: dataclasses.replace(getattr(config, section), **values)})
+    return config
+
+
+def node_config(tmp: Path, **overrides) -> Path:
+    """A parameter file: :func:`scenario_config` with reliable input and a big queue (nothing
+    dropped), plus overrides."""
+    # A long idle time: a loaded machine (CI) must not pause the stream long enough for a
+    # flush in the middle, which would make another map than the offline core's.
+    node = {'node.qos': 'reliable', 'node.queue_size': 10000, 'node.idle_flush': 5.0}
     path = tmp / f'params_{len(list(tmp.glob("params_*")))}.yaml'
-    path.write_text(dump_config(config))
+    path.write_text(dump_config(scenario_config(**{**node, **overrides})))
     return path
 
 
@@ -309,7 +317,7 @@ def offline_map(scans) -> FacadeMap:
 def _offline_map(scans) -> FacadeMap:
     """The offline core fed the same scans one by one, as the node's worker is, then flushed
     as the node does when the input pauses."""
-    fmap = FacadeMap(map_params(Config()), np.zeros(3))
+    fmap = FacadeMap(map_params(scenario_config()), np.zeros(3))
     map_scans(fmap, (ma.structured_from_pointcloud2(msg) for msg in scans), InputConfig())
     return fmap
 
