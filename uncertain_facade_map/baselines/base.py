@@ -1,0 +1,95 @@
+"""The small interface every occupancy method of the evaluation implements.
+
+A method is built for one voxel resolution, fitted once on the mapped points (hits, map
+frame, with each point's sensor origin, so ray-based methods can trace the free space),
+then asked for the occupancy probability of voxel centres. The evaluation
+(:mod:`uncertain_facade_map.occupancy_evaluation`) times ``fit`` (training) and
+``predict`` (testing) separately.
+"""
+
+from __future__ import annotations
+
+import abc
+from typing import ClassVar
+
+import numpy as np
+
+from ..errors import InputError
+
+
+class OccupancyMethod(abc.ABC):
+    """An occupancy mapping method: fit on scans, predict p(occupied) at voxel centres.
+
+    Attributes:
+        name: short label used in tables and figures (class attribute).
+        resolution: voxel side, metres.
+    """
+
+    name: ClassVar[str] = ''
+
+    def __init__(self, resolution: float) -> None:
+        if not (np.isfinite(resolution) and resolution > 0):
+            raise InputError(f'resolution must be a positive number of metres, got {resolution!r}')
+        self.resolution = float(resolution)
+
+    @abc.abstractmethod
+    def fit(self, points: np.ndarray, origins: np.ndarray) -> OccupancyMethod:
+        """Build the map.
+
+        Args:
+            points: (N, 3) float64 measured points (ray end points), map frame, metres.
+            origins: (N, 3) float64 sensor origin of each point's ray, map frame, metres.
+
+        Returns:
+            self.
+        """
+
+    @abc.abstractmethod
+    def predict(self, xyz: np.ndarray) -> np.ndarray:
+        """Occupancy probability of the voxels centred at ``xyz``.
+
+        Args:
+            xyz: (M, 3) float64 voxel centres, map frame, metres.
+
+        Returns:
+            (M,) float64 in [0, 1]; 0.5 where the method knows nothing.
+        """
+
+    def predict_variance(self, xyz: np.ndarray) -> np.ndarray | None:
+        """(M,) variance of the method's latent estimate at ``xyz`` (its own units), or None
+        for methods without one. Used for the accurate-inference curves."""
+        return None
+
+
+def check_scans(points: np.ndarray, origins: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Validate the arguments of :meth:`OccupancyMethod.fit`.
+
+    Returns:
+        ``(points, origins)`` as float64 arrays.
+
+    Raises:
+        InputError: shapes differ, are not (N, 3), N is 0, or values are not finite.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    origins = np.asarray(origins, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3 or not len(points):
+        raise InputError(f'points must be a non-empty (N, 3) array, got shape {points.shape}')
+    if origins.shape != points.shape:
+        raise InputError(f'origins must have the shape of the points {points.shape}, got {origins.shape}')
+    if not (np.isfinite(points).all() and np.isfinite(origins).all()):
+        raise InputError('points and origins must be finite')
+    return points, origins
+
+
+def check_queries(xyz: np.ndarray) -> np.ndarray:
+    """Validate the argument of :meth:`OccupancyMethod.predict`; returns it as float64.
+
+    Raises:
+        InputError: not (M, 3) or not finite.
+    """
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise InputError(f'query points must be an (M, 3) array, got shape {xyz.shape}')
+    if not np.isfinite(xyz).all():
+        raise InputError('query points must be finite')
+    return xyz
