@@ -6,6 +6,7 @@ Sub-commands:
     query      answer point queries against a map
     replay     replay bags into a map (offline) or to a running facade_mapper (publish)
     plot       draw a map's façades and an overview as PNG figures
+    evaluate   compare the map's occupancy with the baselines' against a reference scan
 
 Every error a user can cause ends in one line on stderr and exit status 2; nothing ends in
 a traceback. Bag formats need ``msg_adapters`` (rosbags), imported only when asked for.
@@ -310,8 +311,94 @@ def cmd_plot(args: argparse.Namespace) -> int:
     return 0
 
 
+def _evaluation_points(cloud, config, what: str, drop_outliers: bool):
+    """(N, 3) building points and their (N, 3) sensor origins of a cloud."""
+    from .inputs import select_building_points
+
+    if drop_outliers and 'gt_outlier' in (cloud.points.dtype.names or ()):
+        cloud = cloud.select(cloud.points['gt_outlier'] == 0)
+    points = select_building_points(cloud, config.input)
+    if points.sensor_origins is None:
+        raise CliError(f'the {what} cloud has no origin_x, origin_y, origin_z fields: the evaluation traces rays '
+                       'from the sensor origins')
+    return points.xyz, points.sensor_origins
+
+
+def _float_list(text: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(x) for x in text.split(',') if x.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'expected comma-separated numbers, got {text!r}') from None
+    if not values or not all(v > 0 for v in values):
+        raise argparse.ArgumentTypeError(f'expected positive numbers, got {text!r}')
+    return values
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    """Evaluate every method's occupancy against a reference scan (see ``evaluate --help``)."""
+    from .baselines import METHODS, make_method
+    from .config import load_config
+    from .evaluation_report import OURS, accurate_label, write_report
+    from .inputs import load_inputs
+    from .occupancy_evaluation import distance_to_points, evaluate, subset_auc
+
+    config = load_config(args.config)
+    methods = [m.strip() for m in args.methods.split(',') if m.strip()]
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown or not methods:
+        raise CliError(f'unknown method {", ".join(unknown) or "(none)"}; choose from {", ".join(METHODS)}')
+    if args.report is not None and not Path(args.report).parent.exists():
+        raise CliError(f'output folder {Path(args.report).parent} does not exist')
+    started = time.perf_counter()
+    if args.scene is not None:
+        if args.clouds:
+            raise CliError('give either --scene or MAPPED REFERENCE, not both')
+        from .simulation.campaign import simulate_campaign
+        from .simulation.scenes import build_scene
+
+        scene = build_scene(args.scene, args.seed)
+        mapped, reference = simulate_campaign(scene, 0), simulate_campaign(scene, 1)
+        what = f'scene {args.scene} (seed {args.seed}): campaign 0 mapped, campaign 1 as reference'
+    else:
+        if len(args.clouds) != 2:
+            raise CliError('give MAPPED and REFERENCE clouds, or --scene')
+        mapped, reference = load_inputs([args.clouds[0]]), load_inputs([args.clouds[1]])
+        what = f'{args.clouds[0]} mapped, {args.clouds[1]} as reference'
+    pts, org = _evaluation_points(mapped, config, 'mapped', drop_outliers=False)
+    ref_pts, ref_org = _evaluation_points(reference, config, 'reference', drop_outliers=True)
+    say = (lambda line: None) if args.quiet else (lambda line: print(line, file=sys.stderr, flush=True))
+    say(f'{what}: {len(pts):,} mapped and {len(ref_pts):,} reference building points')
+    factories = [lambda r, m=m: make_method(m, r) for m in methods]
+    refs, results = evaluate(factories, pts, org, ref_pts, ref_org, args.resolutions, args.rays, args.negatives,
+                             args.seed, progress=say)
+    by = {(r.name, r.resolution): r for r in results}
+    print(f'{"method":<14}' + ''.join(f'  PR AUC {res:<5g}  ROC AUC {res:<5g}  train s  test s'
+                                      for res in args.resolutions))
+    for name in dict.fromkeys(r.name for r in results):
+        print(f'{name:<14}' + ''.join(f'  {by[(name, res)].pr_auc:12.3f}  {by[(name, res)].roc_auc:13.3f}'
+                                      f'  {by[(name, res)].fit_seconds:7.1f}  {by[(name, res)].predict_seconds:6.1f}'
+                                      for res in args.resolutions))
+    for res in args.resolutions:
+        ours = by.get((OURS, res))
+        if ours is not None and ours.variance is not None:
+            auc, share = subset_auc(ours, refs[res], ours.variance <= args.variance_threshold)
+            print(f'{accurate_label(args.variance_threshold)} at {res:g} m: PR AUC {auc:.3f} over {share:.0%} of the voxels')
+    if args.report is not None:
+        distances = {res: distance_to_points(refs[res].centres, pts) for res in args.resolutions}
+        notes = [what, f'{len(pts):,} mapped and {len(ref_pts):,} reference building points '
+                       '(reference points flagged gt_outlier by the simulator left out)',
+                 f'command: uncertain-facade-map evaluate {" ".join(sys.argv[2:]) if len(sys.argv) > 2 else ""}'.rstrip(),
+                 f'{time.perf_counter() - started:.0f} s in all']
+        path = write_report(args.report, refs, results, distances, args.variance_threshold,
+                            'Occupancy evaluation against the baselines', notes)
+        print(f'report   {path}')
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of all sub-commands."""
+    from .baselines import METHODS
+
     parser = argparse.ArgumentParser(prog=PROG, description='Façade maps with calibrated uncertainty.')
     sub = parser.add_subparsers(dest='command', required=True, metavar='COMMAND')
 
@@ -397,6 +484,29 @@ def build_parser() -> argparse.ArgumentParser:
     plot.add_argument('--dpi', type=int, default=100, help='resolution of the PNG files (default 100)')
     plot.add_argument('--quiet', action='store_true', help='no progress bar')
     plot.set_defaults(func=cmd_plot)
+
+    ev = sub.add_parser('evaluate', help="compare the map's occupancy with the baselines' against a reference scan",
+                        description='Map the same points with every method, turn each map into voxel occupancy '
+                                    'probabilities and score them against a reference scan: positives are voxels '
+                                    'holding reference points, negatives voxels its rays passed through. Prints PR '
+                                    'and ROC AUC and training/testing times per method and resolution, and the '
+                                    'accurate-inference AUC of our map; --report writes report.md with figures.')
+    ev.add_argument('clouds', nargs='*', metavar='CLOUD', help='MAPPED and REFERENCE clouds (with origin_x/y/z)')
+    ev.add_argument('--scene', choices=('street', 'small', 'zurich'),
+                    help='simulate this scene instead: campaign 0 mapped, campaign 1 as reference')
+    ev.add_argument('--seed', type=int, default=0, help='scene seed and seed of the voxel subsets (default 0)')
+    ev.add_argument('--methods', default=','.join(METHODS),
+                    help=f'comma-separated from {",".join(METHODS)} (default: all)')
+    ev.add_argument('--resolutions', type=_float_list, default=(0.1, 0.05), help='voxel sides, metres (default 0.1,0.05)')
+    ev.add_argument('--variance-threshold', type=float, default=0.01,
+                    help='accurate inference: voxels with a variance at most this, m^2 (default 0.01)')
+    ev.add_argument('--rays', type=int, default=50_000, help='reference rays traced (default 50000)')
+    ev.add_argument('--negatives', type=int, default=400_000,
+                    help='free voxels kept at most, a weighted subset (default 400000)')
+    ev.add_argument('--report', metavar='DIR', help='write DIR/report.md and its figures')
+    ev.add_argument('--config', metavar='YAML', help='ROS 2 parameter file (input section)')
+    ev.add_argument('--quiet', action='store_true', help='no progress lines')
+    ev.set_defaults(func=cmd_evaluate)
     return parser
 
 
