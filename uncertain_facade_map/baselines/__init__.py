@@ -15,6 +15,7 @@ from .base import OccupancyMethod
 #: Command-line name -> "module:class" (relative to this package).
 METHODS = {
     'ours': 'facade_gp:FacadeGPMethod',
+    'octomap': 'octomap_map:OctoMapMethod',
 }
 
 

@@ -93,3 +93,29 @@ def check_queries(xyz: np.ndarray) -> np.ndarray:
     if not np.isfinite(xyz).all():
         raise InputError('query points must be finite')
     return xyz
+
+
+def group_by_origin(origins: np.ndarray, quantum: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Group rays whose sensor origins fall in the same cube of side ``quantum``.
+
+    Args:
+        origins: (N, 3) float64 sensor origins, map frame, metres.
+        quantum: side of the cubes, metres (> 0).
+
+    Returns:
+        ``(order, starts, mean_origins)``: (N,) int64 ray indices sorted by group (groups in
+        the order of their first ray, rays in input order within a group), (G + 1,) int64
+        offsets of each group in ``order``, and (G, 3) float64 mean origin of each group.
+    """
+    cells = np.floor(origins / quantum).astype(np.int64)
+    _, first, inverse = np.unique(cells, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    # Renumber the groups by their first ray, so scans are inserted in input (time) order.
+    rank = np.empty(len(first), dtype=np.int64)
+    rank[np.argsort(first, kind='stable')] = np.arange(len(first))
+    group = rank[inverse]
+    order = np.argsort(group, kind='stable')
+    counts = np.bincount(group, minlength=len(first))
+    starts = np.r_[0, np.cumsum(counts)]
+    sums = np.stack([np.bincount(group, weights=origins[:, k], minlength=len(first)) for k in range(3)], axis=1)
+    return order, starts, sums / counts[:, None]
