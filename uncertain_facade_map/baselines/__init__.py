@@ -16,6 +16,7 @@ from .base import OccupancyMethod
 METHODS = {
     'ours': 'facade_gp:FacadeGPMethod',
     'octomap': 'octomap_map:OctoMapMethod',
+    'bgk': 'bgk_octomap:BGKOctoMapMethod',
 }
 
 
