@@ -159,7 +159,7 @@ def write_report(out: str | Path, refs: dict[float, ReferenceVoxels], results: S
         ours = by[(OURS, res)].pr_auc
         for name in names:
             r = by.get((name, res))
-            if name != OURS and r is not None and r.pr_auc > ours:
+            if not name.startswith(OURS) and r is not None and r.pr_auc > ours:
                 wins.append(f'- {res:g} m: **{name}** {r.pr_auc:.3f} against our {ours:.3f} (PR AUC).')
     if len(names) < 2 or OURS not in names:
         lines.append('- No comparison: the run had no baseline, or not our map.')
