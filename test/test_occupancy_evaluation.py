@@ -132,3 +132,22 @@ def test_our_map_ranks_occupied_voxels_first_and_its_accurate_part_better(small_
     distance = distance_to_points(ref.centres, pts)
     near, share_near = auc_by_distance(ours, ref, distance, [0.5, 1e9])
     assert near[1] == pytest.approx(ours.pr_auc) and share_near[0] < share_near[1] == pytest.approx(1.0)
+
+
+def test_the_surface_breakdown_counts_every_voxel_once_and_averages_each_method():
+    from uncertain_facade_map.occupancy_evaluation import (SURFACE_BIN_LABELS, MethodResult, ReferenceVoxels,
+                                                           surface_breakdown)
+
+    r = 0.1
+    s = np.array([-0.3, -0.1, 0.0, 0.02, 0.1, 0.5, np.nan, np.nan])
+    positive = np.array([1, 1, 1, 0, 0, 0, 0, 0], bool)
+    weight = np.where(positive, 1.0, 2.0)
+    ref = ReferenceVoxels(r, np.zeros((8, 3)), positive, weight, 8, 5)
+    p = np.linspace(0.9, 0.2, 8)
+    res = MethodResult('M', r, p, None, 0.0, 0.0, 0.0, 0.0)
+    bins = surface_breakdown(ref, [res], s)
+    assert [b.label for b in bins] == list(SURFACE_BIN_LABELS)
+    assert [b.positives for b in bins] == [1, 1, 1, 0, 0, 0]
+    assert [b.negatives for b in bins] == [0, 0, 2, 2, 2, 4]
+    assert bins[2].mean_p['M'] == pytest.approx((p[2] + 2 * p[3]) / 3) and bins[2].share_positive == pytest.approx(1 / 3)
+    assert bins[5].mean_p['M'] == pytest.approx((p[6] + p[7]) / 2)

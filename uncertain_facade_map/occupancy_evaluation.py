@@ -208,6 +208,7 @@ class MethodResult:
         predict_seconds: testing (query) time, seconds.
         pr_auc: area under the precision-recall curve.
         roc_auc: area under the ROC curve.
+        extra: the method's per-voxel diagnostics (:meth:`OccupancyMethod.diagnostics`).
     """
 
     name: str
@@ -237,7 +238,8 @@ def run_method(method, points: np.ndarray, origins: np.ndarray, ref: ReferenceVo
     if p.shape != (len(ref.centres),) or not np.all((p >= 0) & (p <= 1)):
         raise InputError(f'{method.name} returned no (K,) probabilities in [0, 1]')
     return MethodResult(method.name, ref.resolution, p, None if variance is None else np.asarray(variance, float),
-                        t1 - t0, t2 - t1, pr_auc(ref.positive, p, ref.weight), roc_auc(ref.positive, p, ref.weight))
+                        t1 - t0, t2 - t1, pr_auc(ref.positive, p, ref.weight), roc_auc(ref.positive, p, ref.weight),
+                        dict(method.diagnostics(ref.centres)))
 
 
 def subset_auc(result: MethodResult, ref: ReferenceVoxels, keep: np.ndarray) -> tuple[float, float]:
@@ -284,6 +286,63 @@ def auc_by_distance(result: MethodResult, ref: ReferenceVoxels, distance: np.nda
     """
     out = [subset_auc(result, ref, distance <= d) for d in limits]
     return np.array([a for a, _ in out]), np.array([s for _, s in out])
+
+
+#: Bins of the voxel centre's signed distance from our mean surface, in voxel sides
+#: (negative: behind the surface, inside the building).
+SURFACE_BINS = (-np.inf, -1.5, -0.5, 0.5, 1.5, np.inf)
+SURFACE_BIN_LABELS = ('behind, > 1.5 voxels', 'behind, 0.5-1.5 voxels', 'at the surface, +-0.5 voxel',
+                      'in front, 0.5-1.5 voxels', 'in front, > 1.5 voxels', 'no façade')
+
+
+@dataclass(frozen=True)
+class SurfaceBin:
+    """The labelled voxels of one bin of :data:`SURFACE_BINS`.
+
+    Attributes:
+        label: the bin's label.
+        positives: voxels holding reference points.
+        negatives: weighted count of free voxels.
+        mean_p: method name -> weighted mean occupancy probability over the bin's voxels.
+    """
+
+    label: str
+    positives: int
+    negatives: float
+    mean_p: dict
+
+    @property
+    def share_positive(self) -> float:
+        """The bin's share of positives (its precision if all of it were called occupied)."""
+        total = self.positives + self.negatives
+        return self.positives / total if total else float('nan')
+
+
+def surface_breakdown(ref: ReferenceVoxels, results: Sequence[MethodResult], signed_distance: np.ndarray
+                      ) -> list[SurfaceBin]:
+    """Where the labelled voxels lie relative to our mean surface, and what each method
+    gives them: explains where methods differ (the report's "why").
+
+    Args:
+        ref: the labelled voxels of one resolution.
+        results: the methods' results at that resolution.
+        signed_distance: (K,) each voxel centre's signed distance from our mean surface,
+            metres, positive in front; NaN where no façade covers it.
+
+    Returns:
+        One :class:`SurfaceBin` per bin of :data:`SURFACE_BINS`, then one for "no façade"
+        (bins without voxels included, with NaN means).
+    """
+    s = np.asarray(signed_distance, dtype=np.float64) / ref.resolution
+    known = np.isfinite(s)
+    which = np.where(known, np.digitize(np.where(known, s, 0.0), SURFACE_BINS[1:-1]), len(SURFACE_BINS) - 1)
+    out = []
+    for b, label in enumerate(SURFACE_BIN_LABELS):
+        sel = which == b
+        w = ref.weight[sel]
+        mean_p = {r.name: float(np.average(r.p[sel], weights=w)) if sel.any() else float('nan') for r in results}
+        out.append(SurfaceBin(label, int(ref.positive[sel].sum()), float(w[~ref.positive[sel]].sum()), mean_p))
+    return out
 
 
 def evaluate(methods: Sequence[Callable[[float], object]], points: np.ndarray, origins: np.ndarray,

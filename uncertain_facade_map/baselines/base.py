@@ -60,6 +60,11 @@ class OccupancyMethod(abc.ABC):
         for methods without one. Used for the accurate-inference curves."""
         return None
 
+    def diagnostics(self, xyz: np.ndarray) -> dict[str, np.ndarray]:
+        """Per-voxel quantities for the report beyond p and variance, each (M,), by name
+        (none by default). Not timed."""
+        return {}
+
 
 def check_scans(points: np.ndarray, origins: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Validate the arguments of :meth:`OccupancyMethod.fit`.

@@ -109,6 +109,11 @@ class FacadeGPMethod(OccupancyMethod):
         var = self._answers(xyz).variance
         return np.where(np.isfinite(var), var, np.inf)
 
+    def diagnostics(self, xyz: np.ndarray) -> dict[str, np.ndarray]:
+        """``signed_distance``: (M,) of each voxel centre from the mean surface along the
+        façade normal, metres, positive in front; NaN where no façade covers it."""
+        return {'signed_distance': self._answers(xyz).signed_distance}
+
 
 class FacadeGPSolidMethod(FacadeGPMethod):
     """:class:`FacadeGPMethod` in the ``solid`` reading (the node's occupancy)."""
