@@ -34,6 +34,9 @@ from scipy.special import ndtr
 
 #: Occupancy of space no façade model covers (unknown, as in OctoMap).
 UNKNOWN = 0.5
+#: The two readings of an uncertain surface as occupancy in the evaluation: the
+#: probability that the voxel holds the surface, or that it lies behind it (solid).
+READINGS = ('surface', 'solid')
 
 
 def occupancy_probability(signed_distance: np.ndarray, variance: np.ndarray, noise_variance: np.ndarray | float,

@@ -18,6 +18,8 @@ METHODS = {
     'ours-solid': 'facade_gp:FacadeGPSolidMethod',
     'octomap': 'octomap_map:OctoMapMethod',
     'bgk': 'bgk_octomap:BGKOctoMapMethod',
+    'gpis': 'gpis_map:GPISMapMethod',
+    'gpis-solid': 'gpis_map:GPISMapSolidMethod',
 }
 
 

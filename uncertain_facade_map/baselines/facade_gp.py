@@ -34,12 +34,9 @@ import numpy as np
 
 from ..errors import InputError
 from ..facade_map import FacadeMap, MapParams, build_map
-from ..occupancy import half_depth, surface_probability
+from ..occupancy import READINGS, half_depth, surface_probability
 from ..queries import query_points
 from .base import OccupancyMethod, check_queries, check_scans
-
-#: The two readings of the map as occupancy (see the module docstring).
-READINGS = ('surface', 'solid')
 
 
 class FacadeGPMethod(OccupancyMethod):
