@@ -2,11 +2,13 @@
 #   make demo    the main job: simulate the street drive, map it with the node, query, save, draw
 #   make test    run every test
 #   make bench   print throughput and peak memory of the hot paths
+#   make evaluate  the occupancy evaluation against the baselines, report in output/evaluation/$(SCENE)
 PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 OUT    ?= output/demo
+SCENE  ?= street
 JOBS   ?= $(shell nproc 2>/dev/null || echo 2)
 UV_VERSION := 0.13.9
 UV     := $(VENV)/bin/uv
@@ -26,7 +28,7 @@ IFC_PTH   := $(VENV)/lib/python3.11/site-packages/uncertain_facade_map_interface
 IFC_STAMP := $(VENV)/.interfaces
 IFC_SRC   := CMakeLists.txt package.xml $(wildcard msg/*.msg) $(wildcard srv/*.srv)
 
-.PHONY: venv demo test bench lock clean
+.PHONY: venv demo test bench evaluate lock clean
 
 venv: $(STAMP) $(IFC_STAMP)
 
@@ -68,6 +70,12 @@ test: $(STAMP) $(IFC_STAMP)
 
 bench: $(STAMP) $(IFC_STAMP)
 	$(PY) -m uncertain_facade_map.bench
+
+# Simulates two drives of $(SCENE) (street, zurich or small), maps one with every method
+# and scores them against the other; writes output/evaluation/$(SCENE)/report.md.
+evaluate: $(STAMP) $(IFC_STAMP)
+	mkdir -p output/evaluation
+	$(PY) -m uncertain_facade_map.cli evaluate --scene $(SCENE) --report output/evaluation/$(SCENE)
 
 # Re-resolve requirements.in and rewrite requirements.lock (needs the registries).
 lock:
