@@ -151,3 +151,19 @@ def test_the_surface_breakdown_counts_every_voxel_once_and_averages_each_method(
     assert [b.negatives for b in bins] == [0, 0, 2, 2, 2, 4]
     assert bins[2].mean_p['M'] == pytest.approx((p[2] + 2 * p[3]) / 3) and bins[2].share_positive == pytest.approx(1 / 3)
     assert bins[5].mean_p['M'] == pytest.approx((p[6] + p[7]) / 2)
+
+
+def test_the_decisive_bin_is_where_the_other_method_gains_its_lead():
+    from uncertain_facade_map.occupancy_evaluation import MethodResult, ReferenceVoxels, decisive_bin
+
+    rng = np.random.default_rng(5)
+    r = 0.1
+    s = rng.choice([-0.1, 0.0, 0.3], 3000)
+    positive = (s <= 0.0) & (rng.random(3000) < np.where(s < 0, 0.8, 0.5))
+    ref = ReferenceVoxels(r, np.zeros((3000, 3)), positive, np.ones(3000), 3000, 0)
+    # Both rank the surface and the free space alike; only 'other' puts the voxels behind first.
+    base = np.where(s == 0.0, 0.6, 0.0) + 0.01 * rng.random(3000)
+    ours = MethodResult('Ours', r, np.where(s < 0, 0.3, base), None, 0, 0, 0, 0)
+    other = MethodResult('X', r, np.where(s < 0, 0.9, base), None, 0, 0, 0, 0)
+    label, a_other, a_ours = decisive_bin(ref, ours, other, s)
+    assert label == 'behind, 0.5-1.5 voxels' and a_other == pytest.approx(a_ours)

@@ -333,9 +333,7 @@ def surface_breakdown(ref: ReferenceVoxels, results: Sequence[MethodResult], sig
         One :class:`SurfaceBin` per bin of :data:`SURFACE_BINS`, then one for "no façade"
         (bins without voxels included, with NaN means).
     """
-    s = np.asarray(signed_distance, dtype=np.float64) / ref.resolution
-    known = np.isfinite(s)
-    which = np.where(known, np.digitize(np.where(known, s, 0.0), SURFACE_BINS[1:-1]), len(SURFACE_BINS) - 1)
+    which = surface_bins(ref, signed_distance)
     out = []
     for b, label in enumerate(SURFACE_BIN_LABELS):
         sel = which == b
@@ -343,6 +341,40 @@ def surface_breakdown(ref: ReferenceVoxels, results: Sequence[MethodResult], sig
         mean_p = {r.name: float(np.average(r.p[sel], weights=w)) if sel.any() else float('nan') for r in results}
         out.append(SurfaceBin(label, int(ref.positive[sel].sum()), float(w[~ref.positive[sel]].sum()), mean_p))
     return out
+
+
+def surface_bins(ref: ReferenceVoxels, signed_distance: np.ndarray) -> np.ndarray:
+    """(K,) index into :data:`SURFACE_BIN_LABELS` of each labelled voxel.
+
+    Args:
+        ref: the labelled voxels of one resolution.
+        signed_distance: (K,) each voxel centre's signed distance from our mean surface,
+            metres, positive in front; NaN where no façade covers it (the last bin).
+    """
+    s = np.asarray(signed_distance, dtype=np.float64) / ref.resolution
+    known = np.isfinite(s)
+    return np.where(known, np.digitize(np.where(known, s, 0.0), SURFACE_BINS[1:-1]), len(SURFACE_BINS) - 1)
+
+
+def decisive_bin(ref: ReferenceVoxels, ours: MethodResult, other: MethodResult, signed_distance: np.ndarray
+                 ) -> tuple[str, float, float]:
+    """The surface bin whose voxels give ``other`` most of its PR AUC lead over ``ours``:
+    the one that, left out, shrinks ``other.pr_auc - ours.pr_auc`` the most.
+
+    Returns:
+        ``(label, other_auc, ours_auc)``: the bin and both PR AUCs without its voxels.
+    """
+    which = surface_bins(ref, signed_distance)
+    best = None
+    for b, label in enumerate(SURFACE_BIN_LABELS):
+        keep = which != b
+        if keep.all():
+            continue
+        a_other = pr_auc(ref.positive[keep], other.p[keep], ref.weight[keep])
+        a_ours = pr_auc(ref.positive[keep], ours.p[keep], ref.weight[keep])
+        if best is None or a_other - a_ours < best[1] - best[2]:
+            best = (label, a_other, a_ours)
+    return best if best is not None else ('', other.pr_auc, ours.pr_auc)
 
 
 def evaluate(methods: Sequence[Callable[[float], object]], points: np.ndarray, origins: np.ndarray,
