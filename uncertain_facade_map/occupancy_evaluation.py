@@ -209,6 +209,7 @@ class MethodResult:
         pr_auc: area under the precision-recall curve.
         roc_auc: area under the ROC curve.
         extra: the method's per-voxel diagnostics (:meth:`OccupancyMethod.diagnostics`).
+        trains_on_predict: part of the training ran in ``predict`` (so in the testing time).
     """
 
     name: str
@@ -220,6 +221,7 @@ class MethodResult:
     pr_auc: float
     roc_auc: float
     extra: dict = field(default_factory=dict)
+    trains_on_predict: bool = False
 
 
 def run_method(method, points: np.ndarray, origins: np.ndarray, ref: ReferenceVoxels) -> MethodResult:
@@ -239,7 +241,7 @@ def run_method(method, points: np.ndarray, origins: np.ndarray, ref: ReferenceVo
         raise InputError(f'{method.name} returned no (K,) probabilities in [0, 1]')
     return MethodResult(method.name, ref.resolution, p, None if variance is None else np.asarray(variance, float),
                         t1 - t0, t2 - t1, pr_auc(ref.positive, p, ref.weight), roc_auc(ref.positive, p, ref.weight),
-                        dict(method.diagnostics(ref.centres)))
+                        dict(method.diagnostics(ref.centres)), bool(getattr(method, 'trains_on_predict', False)))
 
 
 def subset_auc(result: MethodResult, ref: ReferenceVoxels, keep: np.ndarray) -> tuple[float, float]:

@@ -18,6 +18,7 @@ METHODS = {
     'ours-solid': 'facade_gp:FacadeGPSolidMethod',
     'octomap': 'octomap_map:OctoMapMethod',
     'bgk': 'bgk_octomap:BGKOctoMapMethod',
+    'gpom': 'gpom:FastGPOMMethod',
     'hilbert': 'hilbert_map:LARDHilbertMapMethod',
     'gpis': 'gpis_map:GPISMapMethod',
     'gpis-solid': 'gpis_map:GPISMapSolidMethod',

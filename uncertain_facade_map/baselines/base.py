@@ -22,10 +22,14 @@ class OccupancyMethod(abc.ABC):
 
     Attributes:
         name: short label used in tables and figures (class attribute).
+        trains_on_predict: True for a method that defers part of its training to the
+            first ``predict`` (only what the asked voxels need), so its testing time holds
+            that training (class attribute; the report says so).
         resolution: voxel side, metres.
     """
 
     name: ClassVar[str] = ''
+    trains_on_predict: ClassVar[bool] = False
 
     def __init__(self, resolution: float) -> None:
         if not (np.isfinite(resolution) and resolution > 0):
