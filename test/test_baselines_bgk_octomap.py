@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from baselines_scene import WALL_Y, labelled_voxels, wall_scan
-from uncertain_facade_map.baselines.bgk_octomap import (BGKOctoMapMethod, beam_samples, grouped_centroids,
-                                                        sparse_kernel)
+from uncertain_facade_map.baselines.base import beam_samples
+from uncertain_facade_map.baselines.bgk_octomap import BGKOctoMapMethod, grouped_centroids, sparse_kernel
 from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.occupancy_evaluation import pr_auc
 
@@ -37,23 +37,21 @@ def test_training_data_are_downsampled_hits_and_beam_samples():
     np.testing.assert_allclose(centroid, [[1.03, 0.03, 0.03]]) and np.testing.assert_allclose(origin, 0)
     # Different scans are not merged.
     assert len(grouped_centroids(hits, np.array([0, 1]), 0.1)[0]) == 2
-    samples, beam = beam_samples(np.array([[1.2, 0, 0]]), np.zeros((1, 3)), 0.5)
-    np.testing.assert_allclose(samples[:, 0], [0.0, 0.5, 1.0]) and np.testing.assert_array_equal(beam, 0)
-    # Chunking changes nothing.
-    many = np.random.default_rng(1).uniform(-5, 5, (50, 3))
-    a, _ = beam_samples(many, np.zeros((50, 3)), 0.3)
-    b, _ = beam_samples(many, np.zeros((50, 3)), 0.3, chunk=7)
-    np.testing.assert_array_equal(a, b)
+    # The library's beam_sample: every step below the length, and one step before the hit.
+    samples, beam = beam_samples(np.array([[1.2, 0, 0], [0.3, 0, 0]]), np.zeros((2, 3)), 0.5)
+    np.testing.assert_allclose(samples[:, 0], [0.5, 1.0, 0.7]) and np.testing.assert_array_equal(beam, 0)
+    assert np.allclose(samples[:, 1:], 0)
 
 
 def test_the_posterior_is_the_beta_of_the_kernel_weighted_counts():
     method = BGKOctoMapMethod(0.1, ds_resolution=0.01, free_resolution=0.5)
     method.fit(np.array([[1.2, 0.0, 0.0]]), np.zeros((1, 3)))
-    # Training: the hit (1) and free samples at 0, 0.5, 1.0 m (0).
-    assert sorted(method.train_y_.tolist()) == [0, 0, 0, 1]
+    # Training: the hit (1) and free samples at 0 (the origin), 0.5, 0.7 and 1.0 m (0).
+    assert sorted(method.train_y_.tolist()) == [0, 0, 0, 0, 1]
+    np.testing.assert_allclose(np.sort(method.train_x_[method.train_y_ == 0, 0]), [0.0, 0.5, 0.7, 1.0])
     x = np.array([[1.1, 0.0, 0.0], [3.0, 0.0, 0.0]])
     k_hit = sparse_kernel(np.array([0.1]), 1.0, 0.2)[0]
-    k_free = sparse_kernel(np.array([0.1]), 1.0, 0.2)[0]  # the sample at 1.0 m
+    k_free = sparse_kernel(np.array([0.1]), 1.0, 0.2)[0]  # the sample at 1.0 m (0.7 m is beyond ell)
     alpha, beta = 0.001 + k_hit, 0.001 + k_free
     np.testing.assert_allclose(method.predict(x), [alpha / (alpha + beta), 0.5])
     np.testing.assert_allclose(method.predict_variance(x)[0], alpha * beta / ((alpha + beta) ** 2 * (alpha + beta + 1)))

@@ -9,7 +9,8 @@ from scipy.linalg import cho_factor, cho_solve
 from scipy.special import ndtr
 
 from baselines_scene import WALL_Y, labelled_voxels, wall_scan
-from uncertain_facade_map.baselines.gpom import (EXTENDED_BLOCK, FastGPOMMethod, _pack, beam_samples, loo_moments,
+from uncertain_facade_map.baselines.base import beam_samples
+from uncertain_facade_map.baselines.gpom import (EXTENDED_BLOCK, FastGPOMMethod, _pack, loo_moments,
                                                  matern32, voxel_centroids)
 from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.occupancy_evaluation import pr_auc
@@ -37,9 +38,10 @@ def test_the_matern_kernel_is_sf2_at_zero_decreasing_and_positive_definite():
 
 def test_training_data_are_downsampled_hits_and_beam_samples():
     # la3dm beam_sample: every 0.3 m below the range, and one 0.3 m before the hit.
-    samples = beam_samples(np.array([[1.0, 0, 0]]), np.zeros((1, 3)), 0.3)
+    samples, beam = beam_samples(np.array([[1.0, 0, 0]]), np.zeros((1, 3)), 0.3)
+    assert beam.tolist() == [0, 0, 0, 0]
     np.testing.assert_allclose(samples[:, 0], [0.3, 0.6, 0.9, 0.7]) and np.testing.assert_allclose(samples[:, 1:], 0)
-    assert len(beam_samples(np.array([[0.2, 0, 0]]), np.zeros((1, 3)), 0.3)) == 0
+    assert len(beam_samples(np.array([[0.2, 0, 0]]), np.zeros((1, 3)), 0.3)[0]) == 0
     hits = np.array([[1.02, 0.02, 0.02], [1.04, 0.04, 0.04]])
     centroid, group, origin = voxel_centroids(hits, 0.1, np.zeros(2, np.int64), np.zeros((2, 3)))
     np.testing.assert_allclose(centroid, [[1.03, 0.03, 0.03]]) and np.testing.assert_allclose(origin, 0)

@@ -128,3 +128,33 @@ def group_by_origin(origins: np.ndarray, quantum: float) -> tuple[np.ndarray, np
     starts = np.r_[0, np.cumsum(counts)]
     sums = np.stack([np.bincount(group, weights=origins[:, k], minlength=len(first)) for k in range(3)], axis=1)
     return order, starts, sums / counts[:, None]
+
+
+def beam_samples(hits: np.ndarray, origins: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """Free-space samples of beams by the ``la3dm`` library's rule (``beam_sample`` of
+    BGKOctoMap and GPOctoMap): at ``step``, ``2 step``, ... while below the beam's length,
+    plus one at ``length - step`` when the beam is longer than ``step``. The origin itself
+    is not included (the library adds it separately).
+
+    Args:
+        hits: (N, 3) float64 beam end points, metres.
+        origins: (N, 3) float64 beam origins, metres.
+        step: spacing of the samples, metres (> 0).
+
+    Returns:
+        ``(samples, beam)``: (S, 3) float64 samples, the regular ones beam by beam, then the
+        last one of each beam longer than ``step``; (S,) int64 the beam of each.
+    """
+    direction = hits - origins
+    length = np.linalg.norm(direction, axis=1)
+    unit = direction / np.maximum(length, 1e-12)[:, None]
+    # d = step, 2 step, ... while d < length (the library's float loop: the count of k >= 1
+    # with k step < length), then length - step.
+    n = np.maximum(np.ceil(length / step).astype(np.int64) - 1, 0)
+    d = (np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n) + 1.0) * step
+    body = np.repeat(unit, n, axis=0)
+    body *= d[:, None]
+    body += np.repeat(origins, n, axis=0)
+    long = np.flatnonzero(length > step)
+    beam = np.r_[np.repeat(np.arange(len(hits)), n), long]
+    return np.concatenate([body, hits[long] - unit[long] * step]), beam

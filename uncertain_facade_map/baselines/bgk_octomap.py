@@ -26,7 +26,9 @@ samples to ``ds_resolution`` 0.1 m (PCL voxel-grid centroids), free/occupied thr
 How the library builds the training data of one scan (``get_training_data``), kept here:
 the hits are down-sampled to voxel-grid centroids; each down-sampled hit gives a beam from
 the origin, sampled every ``free_resolution`` from the origin up to (not including) the
-hit, plus the origin itself; those free samples are down-sampled the same way. Scans add
+hit and once more ``free_resolution`` before the hit (``beam_sample``,
+:func:`.base.beam_samples`), plus the origin itself; those free samples are down-sampled
+the same way. Scans add
 their pseudo-counts, so a voxel seen in many scans gathers evidence from each.
 
 What was simplified / chosen here:
@@ -51,7 +53,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputError
-from .base import OccupancyMethod, check_queries, check_scans, group_by_origin
+from .base import OccupancyMethod, beam_samples, check_queries, check_scans, group_by_origin
 
 
 def sparse_kernel(d: np.ndarray, sf2: float, ell: float) -> np.ndarray:
@@ -105,42 +107,6 @@ def grouped_centroids(points: np.ndarray, group: np.ndarray, cell: float,
     return mean(points), group[first], None if extra is None else mean(extra)
 
 
-def beam_samples(hits: np.ndarray, origins: np.ndarray, step: float, chunk: int = 4_000_000
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """Free-space samples along beams (the library's ``beam_sample``): every ``step`` from
-    each origin up to, not including, its hit, and the origin itself.
-
-    Args:
-        hits: (N, 3) float64 beam end points, metres.
-        origins: (N, 3) float64 beam origins, metres.
-        step: spacing of the samples, metres.
-        chunk: samples made at once (bounds memory; the result is the same).
-
-    Returns:
-        ``(samples, beam)``: (S, 3) float64 sample points and (S,) int64 index of the beam
-        each belongs to.
-    """
-    direction = hits - origins
-    length = np.linalg.norm(direction, axis=1)
-    unit = direction / np.maximum(length, 1e-12)[:, None]
-    # d = 0 (the origin), step, 2 step, ... while d < length.
-    n = np.ceil(length / step).astype(np.int64)
-    n = np.maximum(n, 1)
-    samples, beams = [], []
-    cum = np.cumsum(n)
-    start = 0
-    while start < len(hits):
-        before = int(cum[start] - n[start])
-        stop = max(start + 1, int(np.searchsorted(cum, before + chunk, side='right')))
-        counts = n[start:stop]
-        beam = np.repeat(np.arange(start, stop), counts)
-        t = (np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)) * step
-        samples.append(origins[beam] + unit[beam] * t[:, None])
-        beams.append(beam)
-        start = stop
-    return np.concatenate(samples), np.concatenate(beams)
-
-
 class BGKOctoMapMethod(OccupancyMethod):
     """BGKOctoMap (Doherty, Wang and Englot, ICRA 2017), re-implemented with numpy/scipy.
 
@@ -156,6 +122,7 @@ class BGKOctoMapMethod(OccupancyMethod):
         occupied_thresh: above this a voxel is occupied (:meth:`classify`), (free_thresh, 1).
         scan_size: side of the origin cubes that group rays into scans, metres (> 0).
         chunk: query voxels handled at once (bounds memory; the result is the same).
+        beam_chunk: beams sampled at once (bounds memory; the result is the same).
 
     Raises:
         InputError: a parameter out of its range.
@@ -166,7 +133,7 @@ class BGKOctoMapMethod(OccupancyMethod):
     def __init__(self, resolution: float, sf2: float = 1.0, ell: float = 0.2, free_resolution: float = 0.5,
                  ds_resolution: float = 0.1, prior_a: float = 0.001, prior_b: float = 0.001,
                  free_thresh: float = 0.3, occupied_thresh: float = 0.7, scan_size: float = 1.0,
-                 chunk: int = 50_000) -> None:
+                 chunk: int = 50_000, beam_chunk: int = 100_000) -> None:
         super().__init__(resolution)
         for label, value in (('sf2', sf2), ('ell', ell), ('free_resolution', free_resolution),
                              ('ds_resolution', ds_resolution), ('prior_a', prior_a), ('prior_b', prior_b),
@@ -175,14 +142,15 @@ class BGKOctoMapMethod(OccupancyMethod):
                 raise InputError(f'{label} must be a positive number, got {value!r}')
         if not 0.0 < free_thresh < occupied_thresh < 1.0:
             raise InputError(f'need 0 < free_thresh < occupied_thresh < 1, got {free_thresh!r} and {occupied_thresh!r}')
-        if int(chunk) < 1:
-            raise InputError(f'chunk must be >= 1, got {chunk!r}')
+        if int(chunk) < 1 or int(beam_chunk) < 1:
+            raise InputError(f'chunk and beam_chunk must be >= 1, got {chunk!r} and {beam_chunk!r}')
         self.sf2, self.ell = float(sf2), float(ell)
         self.free_resolution, self.ds_resolution = float(free_resolution), float(ds_resolution)
         self.prior_a, self.prior_b = float(prior_a), float(prior_b)
         self.free_thresh, self.occupied_thresh = float(free_thresh), float(occupied_thresh)
         self.scan_size = float(scan_size)
         self.chunk = int(chunk)
+        self.beam_chunk = int(beam_chunk)
         self.train_x_: np.ndarray | None = None
         self.train_y_: np.ndarray | None = None
         self.tree_ = None
@@ -211,9 +179,16 @@ class BGKOctoMapMethod(OccupancyMethod):
         scan[order] = np.repeat(np.arange(len(starts) - 1), np.diff(starts))
         # get_training_data: down-sampled hits (label 1) ...
         hits, hit_scan, hit_origin = grouped_centroids(points, scan, self.ds_resolution, origins)
-        # ... and the free samples of their beams, down-sampled per scan (label 0).
-        free, beam = beam_samples(hits, hit_origin, self.free_resolution)
-        free, _, _ = grouped_centroids(free, hit_scan[beam], self.ds_resolution)
+        # ... and the free samples of their beams with each beam's origin, down-sampled
+        # per scan (label 0); beams in chunks to bound the memory.
+        free_parts = []
+        for start in range(0, len(hits), self.beam_chunk):
+            part = slice(start, start + self.beam_chunk)
+            samples, beam = beam_samples(hits[part], hit_origin[part], self.free_resolution)
+            free_parts.append((np.concatenate([samples, hit_origin[part]]),
+                               np.r_[hit_scan[part][beam], hit_scan[part]]))
+        free, free_scan = (np.concatenate(x) for x in zip(*free_parts))
+        free, _, _ = grouped_centroids(free, free_scan, self.ds_resolution)
         self.train_x_ = np.concatenate([hits, free])
         self.train_y_ = np.r_[np.ones(len(hits)), np.zeros(len(free))]
         self.tree_ = cKDTree(self.train_x_)

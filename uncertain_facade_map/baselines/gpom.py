@@ -112,7 +112,7 @@ import scipy.linalg
 from scipy.special import expit, log_ndtr, ndtr
 
 from ..errors import InputError
-from .base import OccupancyMethod, check_queries, check_scans, group_by_origin
+from .base import OccupancyMethod, beam_samples, check_queries, check_scans, group_by_origin
 
 #: The block itself and its 6 face neighbours (``la3dm`` ``get_extended_block``).
 EXTENDED_BLOCK = np.array([[0, 0, 0], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]],
@@ -183,35 +183,6 @@ def voxel_centroids(points: np.ndarray, cell: float, group: np.ndarray | None = 
                          for k in range(values.shape[1])], axis=1) / counts[:, None]
 
     return mean(points), group[first], None if extra is None else mean(extra)
-
-
-def beam_samples(hits: np.ndarray, origins: np.ndarray, step: float) -> np.ndarray:
-    """Free-space samples of beams (``la3dm`` GPOctoMap ``beam_sample``): at ``step``,
-    ``2 step``, ... while below the beam's length, plus one at ``length - step`` when the
-    beam is longer than ``step``. The origin itself is not included (the library adds it
-    separately).
-
-    Args:
-        hits: (N, 3) float64 beam end points, metres.
-        origins: (N, 3) float64 beam origins, metres.
-        step: spacing of the samples, metres (> 0).
-
-    Returns:
-        (S, 3) float64 samples: the regular ones beam by beam, then the last one of each
-        beam longer than ``step``.
-    """
-    direction = hits - origins
-    length = np.linalg.norm(direction, axis=1)
-    unit = direction / np.maximum(length, 1e-12)[:, None]
-    # d = step, 2 step, ... while d < length (the library's float loop; the count of k >= 1
-    # with k step < length), then length - step.
-    n = np.maximum(np.ceil(length / step).astype(np.int64) - 1, 0)
-    d = (np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n) + 1.0) * step
-    body = np.repeat(unit, n, axis=0)
-    body *= d[:, None]
-    body += np.repeat(origins, n, axis=0)
-    long = length > step
-    return np.concatenate([body, hits[long] - unit[long] * step])
 
 
 def _pack(index: np.ndarray) -> np.ndarray:
@@ -474,7 +445,7 @@ class FastGPOMMethod(OccupancyMethod):
         cuts = np.searchsorted(end, np.arange(self.free_chunk, end[-1], self.free_chunk), side='right')
         edges = np.unique(np.r_[0, cuts, len(hits)])
         for a, b in zip(edges[:-1].tolist(), edges[1:].tolist()):
-            samples = np.concatenate([beam_samples(hits[a:b], origins[a:b], step), origins[a:b]])
+            samples = np.concatenate([beam_samples(hits[a:b], origins[a:b], step)[0], origins[a:b]])
             voxel = np.floor(samples / r).astype(np.int64)
             rows = slice(int(end[a] - n[a]), int(end[b - 1]))
             keys[rows] = grid.key(voxel)
