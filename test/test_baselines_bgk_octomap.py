@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from baselines_scene import WALL_Y, labelled_voxels, wall_scan
-from uncertain_facade_map.baselines.base import beam_samples
-from uncertain_facade_map.baselines.bgk_octomap import BGKOctoMapMethod, grouped_centroids, sparse_kernel
+from uncertain_facade_map.baselines.base import beam_samples, voxel_centroids
+from uncertain_facade_map.baselines.bgk_octomap import BGKOctoMapMethod, sparse_kernel
 from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.occupancy_evaluation import pr_auc
 
@@ -33,10 +33,10 @@ def test_the_sparse_kernel_is_sf2_at_zero_smooth_and_zero_beyond_ell():
 def test_training_data_are_downsampled_hits_and_beam_samples():
     # Two rays of one scan into one 0.1 m voxel, 1.05 m from the origin.
     hits = np.array([[1.02, 0.02, 0.02], [1.04, 0.04, 0.04]])
-    centroid, group, origin = grouped_centroids(hits, np.zeros(2, np.int64), 0.1, np.zeros((2, 3)))
+    centroid, group, origin = voxel_centroids(hits, 0.1, np.zeros(2, np.int64), np.zeros((2, 3)))
     np.testing.assert_allclose(centroid, [[1.03, 0.03, 0.03]]) and np.testing.assert_allclose(origin, 0)
     # Different scans are not merged.
-    assert len(grouped_centroids(hits, np.array([0, 1]), 0.1)[0]) == 2
+    assert len(voxel_centroids(hits, 0.1, np.array([0, 1]))[0]) == 2
     # The library's beam_sample: every step below the length, and one step before the hit.
     samples, beam = beam_samples(np.array([[1.2, 0, 0], [0.3, 0, 0]]), np.zeros((2, 3)), 0.5)
     np.testing.assert_allclose(samples[:, 0], [0.5, 1.0, 0.7]) and np.testing.assert_array_equal(beam, 0)

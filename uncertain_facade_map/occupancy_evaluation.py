@@ -42,15 +42,19 @@ def voxel_index(xyz: np.ndarray, resolution: float) -> np.ndarray:
     return np.floor(np.asarray(xyz, dtype=np.float64) / resolution).astype(np.int64)
 
 
-def pack_keys(index: np.ndarray) -> np.ndarray:
+def pack_keys(index: np.ndarray, unit: str = 'voxels') -> np.ndarray:
     """(N,) int64 key of (N, 3) voxel indices (one number per voxel, for np.unique).
 
+    Args:
+        index: (N, 3) int64 cell indices.
+        unit: what a cell is, for the error message.
+
     Raises:
-        InputError: an index beyond +-2^20 voxels (the scene is too large for the resolution).
+        InputError: an index beyond +-2^20 cells (the scene is too large for the resolution).
     """
     shifted = index + _OFFSET
     if len(shifted) and (shifted.min() < 0 or shifted.max() >= (1 << _BITS)):
-        raise InputError(f'the points reach beyond {_OFFSET:,} voxels from the map origin; '
+        raise InputError(f'the points reach beyond {_OFFSET:,} {unit} from the map origin; '
                          'use map-frame coordinates near the origin or a coarser resolution')
     return (shifted[:, 0] << (2 * _BITS)) | (shifted[:, 1] << _BITS) | shifted[:, 2]
 

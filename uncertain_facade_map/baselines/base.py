@@ -158,3 +158,43 @@ def beam_samples(hits: np.ndarray, origins: np.ndarray, step: float) -> tuple[np
     long = np.flatnonzero(length > step)
     beam = np.r_[np.repeat(np.arange(len(hits)), n), long]
     return np.concatenate([body, hits[long] - unit[long] * step]), beam
+
+
+def voxel_centroids(points: np.ndarray, cell: float, group: np.ndarray | None = None,
+                    extra: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Voxel-grid down-sampling (PCL ``VoxelGrid``: the centroid of each cell's points),
+    within groups when given.
+
+    Args:
+        points: (N, 3) float64 points, metres.
+        cell: voxel side, metres.
+        group: (N,) int64 group (scan) of each point, >= 0; None: one group.
+        extra: (N, K) float64 values averaged the same way (e.g. sensor origins), or None.
+
+    Returns:
+        ``(centroids, groups, extra_means)``: (M, 3) centroids, (M,) int64 their groups and
+        (M, K) means of ``extra`` (None when it was None), one row per occupied (group, cell),
+        sorted by group, then cell.
+
+    Raises:
+        InputError: the points span too many cells to be keyed.
+    """
+    n = len(points)
+    group = np.zeros(n, np.int64) if group is None else np.asarray(group, np.int64)
+    if not n:
+        return points.reshape(0, 3), group[:0], None if extra is None else extra.reshape(0, extra.shape[1])
+    idx = np.floor(points / cell).astype(np.int64)
+    idx -= idx.min(axis=0)
+    dims = idx.max(axis=0) + 1
+    n_cells = int(dims[0]) * int(dims[1]) * int(dims[2])
+    if n_cells * (int(group.max()) + 1) >= 1 << 62:
+        raise InputError('the points span too many voxels to down-sample; use map-frame coordinates near the origin')
+    key = group * n_cells + (idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2]
+    _, first, inverse, counts = np.unique(key, return_index=True, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+
+    def mean(values: np.ndarray) -> np.ndarray:
+        return np.stack([np.bincount(inverse, weights=values[:, k], minlength=len(counts))
+                         for k in range(values.shape[1])], axis=1) / counts[:, None]
+
+    return mean(points), group[first], None if extra is None else mean(extra)

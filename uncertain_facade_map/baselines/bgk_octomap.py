@@ -53,7 +53,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputError
-from .base import OccupancyMethod, beam_samples, check_queries, check_scans, group_by_origin
+from .base import OccupancyMethod, beam_samples, check_queries, check_scans, group_by_origin, voxel_centroids
 
 
 def sparse_kernel(d: np.ndarray, sf2: float, ell: float) -> np.ndarray:
@@ -70,41 +70,6 @@ def sparse_kernel(d: np.ndarray, sf2: float, ell: float) -> np.ndarray:
     t = np.asarray(d, dtype=np.float64) / ell
     k = sf2 * ((2.0 + np.cos(2.0 * np.pi * t)) / 3.0 * (1.0 - t) + np.sin(2.0 * np.pi * t) / (2.0 * np.pi))
     return np.where(t < 1.0, k, 0.0)
-
-
-def grouped_centroids(points: np.ndarray, group: np.ndarray, cell: float,
-                      extra: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Voxel-grid down-sampling within groups (PCL ``VoxelGrid``: the centroid of each
-    cell's points), each group on its own.
-
-    Args:
-        points: (N, 3) float64 points, metres.
-        group: (N,) int64 group of each point (a scan), >= 0.
-        cell: voxel side, metres.
-        extra: (N, K) float64 values averaged the same way (e.g. sensor origins), or None.
-
-    Returns:
-        ``(centroids, groups, extra_means)``: (M, 3) centroids, (M,) their groups and (M, K)
-        means of ``extra`` (None when it was None), one row per occupied (group, cell).
-    """
-    if not len(points):
-        return points.reshape(0, 3), group[:0], None if extra is None else extra.reshape(0, extra.shape[1])
-    idx = np.floor(points / cell).astype(np.int64)
-    idx -= idx.min(axis=0)
-    dims = idx.max(axis=0) + 1
-    cell_key = (idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2]
-    n_cells = int(dims.prod())
-    if n_cells * (int(group.max()) + 1) >= 1 << 62:
-        raise InputError('the points span too many voxels to down-sample; use map-frame coordinates near the origin')
-    _, first, inverse, counts = np.unique(group * n_cells + cell_key, return_index=True, return_inverse=True,
-                                          return_counts=True)
-    inverse = inverse.reshape(-1)
-
-    def mean(values: np.ndarray) -> np.ndarray:
-        return np.stack([np.bincount(inverse, weights=values[:, k], minlength=len(counts))
-                         for k in range(values.shape[1])], axis=1) / counts[:, None]
-
-    return mean(points), group[first], None if extra is None else mean(extra)
 
 
 class BGKOctoMapMethod(OccupancyMethod):
@@ -178,7 +143,7 @@ class BGKOctoMapMethod(OccupancyMethod):
         scan = np.empty(len(points), dtype=np.int64)
         scan[order] = np.repeat(np.arange(len(starts) - 1), np.diff(starts))
         # get_training_data: down-sampled hits (label 1) ...
-        hits, hit_scan, hit_origin = grouped_centroids(points, scan, self.ds_resolution, origins)
+        hits, hit_scan, hit_origin = voxel_centroids(points, self.ds_resolution, scan, origins)
         # ... and the free samples of their beams with each beam's origin, down-sampled
         # per scan (label 0); beams in chunks to bound the memory.
         free_parts = []
@@ -188,7 +153,7 @@ class BGKOctoMapMethod(OccupancyMethod):
             free_parts.append((np.concatenate([samples, hit_origin[part]]),
                                np.r_[hit_scan[part][beam], hit_scan[part]]))
         free, free_scan = (np.concatenate(x) for x in zip(*free_parts))
-        free, _, _ = grouped_centroids(free, free_scan, self.ds_resolution)
+        free, _, _ = voxel_centroids(free, self.ds_resolution, free_scan)
         self.train_x_ = np.concatenate([hits, free])
         self.train_y_ = np.r_[np.ones(len(hits)), np.zeros(len(free))]
         self.tree_ = cKDTree(self.train_x_)

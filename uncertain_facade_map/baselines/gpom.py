@@ -112,15 +112,14 @@ import scipy.linalg
 from scipy.special import expit, log_ndtr, ndtr
 
 from ..errors import InputError
-from .base import OccupancyMethod, beam_samples, check_queries, check_scans, group_by_origin
+from ..occupancy_evaluation import pack_keys, unpack_keys
+from .base import OccupancyMethod, beam_samples, check_queries, check_scans, group_by_origin, voxel_centroids
 
 #: The block itself and its 6 face neighbours (``la3dm`` ``get_extended_block``).
 EXTENDED_BLOCK = np.array([[0, 0, 0], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]],
                           dtype=np.int64)
 
 #: Bits per axis of a packed block key (block indices within +-2^20 of the origin).
-_BITS = 21
-_OFFSET = 1 << (_BITS - 1)
 #: Blocks up to this size use np.linalg.solve on the Cholesky factor, larger ones
 #: scipy.linalg.solve_triangular (measured: the faster of the two on each side).
 _SMALL_BLOCK = 32
@@ -145,62 +144,16 @@ def matern32(d: np.ndarray, sf2: float, ell: float) -> np.ndarray:
     return sf2 * (1.0 + r) * np.exp(-r)
 
 
-def voxel_centroids(points: np.ndarray, cell: float, group: np.ndarray | None = None,
-                    extra: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Voxel-grid down-sampling (PCL ``VoxelGrid``: the centroid of each cell's points),
-    within groups when given.
-
-    Args:
-        points: (N, 3) float64 points, metres.
-        cell: voxel side, metres.
-        group: (N,) int64 group (scan) of each point, >= 0; None: one group.
-        extra: (N, K) float64 values averaged the same way (e.g. sensor origins), or None.
-
-    Returns:
-        ``(centroids, groups, extra_means)``: (M, 3) centroids, (M,) int64 their groups and
-        (M, K) means of ``extra`` (None when it was None), one row per occupied (group, cell),
-        sorted by group, then cell.
-
-    Raises:
-        InputError: the points span too many cells to be keyed.
-    """
-    n = len(points)
-    group = np.zeros(n, np.int64) if group is None else np.asarray(group, np.int64)
-    if not n:
-        return points.reshape(0, 3), group[:0], None if extra is None else extra.reshape(0, extra.shape[1])
-    idx = np.floor(points / cell).astype(np.int64)
-    idx -= idx.min(axis=0)
-    dims = idx.max(axis=0) + 1
-    n_cells = int(dims[0]) * int(dims[1]) * int(dims[2])
-    if n_cells * (int(group.max()) + 1) >= 1 << 62:
-        raise InputError('the points span too many voxels to down-sample; use map-frame coordinates near the origin')
-    key = group * n_cells + (idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2]
-    _, first, inverse, counts = np.unique(key, return_index=True, return_inverse=True, return_counts=True)
-    inverse = inverse.reshape(-1)
-
-    def mean(values: np.ndarray) -> np.ndarray:
-        return np.stack([np.bincount(inverse, weights=values[:, k], minlength=len(counts))
-                         for k in range(values.shape[1])], axis=1) / counts[:, None]
-
-    return mean(points), group[first], None if extra is None else mean(extra)
-
-
 def _pack(index: np.ndarray) -> np.ndarray:
-    """(N,) int64 key of (N, 3) int64 block indices.
+    """(N,) int64 key of (N, 3) int64 block indices (:func:`..occupancy_evaluation.pack_keys`).
 
     Raises:
         InputError: an index beyond +-2^20 blocks.
     """
-    shifted = index + _OFFSET
-    if len(shifted) and (shifted.min() < 0 or shifted.max() >= (1 << _BITS)):
-        raise InputError(f'the points reach beyond {_OFFSET:,} blocks from the map origin; '
-                         'use map-frame coordinates near the origin')
-    return (shifted[:, 0] << (2 * _BITS)) | (shifted[:, 1] << _BITS) | shifted[:, 2]
+    return pack_keys(index, unit='blocks')
 
 
-def _unpack(keys: np.ndarray) -> np.ndarray:
-    mask = (1 << _BITS) - 1
-    return np.stack([(keys >> (2 * _BITS)) & mask, (keys >> _BITS) & mask, keys & mask], axis=1) - _OFFSET
+_unpack = unpack_keys
 
 
 def _size_class(n: np.ndarray) -> np.ndarray:
