@@ -37,7 +37,7 @@ def test_scene_and_files_give_the_same_figures_and_a_report(small_files, tmp_pat
     report = (tmp_path / 'rep' / 'report.md').read_text()
     assert re.search(r'^\| Ours \| 0\.5[0-9]{2} \|$', report, re.M)
     assert '| Ours, variance <= 0.01 |' in report and '## Where a baseline wins' in report
-    for name in ('pr_curves.png', 'auc_uncertainty.png', 'timing.png'):
+    for name in ('pr_curves.png', 'auc_uncertainty.png', 'auc_distance.png', 'timing.png'):
         assert (tmp_path / 'rep' / name).stat().st_size > 10_000
 
 

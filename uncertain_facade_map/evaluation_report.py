@@ -1,6 +1,7 @@
 """The evaluation's report: one Markdown file with the AUC tables and PNG figures
-(precision-recall curves, AUC against the variance threshold and against the distance to
-the mapped points, training and testing times: paper Figs. 4-7).
+(precision-recall curves; AUC against the variance threshold and against the distance to
+the mapped points, ours beside GPIS as in the paper, and every method against distance;
+training and testing times: paper Figs. 4-7).
 """
 
 from __future__ import annotations
@@ -18,6 +19,8 @@ VARIANCE_THRESHOLDS = tuple(float(x) for x in np.geomspace(1e-4, 1.0, 13))
 #: Distance limits of the AUC-against-distance figure, metres.
 DISTANCE_LIMITS = (0.05, 0.1, 0.2, 0.3, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 5.0)
 OURS = 'Ours'
+#: The methods of the uncertainty figures (paper Figs. 5, 6: our map beside GPIS).
+UNCERTAINTY_PAIR = (OURS, 'GPIS')
 
 
 def _fmt(x: float) -> str:
@@ -73,7 +76,7 @@ def write_report(out: str | Path, refs: dict[float, ReferenceVoxels], results: S
             keep = r.variance <= variance_threshold
             recall, precision = pr_curve(ref.positive[keep], r.p[keep], ref.weight[keep])
             ax.plot(recall, precision, label=f'{accurate_label(variance_threshold)} ({accurate[res][0]:.3f})',
-                    lw=1.5, ls='--', color='green')
+                    lw=1.5, ls='--', color='black')
         ax.set(xlabel='recall', ylabel='precision', title=f'{res:g} m voxels', xlim=(0, 1), ylim=(0, 1.02))
         ax.legend(fontsize=8, loc='lower left')
         ax.grid(alpha=0.3)
@@ -82,28 +85,46 @@ def write_report(out: str | Path, refs: dict[float, ReferenceVoxels], results: S
     fig.savefig(out / 'pr_curves.png', dpi=100)
     plt.close(fig)
 
-    # Figs. 5-6: AUC against the variance threshold and against the distance to the data.
-    with_var = [n for n in names if all(by.get((n, res)) is not None and by[(n, res)].variance is not None
-                                        for res in resolutions)]
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
-    for name in with_var:
+    # Figs. 5-6: AUC against the variance threshold and against the distance to the data,
+    # our map beside GPIS (as in the paper; both variances are of a surface position, m^2
+    # near the surface), with the share of voxels kept under each.
+    paired = [n for n in UNCERTAINTY_PAIR if all(by.get((n, res)) is not None and by[(n, res)].variance is not None
+                                                 for res in resolutions)]
+    fig, axes = plt.subplots(2, 2, figsize=(12, 8), sharex='col')
+    for name, colour in zip(paired, ('tab:blue', 'tab:red')):
         for res, ls in zip(resolutions, ('-', '--', ':', '-.')):
             auc, share = auc_by_variance(by[(name, res)], refs[res], VARIANCE_THRESHOLDS)
-            axes[0].semilogx(VARIANCE_THRESHOLDS, auc, ls, marker='o', ms=3, label=f'{name}, {res:g} m')
-    axes[0].axvline(variance_threshold, color='grey', lw=0.8)
-    axes[0].set(xlabel='variance threshold (voxels at most this, own units)', ylabel='PR AUC',
-                title='AUC of the voxels under a variance threshold')
-    for name in names:
-        for res, ls in zip(resolutions, ('-', '--', ':', '-.')):
+            axes[0, 0].semilogx(VARIANCE_THRESHOLDS, auc, ls, color=colour, marker='o', ms=3, label=f'{name}, {res:g} m')
+            axes[1, 0].semilogx(VARIANCE_THRESHOLDS, share, ls, color=colour, marker='o', ms=3)
             auc, share = auc_by_distance(by[(name, res)], refs[res], distances[res], DISTANCE_LIMITS)
-            axes[1].plot(DISTANCE_LIMITS, auc, ls, marker='o', ms=3, label=f'{name}, {res:g} m')
-    axes[1].set(xlabel='distance to the nearest mapped point, at most (m)', ylabel='PR AUC',
-                title='AUC of the voxels near the data')
-    for ax in axes:
+            axes[0, 1].plot(DISTANCE_LIMITS, auc, ls, color=colour, marker='o', ms=3, label=f'{name}, {res:g} m')
+            axes[1, 1].plot(DISTANCE_LIMITS, share, ls, color=colour, marker='o', ms=3)
+    for ax in axes[:, 0]:
+        ax.axvline(variance_threshold, color='grey', lw=0.8)
+    axes[0, 0].set(ylabel='PR AUC', title='Voxels whose variance is at most the threshold')
+    axes[1, 0].set(xlabel='variance threshold (m^2)', ylabel='share of the voxels kept')
+    axes[0, 1].set(ylabel='PR AUC', title='Voxels within a distance of the mapped points')
+    axes[1, 1].set(xlabel='distance to the nearest mapped point, at most (m)', ylabel='share of the voxels kept')
+    for ax in axes.flat:
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / 'auc_uncertainty.png', dpi=100)
+    plt.close(fig)
+
+    # AUC against the distance to the data, every method.
+    fig, axes = plt.subplots(1, len(resolutions), figsize=(6 * len(resolutions), 4.5), squeeze=False, sharey=True)
+    for ax, res in zip(axes[0], resolutions):
+        for name in names:
+            if (name, res) in by:
+                auc, _ = auc_by_distance(by[(name, res)], refs[res], distances[res], DISTANCE_LIMITS)
+                ax.plot(DISTANCE_LIMITS, auc, marker='o', ms=3, label=name,
+                        ls='--' if name.endswith('(solid)') else '-')
+        ax.set(xlabel='distance to the nearest mapped point, at most (m)', ylabel='PR AUC', title=f'{res:g} m voxels')
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(out / 'auc_uncertainty.png', dpi=100)
+    fig.savefig(out / 'auc_distance.png', dpi=100)
     plt.close(fig)
 
     # Fig. 7: training and testing time.
@@ -197,7 +218,8 @@ def write_report(out: str | Path, refs: dict[float, ReferenceVoxels], results: S
             lines.append(f'| {b.label} | {b.positives:,} | {b.negatives:,.0f} | {_fmt(b.share_positive)} | '
                          + ' | '.join(_fmt(b.mean_p[r.name]) for r in rs) + ' |')
     lines += ['', '## Figures', '', '![PR curves](pr_curves.png)', '',
-              '![AUC against variance and distance](auc_uncertainty.png)', '', '![Timing](timing.png)', '']
+              '![AUC against variance and distance, ours and GPIS](auc_uncertainty.png)', '',
+              '![AUC against distance, every method](auc_distance.png)', '', '![Timing](timing.png)', '']
     path = out / 'report.md'
     path.write_text('\n'.join(lines))
     return path
