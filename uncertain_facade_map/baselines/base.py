@@ -70,6 +70,18 @@ class OccupancyMethod(abc.ABC):
         return {}
 
 
+def check_positive(name: str, value: float) -> float:
+    """A parameter that must be a positive, finite number, as a float.
+
+    Raises:
+        InputError: ``value`` is not positive and finite (naming ``name``).
+    """
+    value = float(value)
+    if not (np.isfinite(value) and value > 0):
+        raise InputError(f'{name} must be a positive number, got {value!r}')
+    return value
+
+
 def check_scans(points: np.ndarray, origins: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Validate the arguments of :meth:`OccupancyMethod.fit`.
 

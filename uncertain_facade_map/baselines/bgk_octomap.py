@@ -53,7 +53,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputError
-from .base import OccupancyMethod, beam_samples, check_queries, check_scans, group_by_origin, voxel_centroids
+from .base import (OccupancyMethod, beam_samples, check_positive, check_queries, check_scans, group_by_origin,
+                   voxel_centroids)
 
 
 def sparse_kernel(d: np.ndarray, sf2: float, ell: float) -> np.ndarray:
@@ -103,8 +104,7 @@ class BGKOctoMapMethod(OccupancyMethod):
         for label, value in (('sf2', sf2), ('ell', ell), ('free_resolution', free_resolution),
                              ('ds_resolution', ds_resolution), ('prior_a', prior_a), ('prior_b', prior_b),
                              ('scan_size', scan_size)):
-            if not (np.isfinite(value) and value > 0):
-                raise InputError(f'{label} must be a positive number, got {value!r}')
+            check_positive(label, value)
         if not 0.0 < free_thresh < occupied_thresh < 1.0:
             raise InputError(f'need 0 < free_thresh < occupied_thresh < 1, got {free_thresh!r} and {occupied_thresh!r}')
         if int(chunk) < 1 or int(beam_chunk) < 1:

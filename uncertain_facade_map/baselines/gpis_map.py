@@ -114,11 +114,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import cho_factor, solve_triangular
 from scipy.spatial import cKDTree
-from scipy.special import ndtr
 
 from ..errors import InputError
-from ..occupancy import READINGS, surface_probability
-from .base import OccupancyMethod, check_queries, check_scans
+from ..occupancy import READINGS, occupancy_probability, surface_probability
+from .base import OccupancyMethod, check_positive, check_queries, check_scans
 
 #: ``OnGPIS::testSinglePoint`` (3D): prior variance of f plus this constant ("Noise param!").
 _TEST_NOISE = 1e-3
@@ -148,12 +147,6 @@ def _one_blas_thread():
         return nullcontext()
     return threadpool_limits(limits=1, user_api='blas')
 
-
-def _positive(name: str, value: float) -> float:
-    value = float(value)
-    if not (np.isfinite(value) and value > 0):
-        raise InputError(f'{name} must be a positive number, got {value!r}')
-    return value
 
 
 def joint_covariance(xa: np.ndarray, grad_a: np.ndarray, xb: np.ndarray, grad_b: np.ndarray,
@@ -317,10 +310,10 @@ class GPISMapMethod(OccupancyMethod):
         self.reading = self.reading_default if reading is None else reading
         if self.reading not in READINGS:
             raise InputError(f'reading must be one of {", ".join(READINGS)}, got {reading!r}')
-        self.length_scale = _positive('length_scale', length_scale)
-        self.cluster_half_length = _positive('cluster_half_length', cluster_half_length)
-        self.min_half_length = _positive('min_half_length', min_half_length)
-        self.rtimes = _positive('rtimes', rtimes)
+        self.length_scale = check_positive('length_scale', length_scale)
+        self.cluster_half_length = check_positive('cluster_half_length', cluster_half_length)
+        self.min_half_length = check_positive('min_half_length', min_half_length)
+        self.rtimes = check_positive('rtimes', rtimes)
         if self.rtimes < 1.0:
             raise InputError(f'rtimes must be at least 1 (a GP must cover its cluster), got {rtimes!r}')
         if self.min_half_length > 2 * self.cluster_half_length:
@@ -329,10 +322,10 @@ class GPISMapMethod(OccupancyMethod):
         self.fbias = float(fbias)
         if not np.isfinite(self.fbias):
             raise InputError(f'fbias must be finite, got {fbias!r}')
-        self.min_pos_noise = _positive('min_pos_noise', min_pos_noise)
-        self.min_grad_noise = _positive('min_grad_noise', min_grad_noise)
-        self.map_noise = _positive('map_noise', map_noise)
-        self.var_threshold = _positive('var_threshold', var_threshold)
+        self.min_pos_noise = check_positive('min_pos_noise', min_pos_noise)
+        self.min_grad_noise = check_positive('min_grad_noise', min_grad_noise)
+        self.map_noise = check_positive('map_noise', map_noise)
+        self.var_threshold = check_positive('var_threshold', var_threshold)
         if int(normal_neighbours) != normal_neighbours or normal_neighbours < _MIN_NORMAL_NEIGHBOURS:
             raise InputError(f'normal_neighbours must be an integer >= {_MIN_NORMAL_NEIGHBOURS}, '
                              f'got {normal_neighbours!r}')
@@ -529,10 +522,7 @@ class GPISMapMethod(OccupancyMethod):
         var = np.maximum(var, 0.0)
         if self.reading == 'surface':
             return surface_probability(f, var, self.map_noise, 0.5 * self.resolution, outside=0.0)
-        sigma = np.sqrt(var + self.map_noise)
-        with np.errstate(invalid='ignore'):
-            p = ndtr((0.5 * self.resolution - f) / sigma)
-        return np.where(np.isfinite(f), p, 0.5)
+        return occupancy_probability(f, var, self.map_noise, self.resolution)
 
     def predict_variance(self, xyz: np.ndarray) -> np.ndarray:
         """(M,) GPIS variance of f at ``xyz`` (units of f^2, ~m^2 near the surface; prior

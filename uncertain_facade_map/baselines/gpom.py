@@ -113,7 +113,8 @@ from scipy.special import expit, log_ndtr, ndtr
 
 from ..errors import InputError
 from ..occupancy_evaluation import pack_keys, unpack_keys
-from .base import OccupancyMethod, beam_samples, check_queries, check_scans, group_by_origin, voxel_centroids
+from .base import (OccupancyMethod, beam_samples, check_positive, check_queries, check_scans, group_by_origin,
+                   voxel_centroids)
 
 #: The block itself and its 6 face neighbours (``la3dm`` ``get_extended_block``).
 EXTENDED_BLOCK = np.array([[0, 0, 0], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]],
@@ -334,8 +335,7 @@ class FastGPOMMethod(OccupancyMethod):
                              ('max_var', max_var), ('max_known_var', max_known_var),
                              ('free_resolution', free_resolution), ('ds_resolution', ds_resolution),
                              ('scan_size', scan_size)):
-            if not (np.isfinite(value) and value > 0):
-                raise InputError(f'{label} must be a positive number, got {value!r}')
+            check_positive(label, value)
         if min_var >= max_var:
             raise InputError(f'min_var ({min_var!r}) must be below max_var ({max_var!r})')
         if not 0.0 < free_thresh < occupied_thresh < 1.0:

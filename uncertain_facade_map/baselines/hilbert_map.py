@@ -98,17 +98,11 @@ from scipy import sparse
 from scipy.spatial import cKDTree
 
 from ..errors import InputError
-from .base import OccupancyMethod, check_queries, check_scans
+from .base import OccupancyMethod, check_positive, check_queries, check_scans
 
 #: Threads for the k-d tree queries.
 _WORKERS = 2
 
-
-def _positive(name: str, value: float) -> float:
-    value = float(value)
-    if not (np.isfinite(value) and value > 0):
-        raise InputError(f'{name} must be a positive number, got {value!r}')
-    return value
 
 
 def sample_free_space(points: np.ndarray, origins: np.ndarray, step: float,
@@ -301,9 +295,9 @@ class LARDHilbertMapMethod(OccupancyMethod):
                  feature_cutoff: float = 1e-3, max_cluster_points: int | None = 1_000_000, max_rays: int | None = None,
                  seed: int = 0) -> None:
         super().__init__(resolution)
-        self.occupied_outer_radius = _positive('occupied_outer_radius', occupied_outer_radius)
-        self.free_outer_radius = _positive('free_outer_radius', free_outer_radius)
-        self.inner_ratio = _positive('inner_ratio', inner_ratio)
+        self.occupied_outer_radius = check_positive('occupied_outer_radius', occupied_outer_radius)
+        self.free_outer_radius = check_positive('free_outer_radius', free_outer_radius)
+        self.inner_ratio = check_positive('inner_ratio', inner_ratio)
         if self.inner_ratio > 1.0:
             raise InputError(f'inner_ratio must be in (0, 1], got {inner_ratio!r}')
         if int(min_points) != min_points or min_points < 1:
@@ -312,10 +306,10 @@ class LARDHilbertMapMethod(OccupancyMethod):
         if int(n_neighbours) != n_neighbours or n_neighbours < 1:
             raise InputError(f'n_neighbours must be an integer >= 1, got {n_neighbours!r}')
         self.n_neighbours = int(n_neighbours)
-        self.covariance_scale = _positive('covariance_scale', covariance_scale)
-        self.degenerate_precision = _positive('degenerate_precision', degenerate_precision)
-        self.learning_rate = _positive('learning_rate', learning_rate)
-        self.free_step = _positive('free_step', free_step)
+        self.covariance_scale = check_positive('covariance_scale', covariance_scale)
+        self.degenerate_precision = check_positive('degenerate_precision', degenerate_precision)
+        self.learning_rate = check_positive('learning_rate', learning_rate)
+        self.free_step = check_positive('free_step', free_step)
         if not (np.isfinite(alpha) and alpha >= 0):
             raise InputError(f'alpha must be >= 0, got {alpha!r}')
         self.alpha = float(alpha)
