@@ -63,19 +63,19 @@ $(IFC_STAMP): $(STAMP) $(IFC_SRC)
 	touch $(IFC_STAMP)
 
 demo: $(STAMP) $(IFC_STAMP)
-	$(PY) -m uncertain_facade_map_node.demo --out $(OUT)
+	$(PY) -m uncertain_facade_map_apps.demo --out $(OUT)
 
 test: $(STAMP) $(IFC_STAMP)
 	$(PY) -m pytest
 
 bench: $(STAMP) $(IFC_STAMP)
-	$(PY) -m uncertain_facade_map.bench
+	$(PY) -m uncertain_facade_map_apps.bench
 
 # Simulates two drives of $(SCENE) (street, zurich or small), maps one with every method
 # and scores them against the other; writes output/evaluation/$(SCENE)/report.md.
 evaluate: $(STAMP) $(IFC_STAMP)
 	mkdir -p output/evaluation
-	$(PY) -m uncertain_facade_map.cli evaluate --scene $(SCENE) --report output/evaluation/$(SCENE)
+	$(PY) -m uncertain_facade_map_apps.cli evaluate --scene $(SCENE) --report output/evaluation/$(SCENE)
 
 # Re-resolve requirements.in and rewrite requirements.lock (needs the registries).
 lock:

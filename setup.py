@@ -16,7 +16,8 @@ setup(
     license='MIT',
     python_requires='==3.11.*',
     packages=find_packages(include=[PACKAGE, f'{PACKAGE}.*', 'msg_adapters', 'msg_adapters.*',
-                                    'uncertain_facade_map_node', 'uncertain_facade_map_node.*']),
+                                    'uncertain_facade_map_node', 'uncertain_facade_map_node.*',
+                                    'uncertain_facade_map_apps', 'uncertain_facade_map_apps.*']),
     package_data={PACKAGE: ['py.typed']},
     data_files=[
         ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
@@ -26,7 +27,7 @@ setup(
     install_requires=['numpy', 'scipy', 'scikit-learn', 'rosbags', 'pyyaml', 'plyfile', 'tqdm'],
     entry_points={
         'console_scripts': [
-            'uncertain-facade-map = uncertain_facade_map.cli:main',
+            'uncertain-facade-map = uncertain_facade_map_apps.cli:main',
             'facade_mapper = uncertain_facade_map_node.node:main',
         ],
     },

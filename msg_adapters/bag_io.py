@@ -22,8 +22,8 @@ from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
-from uncertain_facade_map.cloud import Cloud
 from uncertain_facade_map.errors import InputError
+from uncertain_facade_map.io.cloud import Cloud
 
 from .pointcloud2 import pointcloud2_from_structured, rosbags_types, structured_from_pointcloud2
 
@@ -82,7 +82,12 @@ def _parse_origin_text(text: str) -> np.ndarray | None:
 def _sensor_qos() -> list[Any]:
     """rclcpp's sensor-data QoS (best effort, volatile, keep last 5) as rosbags Qos."""
     from rosbags.interfaces import (
-        Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime,
+        Qos,
+        QosDurability,
+        QosHistory,
+        QosLiveliness,
+        QosReliability,
+        QosTime,
     )
 
     zero = QosTime(0, 0)
@@ -93,7 +98,12 @@ def _sensor_qos() -> list[Any]:
 def _latched_qos() -> list[Any]:
     """Reliable, transient-local, keep last 1: a latched topic such as ``/map_origin``."""
     from rosbags.interfaces import (
-        Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime,
+        Qos,
+        QosDurability,
+        QosHistory,
+        QosLiveliness,
+        QosReliability,
+        QosTime,
     )
 
     zero = QosTime(0, 0)
@@ -163,7 +173,8 @@ def write_bag(
 
         writer: Any = Writer1(path)
     else:
-        from rosbags.rosbag2 import StoragePlugin, Writer as Writer2
+        from rosbags.rosbag2 import StoragePlugin
+        from rosbags.rosbag2 import Writer as Writer2
 
         plugin = StoragePlugin.SQLITE3 if storage == 'sqlite3' else StoragePlugin.MCAP
         writer = Writer2(path, version=ROSBAG2_VERSION, storage_plugin=plugin)
@@ -370,7 +381,7 @@ def read_bag_cloud(paths: str | Path | Sequence[str | Path], topic: str | None =
         topic: as for :func:`read_bag`.
 
     Returns:
-        A :class:`~uncertain_facade_map.cloud.Cloud` with the points of all scans in bag
+        A :class:`~uncertain_facade_map.io.cloud.Cloud` with the points of all scans in bag
         order (map frame, metres) and the bag's map origin.
 
     Raises:

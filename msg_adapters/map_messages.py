@@ -10,7 +10,7 @@ Conventions:
 
 * All positions are metres. ``map`` is the frame the façade models live in; a façade
   frame has axes rows ``e_u`` (along the façade, horizontal), ``e_v`` (up the plane) and
-  ``n`` (outward normal), see :class:`uncertain_facade_map.frames.FacadeFrame`.
+  ``n`` (outward normal), see :class:`uncertain_facade_map.datatypes.FacadeFrame`.
 * A rigid transform ``(R, t)`` maps child coordinates to parent coordinates:
   ``x_parent = R @ x_child + t``; a ``geometry_msgs/Pose`` of a façade frame in ``map``
   is that transform with ``R = axes.T`` (columns ``e_u, e_v, n``).
@@ -44,7 +44,7 @@ import numpy as np
 from uncertain_facade_map.errors import InputError
 
 if TYPE_CHECKING:  # only for annotations: the core's model module is heavy to import
-    from uncertain_facade_map.facade_map import FacadeModel
+    from uncertain_facade_map.datatypes import FacadeModel
 
 #: The answer arrays of ``QueryPoints``, with their numpy type and ``array.array`` code.
 QUERY_FIELDS: dict[str, tuple[str, str]] = {
@@ -411,7 +411,7 @@ def fill_query_response(response: Any, answers: Any, message: str = '', *,
         answers: mapping with (N,) arrays ``facade`` (int, -1 for none), ``mean_depth``
             (metres), ``variance`` (m^2), ``noise_variance`` (m^2), ``signed_distance``
             (metres, positive outside) and ``p_occupied``, as
-            :meth:`uncertain_facade_map.queries.PointQuery.as_dict` gives; a ``PointQuery``
+            :meth:`uncertain_facade_map.pipeline.step7_queries.PointQuery.as_dict` gives; a ``PointQuery``
             itself is accepted too.
         message: the response's ``message``.
         msg_types: optional namespace whose ``encode_array(values, typecode)`` encodes the
@@ -455,7 +455,7 @@ def facade_msg(model: FacadeModel, msg_types: Any) -> Any:
     """``uncertain_facade_map/Facade`` of a core façade model.
 
     Args:
-        model: a :class:`uncertain_facade_map.facade_map.FacadeModel` (read by attributes:
+        model: a :class:`uncertain_facade_map.datatypes.FacadeModel` (read by attributes:
             ``facade_id, building, frame.origin, frame.axes, extent, layers.weights_,
             layers.means_, layers.sigmas_, layers.main_, global_mean_, global_var_,
             noise_var, point_index, facets.n_facets``).

@@ -6,7 +6,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from uncertain_facade_map.config import (
-    DEFAULT_CONFIG, Config, InputConfig, config_from_parameters, dump_config, load_config, parameter_items)
+    DEFAULT_CONFIG,
+    Config,
+    InputConfig,
+    config_from_parameters,
+    dump_config,
+    load_config,
+    parameter_items,
+)
 from uncertain_facade_map.errors import InputError
 
 

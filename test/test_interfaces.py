@@ -24,7 +24,8 @@ REPO = Path(__file__).resolve().parents[1]
 VENV_BIN = Path(sys.executable).parent
 # What a package build needs of the repository (CMakeLists.txt installs these).
 PACKAGE_FILES = ['CMakeLists.txt', 'package.xml', 'msg', 'srv', 'scripts', 'config',
-                 'uncertain_facade_map', 'msg_adapters', 'uncertain_facade_map_node']
+                 'uncertain_facade_map', 'msg_adapters', 'uncertain_facade_map_node',
+                 'uncertain_facade_map_apps']
 MESSAGES = ['Facade', 'FacadeGrid', 'FacadeGridArray']
 SERVICES = ['QueryPoints', 'GetFacades', 'SaveMap', 'LoadMap']
 
@@ -50,7 +51,7 @@ def run_python(code: str, cwd: Path, env: dict[str, str], timeout: float = 120) 
 IMPORT_AND_BUILD = '''
 import json, os
 import numpy as np
-import uncertain_facade_map, uncertain_facade_map.facade_map
+import uncertain_facade_map, uncertain_facade_map.mapping.facade_map
 from geometry_msgs.msg import Point, Pose
 from uncertain_facade_map.msg import Facade, FacadeGrid, FacadeGridArray
 from uncertain_facade_map.srv import GetFacades, LoadMap, QueryPoints, SaveMap
@@ -66,7 +67,7 @@ grid = FacadeGrid(facade_id=3, width=2, height=1, mean_depth=[0.5, 0.25],
                   variance=np.array([1e-4, 2e-4], np.float32), source=[2, 0])
 grids = FacadeGridArray(grids=[grid, grid])
 print(json.dumps({
-    'core': uncertain_facade_map.facade_map.__file__,
+    'core': uncertain_facade_map.mapping.facade_map.__file__,
     'init': uncertain_facade_map.__file__,
     'version': uncertain_facade_map.__version__,
     'msg': uncertain_facade_map.msg.__file__,
@@ -151,7 +152,7 @@ def test_interfaces_import_in_a_clean_environment(tmp_path):
     out = run_python(IMPORT_AND_BUILD, tmp_path, clean_env())
     # The core is the editable install; the generated modules come from their own directory.
     assert Path(out['init']) == REPO / 'uncertain_facade_map' / '__init__.py'
-    assert Path(out['core']) == REPO / 'uncertain_facade_map' / 'facade_map.py'
+    assert Path(out['core']) == REPO / 'uncertain_facade_map' / 'mapping' / 'facade_map.py'
     assert out['version']
     for kind in ('msg', 'srv'):
         generated = Path(out[kind])
@@ -208,11 +209,11 @@ def test_make_rebuilds_the_interfaces_when_their_sources_change(changed):
 
 COLCON_CHECK = '''
 import json, os
-import msg_adapters, uncertain_facade_map, uncertain_facade_map.facade_map
+import msg_adapters, uncertain_facade_map, uncertain_facade_map.mapping.facade_map
 import uncertain_facade_map_node.node
 from uncertain_facade_map.srv import QueryPoints
 print(json.dumps({
-    'modules': [m.__file__ for m in (msg_adapters, uncertain_facade_map, uncertain_facade_map.facade_map,
+    'modules': [m.__file__ for m in (msg_adapters, uncertain_facade_map, uncertain_facade_map.mapping.facade_map,
                                      uncertain_facade_map.srv, uncertain_facade_map_node.node)],
     'version': uncertain_facade_map.__version__,
     'main': callable(uncertain_facade_map_node.node.main),

@@ -4,7 +4,7 @@ Writes docs/simulated_street.png (top view of the mapped campaign of the default
 coloured by class), docs/simulated_facade.png (one façade in its own frame, coloured
 by depth: recesses, balconies, an oriel, columns and the shadow of a tree) and
 docs/facade_model.png (the model of that façade: mean depth and standard deviation, drawn
-by uncertain_facade_map.plots, which also draws the full per-façade figures of
+by uncertain_facade_map_apps.plots, which also draws the full per-façade figures of
 ``uncertain-facade-map plot``).
 """
 
@@ -16,10 +16,10 @@ matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from uncertain_facade_map.cloud import CLASS_NAMES  # noqa: E402
-from uncertain_facade_map.plots import draw_surface  # noqa: E402
+from uncertain_facade_map.io.cloud import CLASS_NAMES  # noqa: E402
 from uncertain_facade_map.simulation.campaign import simulate_campaign  # noqa: E402
 from uncertain_facade_map.simulation.scenes import build_scene  # noqa: E402
+from uncertain_facade_map_apps.plots import draw_surface  # noqa: E402
 
 DOCS = Path(__file__).resolve().parents[1] / 'docs'
 COLOURS = {0: '#999999', 1: '#d62728', 2: '#c7c7c7', 3: '#2ca02c', 4: '#1f77b4', 5: '#ff7f0e'}
@@ -73,7 +73,7 @@ def main() -> None:
 
 def draw_model(cloud, truth_facade) -> None:
     """Map the first building of the street and draw its street façade's mean and std."""
-    from uncertain_facade_map.facade_map import build_map
+    from uncertain_facade_map.mapping.facade_map import build_map
 
     pts = cloud.points[(cloud.points['class'] == 1) & (cloud.points['building_id'] == truth_facade.building_id)]
     fmap = build_map(np.stack([pts['x'], pts['y'], pts['z']], 1), pts['building_id'],

@@ -2,7 +2,7 @@
 
 A thin shell: :mod:`msg_adapters` turns messages into arrays and back, the core
 (:mod:`uncertain_facade_map`) does all the modelling, and a
-:class:`~uncertain_facade_map.live_mapping.MapWorker` thread owns the map, so no callback
+:class:`~uncertain_facade_map.mapping.worker.MapWorker` thread owns the map, so no callback
 ever refits a model.
 
 Topics (names relative, remap with ``--ros-args -r``):
@@ -45,15 +45,15 @@ from visualization_msgs.msg import MarkerArray
 
 import msg_adapters as ma
 from msg_adapters import map_messages as mm
-from uncertain_facade_map import map_products as mp
 from uncertain_facade_map.config import Config, config_from_parameters, map_params, parameter_items
 from uncertain_facade_map.errors import FacadeMapError, InputError
-from uncertain_facade_map.facade_map import FacadeMap
-from uncertain_facade_map.inputs import select_scan_points
-from uncertain_facade_map.live_mapping import Cloud, MapSnapshot, MapWorker, ReplaceMap
-from uncertain_facade_map.map_file import load_map, save_map
-from uncertain_facade_map.queries import query_points
+from uncertain_facade_map.io.inputs import select_scan_points
+from uncertain_facade_map.io.map_file import load_map, save_map
+from uncertain_facade_map.mapping import products as mp
+from uncertain_facade_map.mapping.facade_map import FacadeMap
+from uncertain_facade_map.mapping.worker import Cloud, MapSnapshot, MapWorker, ReplaceMap
 from uncertain_facade_map.msg import FacadeGridArray
+from uncertain_facade_map.pipeline.step7_queries import query_points
 from uncertain_facade_map.srv import GetFacades, LoadMap, QueryPoints, SaveMap
 
 NODE_NAME = 'facade_mapper'

@@ -17,8 +17,8 @@ from msg_adapters.bag_io import (
     write_bag,
 )
 from msg_adapters.pointcloud2 import pointcloud2_from_structured, rosbags_types
-from uncertain_facade_map.cloud import Cloud
 from uncertain_facade_map.errors import InputError
+from uncertain_facade_map.io.cloud import Cloud
 
 ORIGIN = (2683000.125, 1247000.5, 400.0)
 DTYPE = np.dtype([('x', 'f8'), ('y', 'f8'), ('z', 'f8'), ('time', 'f8'),

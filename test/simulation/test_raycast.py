@@ -7,8 +7,15 @@ from hypothesis import strategies as st
 from matplotlib.path import Path as MplPath
 
 from uncertain_facade_map.simulation.raycast import (
-    INF, inverse_directions, points_in_polygon, ray_aabb, ray_convex, ray_prism, ray_sphere,
-    ray_vertical_cylinder)
+    INF,
+    inverse_directions,
+    points_in_polygon,
+    ray_aabb,
+    ray_convex,
+    ray_prism,
+    ray_sphere,
+    ray_vertical_cylinder,
+)
 
 L_SHAPE = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 8.0], [6.0, 8.0], [6.0, 3.0], [0.0, 3.0]])
 

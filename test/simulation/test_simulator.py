@@ -5,7 +5,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from uncertain_facade_map.cloud import CLASS_BUILDING
+from uncertain_facade_map.io.cloud import CLASS_BUILDING
 from uncertain_facade_map.simulation.campaign import SCENE_SENSORS, campaign, simulate_campaign
 from uncertain_facade_map.simulation.scene import Block, Recess, Round, Slope
 from uncertain_facade_map.simulation.scenes import build_scene, parked_cars, zurich_scene

@@ -19,8 +19,8 @@ from typing import Callable
 
 import numpy as np
 
-from ..cloud import CLASS_BUILDING, Cloud, simulated_dtype
 from ..errors import InputError
+from ..io.cloud import CLASS_BUILDING, Cloud, simulated_dtype
 from .scene import Scene
 from .scenes import parked_cars
 
@@ -174,7 +174,7 @@ def simulate_campaign(scene: Scene, index: int = 0, sensor: SensorConfig | None 
         progress: called with the seconds of drive simulated after every chunk.
 
     Returns:
-        The returns, time-ordered, with the fields of :data:`~uncertain_facade_map.cloud.SIMULATED_FIELDS`,
+        The returns, time-ordered, with the fields of :data:`~uncertain_facade_map.io.cloud.SIMULATED_FIELDS`,
         and the scene's map origin.
     """
     sensor = sensor or SCENE_SENSORS.get(scene.name, SensorConfig())

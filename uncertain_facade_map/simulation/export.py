@@ -9,8 +9,8 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from ..cloud import Cloud
 from ..errors import InputError
+from ..io.cloud import Cloud
 from .campaign import Campaign, SensorConfig
 from .scene import Scene
 

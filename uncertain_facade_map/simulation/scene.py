@@ -17,9 +17,17 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from ..cloud import CLASS_BUILDING, CLASS_NAMES
-from .raycast import (INF, inverse_directions, points_in_polygon, ray_aabb, ray_convex, ray_prism, ray_sphere,
-                      ray_vertical_cylinder)
+from ..io.cloud import CLASS_BUILDING, CLASS_NAMES
+from .raycast import (
+    INF,
+    inverse_directions,
+    points_in_polygon,
+    ray_aabb,
+    ray_convex,
+    ray_prism,
+    ray_sphere,
+    ray_vertical_cylinder,
+)
 
 CLASS_GROUND = 2
 CLASS_VEGETATION = 3

@@ -1,0 +1,82 @@
+"""The map worker: clouds in order, the drop policy, commands, idle flush, errors."""
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from uncertain_facade_map.config import MapParams, UpdateParams
+from uncertain_facade_map.mapping.facade_map import FacadeMap
+from uncertain_facade_map.mapping.worker import Cloud, MapWorker, ReplaceMap
+
+
+def wall(n=400, seed=0, u0=0.0):
+    rng = np.random.default_rng(seed)
+    return np.c_[u0 + rng.uniform(0, 5, n), np.full(n, 10.0) + rng.normal(0, 0.02, n), rng.uniform(0, 5, n)]
+
+
+def test_drop_policy_drops_the_oldest_waiting_cloud():
+    gate = threading.Event()
+    worker = MapWorker(FacadeMap(), queue_size=2, idle_flush=0)
+    started = threading.Event()
+    # Block the worker with a command so clouds pile up.
+    threading.Thread(target=lambda: worker.call(lambda m: (started.set(), gate.wait(10)), changes=False)).start()
+    assert started.wait(5)
+    clouds = [Cloud(wall(10, seed=i), None, None, i) for i in range(4)]
+    kept = [worker.put(c) for c in clouds]
+    assert kept == [True, True, False, False]
+    assert worker.counters['clouds_dropped'] == 2 and worker.counters['points_dropped'] == 20
+    assert worker.queued == 2
+    waiting = [item.stamp_ns for item in worker._queue if isinstance(item, Cloud)]
+    assert waiting == [2, 3]  # the newest are kept
+    gate.set()
+    assert worker.wait_idle(30)
+    worker.stop()
+
+
+def test_clouds_are_mapped_in_order_and_flushed_when_idle():
+    params = MapParams(update=UpdateParams(batch_points=1000))
+    worker = MapWorker(FacadeMap(params), queue_size=100, idle_flush=0.3)
+    offline = FacadeMap(params)
+    for i in range(6):
+        xyz = wall(400, seed=i, u0=i * 2.0)
+        worker.put(Cloud(xyz, np.zeros(400, np.int64), None, i))
+        offline.add_points(xyz, np.zeros(400, np.int64), defer=True)
+    deadline = time.monotonic() + 60
+    while not worker.settled:
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    offline.flush()
+    snap = worker.snapshot
+    assert snap.points == offline.n_points == 2400 and len(snap.facades) == len(offline.facades) >= 1
+    for a, b in zip(snap.facades, offline.facades):
+        np.testing.assert_array_equal(a.surface.mean, b.surface.mean)
+        np.testing.assert_array_equal(a.surface.var, b.surface.var)
+    assert worker.counters['clouds_mapped'] == 6
+    worker.stop()
+
+
+def test_a_bad_cloud_is_reported_and_the_map_kept():
+    errors = []
+    worker = MapWorker(FacadeMap(), idle_flush=0, on_error=lambda c, e: errors.append(str(e)))
+    worker.put(Cloud(np.full((5, 3), np.nan)))
+    worker.put(Cloud(wall(50)))
+    assert worker.wait_idle(30)
+    assert len(errors) == 1 and 'NaN' in errors[0]
+    assert worker.counters['clouds_failed'] == 1 and worker.counters['clouds_mapped'] == 1
+    worker.stop()
+
+
+def test_commands_run_after_queued_clouds_and_may_replace_the_map():
+    worker = MapWorker(FacadeMap(), idle_flush=0)
+    worker.put(Cloud(wall(50)))
+    assert worker.call(lambda m: m.n_points + m.n_pending, changes=False) == 50
+    version = worker.snapshot.version
+    worker.call(lambda m: ReplaceMap(FacadeMap(), 'x'))
+    assert worker.snapshot.points == 0 and worker.snapshot.version == version + 1
+    with pytest.raises(ZeroDivisionError):
+        worker.call(lambda m: 1 / 0)
+    worker.stop()
+    with pytest.raises(RuntimeError):
+        worker.call(lambda m: None)

@@ -1,0 +1,568 @@
+"""The facade_mapper node in its own process, driven by this process as a localisation node.
+
+This process publishes a simulated street as scans (PointCloud2, as the simulator's bags
+hold them), calls every service and compares the answers with the offline core on the
+same points; it checks a late subscriber gets the published maps, that bad input is
+refused without losing the map, and that a killed node restarted on its saved map answers
+the same queries.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import os
+import queue
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.ros
+
+rclpy = pytest.importorskip('rclpy')
+pytest.importorskip('uncertain_facade_map.srv')
+
+import msg_adapters as ma  # noqa: E402
+from uncertain_facade_map.config import Config, InputConfig, dump_config, map_params  # noqa: E402
+from uncertain_facade_map.io.map_file import load_map  # noqa: E402
+from uncertain_facade_map.mapping.facade_map import FacadeMap  # noqa: E402
+from uncertain_facade_map.mapping.worker import map_scans  # noqa: E402
+from uncertain_facade_map.pipeline.step7_queries import query_points  # noqa: E402
+from uncertain_facade_map.simulation.export import split_scans  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[2]
+#: Seconds of the street drive published (the whole drive takes minutes to map incrementally).
+DRIVE_SECONDS = 4.0
+
+
+def scenario_config(**overrides) -> Config:
+    """The defaults, with updates of 20 000 points (several in the drive's first seconds,
+    so that the node maps block by block before it flushes), plus ``section.name`` overrides."""
+    import dataclasses
+
+    config = Config()
+    sections = {'update': {'batch_points': 20000}}
+    for key, value in overrides.items():
+        section, name = key.split('.')
+        sections.setdefault(section, {})[name] = value
+    for section, values in sections.items():
+        config = dataclasses.replace(config, **{section: dataclasses.replace(getattr(config, section), **values)})
+    return config
+
+
+def node_config(tmp: Path, **overrides) -> Path:
+    """A parameter file: :func:`scenario_config` with reliable input and a big queue (nothing
+    dropped), plus overrides."""
+    # A long idle time: a loaded machine (CI) must not pause the stream long enough for a
+    # flush in the middle, which would make another map than the offline core's.
+    node = {'node.qos': 'reliable', 'node.queue_size': 10000, 'node.idle_flush': 5.0}
+    path = tmp / f'params_{len(list(tmp.glob("params_*")))}.yaml'
+    path.write_text(dump_config(scenario_config(**{**node, **overrides})))
+    return path
+
+
+class NodeProcess:
+    """The node, started as `python -m uncertain_facade_map_node.node --ros-args --params-file P`."""
+
+    def __init__(self, params: Path, env: dict, log: Path) -> None:
+        self.log = log
+        self.proc = subprocess.Popen([sys.executable, '-m', 'uncertain_facade_map_node.node', '--ros-args',
+                                      '--params-file', str(params)], env=env, cwd=ROOT,
+                                     stdout=open(log, 'ab'), stderr=subprocess.STDOUT)
+
+    def wait_ready(self, client: Client, timeout: float = 60.0) -> None:
+        """Wait until the node is up and this client sees its diagnostics (discovery done)."""
+        deadline = time.monotonic() + timeout
+        while 'façades' not in self.log.read_text():
+            assert self.alive() and time.monotonic() < deadline, self.log.read_text()
+            time.sleep(0.2)
+        client.forget_clients()
+        client.wait_for_subscriber()
+        diagnostics(client, timeout=timeout)
+        time.sleep(0.5)
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def kill(self) -> None:
+        self.proc.send_signal(signal.SIGKILL)
+        self.proc.wait(10)
+
+    def stop(self) -> None:
+        if self.alive():
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(15)
+            except subprocess.TimeoutExpired:
+                self.kill()
+
+
+class Client:
+    """A localisation node: publishes scans, subscribes to the maps, calls the services."""
+
+    def __init__(self, domain: int) -> None:
+        from geometry_msgs.msg import TransformStamped
+        from rclpy.executors import MultiThreadedExecutor
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import PointCloud2
+
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, domain_id=domain)
+        self.node = rclpy.create_node('localisation_client', context=self.context)
+        self.executor = MultiThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        reliable = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        self.pub = self.node.create_publisher(PointCloud2, 'points', reliable)
+        self.pose_pub = self.node.create_publisher(TransformStamped, 'sensor_pose', 100)
+        self.latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                                  reliability=ReliabilityPolicy.RELIABLE)
+        self.clients = {}
+        self.stopping = False
+        self._between_turns = queue.SimpleQueue()
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+
+    def _spin(self):
+        # A short timeout: entities created between turns join the wait set at the next turn.
+        while not self.stopping and self.context.ok():
+            self.executor.spin_once(timeout_sec=0.05)
+            while True:
+                try:
+                    fn, future = self._between_turns.get_nowait()
+                except queue.Empty:
+                    break
+                try:
+                    future.set_result(fn())
+                except Exception as exc:  # noqa: BLE001 - handed to the waiting test thread
+                    future.set_exception(exc)
+
+    def on_spin_thread(self, fn, timeout=30.0):
+        """Run fn on the executor's thread between two turns and return its result.
+
+        Entities (subscriptions, clients) must not be created or destroyed from another thread
+        while the executor builds its wait set: rclpy raises InvalidHandle in the spinning
+        thread, which then dies and the client hears nothing more.
+        """
+        future = concurrent.futures.Future()
+        self._between_turns.put((fn, future))
+        return future.result(timeout)
+
+    def call(self, srv_type, name, request, timeout=120.0):
+        if name not in self.clients:
+            self.clients[name] = self.on_spin_thread(lambda: self.node.create_client(srv_type, name))
+        client = self.clients[name]
+        assert client.wait_for_service(timeout_sec=30.0), f'service {name} not available'
+        future = client.call_async(request)
+        done = threading.Event()
+        future.add_done_callback(lambda _: done.set())
+        assert done.wait(timeout), f'service {name} did not answer in {timeout} s'
+        return future.result()
+
+    def forget_clients(self):
+        """Drop the service clients (after the node was restarted)."""
+        clients, self.clients = list(self.clients.values()), {}
+        self.on_spin_thread(lambda: [self.node.destroy_client(c) for c in clients])
+
+    def call_retrying(self, srv_type, name, request, attempts=6, timeout=10.0):
+        """Call until answered: a killed server may still be known to discovery for a while."""
+        for attempt in range(attempts):
+            try:
+                return self.call(srv_type, name, request, timeout)
+            except AssertionError:
+                if attempt == attempts - 1:
+                    raise
+                self.forget_clients()
+
+    def wait_for_message(self, msg_type, topic, timeout=30.0, qos=None):
+        got = []
+        event = threading.Event()
+
+        def callback(msg):
+            got.append(msg)
+            event.set()
+
+        sub = self.on_spin_thread(lambda: self.node.create_subscription(msg_type, topic, callback,
+                                                                        qos or self.latched))
+        try:
+            assert event.wait(timeout), f'no message on {topic} within {timeout} s'
+        finally:
+            self.on_spin_thread(lambda: self.node.destroy_subscription(sub))
+        return got[0]
+
+    def wait_for_subscriber(self, timeout=30.0):
+        deadline = time.monotonic() + timeout
+        while self.pub.get_subscription_count() == 0:
+            assert time.monotonic() < deadline, 'the node never subscribed to points'
+            time.sleep(0.1)
+
+    def close(self):
+        self.stopping = True
+        self.thread.join(5)
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.shutdown(context=self.context)
+
+
+def diagnostics(client: Client, key: str | None = None, until=None, timeout=120.0) -> dict:
+    """The node's latest diagnostic values; with ``until``, wait until until(values) holds."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    deadline = time.monotonic() + timeout
+    while True:
+        msg = client.wait_for_message(DiagnosticArray, '/diagnostics', qos=10)
+        values = {kv.key: kv.value for kv in msg.status[0].values}
+        if until is None or until(values):
+            return values
+        assert time.monotonic() < deadline, f'diagnostics never reached the condition: {values}'
+
+
+def query_request(xyz: np.ndarray, resolution: float = 0.0):
+    from geometry_msgs.msg import Point
+
+    from uncertain_facade_map.srv import QueryPoints
+
+    request = QueryPoints.Request()
+    request.points = [Point(x=float(x), y=float(y), z=float(z)) for x, y, z in xyz]
+    request.resolution = resolution
+    return request
+
+
+def answers_of(response) -> dict:
+    return {k: np.asarray(getattr(response, k)) for k in ('facade', 'mean_depth', 'variance', 'noise_variance',
+                                                           'signed_distance', 'p_occupied')}
+
+
+def assert_answers_equal(a: dict, b: dict) -> None:
+    for key in a:
+        np.testing.assert_array_equal(np.asarray(a[key]), np.asarray(b[key]), err_msg=key)
+
+
+# ------------------------------------------------------------------------------------------
+# Fixtures
+# ------------------------------------------------------------------------------------------
+@pytest.fixture(scope='module')
+def domain():
+    return 100 + os.getpid() % 100
+
+
+@pytest.fixture(scope='module')
+def env(domain):
+    env = dict(os.environ)
+    env['ROS_DOMAIN_ID'] = str(domain)
+    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    return env
+
+
+@pytest.fixture(scope='module')
+def workdir(tmp_path_factory):
+    return tmp_path_factory.mktemp('node')
+
+
+@pytest.fixture(scope='module')
+def scans(scenes):
+    """The first DRIVE_SECONDS of the street drive as 0.1 s PointCloud2 scans (rclpy messages)."""
+    cloud = scenes.campaign('street', 0)
+    part_of_drive = cloud.select(cloud.points['time'] < cloud.points['time'].min() + DRIVE_SECONDS)
+    types = ma.rclpy_types()
+    out = []
+    for stamp_ns, part in split_scans(part_of_drive, 0.1):
+        out.append(ma.pointcloud2_from_structured(part, stamp_ns=stamp_ns, frame_id='map', msg_types=types))
+    return out
+
+
+@pytest.fixture(scope='module')
+def client(domain):
+    c = Client(domain)
+    yield c
+    c.close()
+
+
+@pytest.fixture(scope='module')
+def mapped(client, env, workdir, scans):
+    """The node, fed the scans; yields (node process, map path saved by the node)."""
+    node = NodeProcess(node_config(workdir, **{'service.max_query_points': 20000, 'node.max_cloud_points': 400000}),
+                       env, workdir / 'node.log')
+    try:
+        node.wait_ready(client)
+        for msg in scans:
+            client.pub.publish(msg)
+            time.sleep(0.01)
+        diagnostics(client, until=lambda v: int(v['clouds_mapped']) + int(v['clouds_failed'])
+                    + int(v['clouds_dropped']) >= len(scans) and v['settled'] == 'True', timeout=300)
+        yield node
+    finally:
+        node.stop()
+        print((workdir / 'node.log').read_text()[-3000:])
+
+
+_OFFLINE: dict = {}
+
+
+def offline_map(scans) -> FacadeMap:
+    key = (id(scans[0]), len(scans))
+    if key not in _OFFLINE:
+        _OFFLINE[key] = _offline_map(scans)
+    return _OFFLINE[key]
+
+
+def _offline_map(scans) -> FacadeMap:
+    """The offline core fed the same scans one by one, as the node's worker is, then flushed
+    as the node does when the input pauses."""
+    fmap = FacadeMap(map_params(scenario_config()), np.zeros(3))
+    map_scans(fmap, (ma.structured_from_pointcloud2(msg) for msg in scans), InputConfig())
+    return fmap
+
+
+def probe_points(fmap: FacadeMap, n: int = 3000) -> np.ndarray:
+    rng = np.random.default_rng(0)
+    pts = np.vstack(list(fmap.points.values()))
+    return pts[rng.choice(len(pts), n, replace=False)] + rng.normal(0, 0.3, (n, 3))
+
+
+# ------------------------------------------------------------------------------------------
+# Tests
+# ------------------------------------------------------------------------------------------
+def test_every_scan_is_mapped_and_reported(client, mapped, scans):
+    values = diagnostics(client)
+    assert int(values['clouds_in']) == len(scans)
+    assert int(values['clouds_mapped']) == len(scans)
+    assert int(values['clouds_dropped']) == 0 and int(values['clouds_failed']) == 0
+    # One flush, after the stream: none in between (which would make another map).
+    assert int(values['flushes']) == 1
+    assert int(values['facades']) >= 3 and int(values['buildings']) >= 2
+    assert float(values['last_update_seconds']) > 0
+
+
+def test_service_answers_equal_the_offline_core(client, mapped, scans, workdir):
+    from uncertain_facade_map.srv import SaveMap
+
+    saved = client.call(SaveMap, 'save_map', SaveMap.Request(path=str(workdir / 'live.npz')))
+    assert saved.success, saved.message
+    live = load_map(workdir / 'live.npz')
+    offline = offline_map(scans)
+    assert len(live.facades) == len(offline.facades)
+    assert live.n_points == offline.n_points
+    xyz = probe_points(offline)
+    from uncertain_facade_map.srv import QueryPoints
+
+    response = client.call(QueryPoints, 'query_points', query_request(xyz))
+    assert response.success, response.message
+    band = (offline.params.extraction.band_back, offline.params.extraction.band_front)
+    expected = query_points(offline.facades, xyz, 0.1, *band).as_dict()
+    assert (expected['facade'] >= 0).mean() > 0.3
+    assert_answers_equal(answers_of(response), expected)
+    # The same through the command line's reading of the node's map file.
+    assert_answers_equal(answers_of(response), query_points(live.facades, xyz, 0.1, *band).as_dict())
+    # Another resolution.
+    response = client.call(QueryPoints, 'query_points', query_request(xyz[:500], 0.05))
+    assert_answers_equal(answers_of(response), query_points(offline.facades, xyz[:500], 0.05, *band).as_dict())
+
+
+def test_get_facades_describes_the_models(client, mapped, scans):
+    from uncertain_facade_map.srv import GetFacades
+
+    offline = offline_map(scans)
+    response = client.call(GetFacades, 'get_facades', GetFacades.Request(building=-1))
+    assert response.success
+    assert [f.facade_id for f in response.facades] == [f.facade_id for f in offline.facades]
+    for msg, model in zip(response.facades, offline.facades):
+        np.testing.assert_allclose(msg.plane[:3], model.frame.normal, atol=1e-12)
+        np.testing.assert_allclose(msg.layer_means, model.layers.means_)
+        assert msg.points == len(model.point_index) and msg.building == model.building
+    one = client.call(GetFacades, 'get_facades', GetFacades.Request(building=offline.facades[0].building))
+    assert {f.building for f in one.facades} == {offline.facades[0].building}
+
+
+def test_late_subscriber_gets_every_map(client, mapped):
+    from nav_msgs.msg import OccupancyGrid
+    from nav_msgs.srv import GetMap
+    from sensor_msgs.msg import PointCloud2
+    from visualization_msgs.msg import MarkerArray
+
+    from uncertain_facade_map.msg import FacadeGridArray
+
+    surface = client.wait_for_message(PointCloud2, 'surface')
+    fields = [f.name for f in surface.fields]
+    assert fields == ['x', 'y', 'z', 'std', 'facade'] and surface.width > 10000
+    points = ma.structured_from_pointcloud2(surface)
+    assert np.all(points['std'] > 0) and np.all(points['std'] < 1.0)
+    mesh = client.wait_for_message(MarkerArray, 'surface_mesh')
+    assert len(mesh.markers) >= 2 and sum(len(m.points) for m in mesh.markers[1:]) > 10000
+    grids = client.wait_for_message(FacadeGridArray, 'variance_grids')
+    assert len(grids.grids) >= 3
+    g = grids.grids[0]
+    assert len(g.variance) == g.width * g.height and min(g.variance) > 0
+    voxels = client.wait_for_message(PointCloud2, 'occupancy_voxels')
+    vox = ma.structured_from_pointcloud2(voxels)
+    assert len(vox) > 1000 and vox['p_occupied'].min() >= 0 and vox['p_occupied'].max() <= 1
+    assert (vox['p_occupied'] > 0.9).any() and (vox['p_occupied'] < 0.1).any()
+    grid = client.wait_for_message(OccupancyGrid, 'occupancy_grid')
+    data = np.asarray(grid.data)
+    assert len(data) == grid.info.width * grid.info.height and (data == 100).any() and (data == 0).any()
+    got = client.call(GetMap, 'get_map', GetMap.Request())
+    assert got.map.info.width == grid.info.width and list(got.map.data) == list(grid.data)
+
+
+def test_bad_clouds_are_refused_and_the_map_kept(client, mapped, scans):
+    from sensor_msgs.msg import PointCloud2, PointField
+
+    from uncertain_facade_map.srv import QueryPoints
+
+    offline = offline_map(scans)
+    xyz = probe_points(offline, 500)
+    before = answers_of(client.call(QueryPoints, 'query_points', query_request(xyz)))
+    start = diagnostics(client)
+    types = ma.rclpy_types()
+    good = ma.structured_from_pointcloud2(scans[len(scans) // 2])
+
+    def cloud(points, frame='map'):
+        return ma.pointcloud2_from_structured(points, stamp_ns=1, frame_id=frame, msg_types=types)
+
+    no_xyz = np.zeros(10, dtype=[('a', 'f4'), ('b', 'f4')])
+    unknown = cloud(good[:10])
+    unknown.fields = [PointField(name=f.name, offset=f.offset, datatype=42, count=1) for f in unknown.fields]
+    nan = good[:200].copy()
+    nan['x'][::2] = np.nan
+    nan['y'][1::4] = np.inf
+    empty = PointCloud2()
+    empty.header.frame_id = 'map'
+    oversized = np.resize(good, 400001)
+    bad = [cloud(no_xyz), unknown, empty, cloud(oversized), cloud(good[:100], 'velodyne')]
+    for msg in bad:
+        client.pub.publish(msg)
+    client.pub.publish(cloud(nan))
+    values = diagnostics(client, until=lambda v: int(v['clouds_rejected']) >= int(start['clouds_rejected']) + 5
+                         and int(v['points_nonfinite']) >= int(start['points_nonfinite']) + 150, timeout=60)
+    assert int(values['clouds_rejected']) == int(start['clouds_rejected']) + 5
+    assert int(values['points_nonfinite']) == int(start['points_nonfinite']) + 150  # 100 NaN x, 50 infinite y
+    assert mapped.alive()
+    # The NaN cloud's finite points are mapped (they repeat points already there).
+    after = answers_of(client.call(QueryPoints, 'query_points', query_request(xyz)))
+    assert (after['facade'] == before['facade']).mean() > 0.99
+    assert np.nanmax(np.abs(after['mean_depth'] - before['mean_depth'])) < 0.2
+    log = mapped.log.read_text()
+    for text in ('no x, y, z field', 'empty cloud', 'node.max_cloud_points', 'not the map frame',
+                 'NaN or infinite'):
+        assert text in log, text
+
+
+def test_bad_queries_get_error_responses(client, mapped):
+    from uncertain_facade_map.srv import QueryPoints
+
+    nan = client.call(QueryPoints, 'query_points', query_request(np.array([[0.0, 0.0, 0.0], [np.nan, 1.0, 1.0]])))
+    assert not nan.success and 'NaN' in nan.message and len(nan.facade) == 0
+    many = client.call(QueryPoints, 'query_points', query_request(np.zeros((20001, 3))))
+    assert not many.success and '20000' in many.message
+    bad_res = client.call(QueryPoints, 'query_points', query_request(np.zeros((3, 3)), -1.0))
+    assert not bad_res.success and 'resolution' in bad_res.message
+    empty = client.call(QueryPoints, 'query_points', query_request(np.zeros((0, 3))))
+    assert empty.success and len(empty.facade) == 0
+    assert mapped.alive()
+
+
+def test_clouds_in_a_sensor_frame_are_moved_by_its_pose(client, mapped, scans):
+    from geometry_msgs.msg import TransformStamped
+
+    from uncertain_facade_map.srv import QueryPoints
+
+    start = diagnostics(client)
+    good = ma.structured_from_pointcloud2(scans[5])
+    # The sensor frame is the map frame turned 90 degrees about z and shifted.
+    c, s = 0.0, 1.0
+    rotation = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+    t = np.array([3.0, -2.0, 0.5])
+    local = good.copy()
+    xyz = np.stack([good['x'], good['y'], good['z']], 1).astype(np.float64)
+    moved = (xyz - t) @ rotation  # R^T (x - t)
+    local['x'], local['y'], local['z'] = moved.T
+    for name in ('origin_x', 'origin_y', 'origin_z'):
+        local[name] = np.nan  # origins unknown in the sensor frame: the pose's translation is used
+    pose = TransformStamped()
+    pose.header.frame_id = 'map'
+    pose.header.stamp.sec = 7
+    pose.child_frame_id = 'lidar'
+    pose.transform.translation.x, pose.transform.translation.y, pose.transform.translation.z = t
+    pose.transform.rotation.z = np.sin(np.pi / 4)
+    pose.transform.rotation.w = np.cos(np.pi / 4)
+    client.pose_pub.publish(pose)
+    time.sleep(1.0)
+    msg = ma.pointcloud2_from_structured(local, stamp_ns=7 * 10**9, frame_id='lidar', msg_types=ma.rclpy_types())
+    client.pub.publish(msg)
+    values = diagnostics(client, until=lambda v: int(v['clouds_mapped']) > int(start['clouds_mapped']), timeout=60)
+    assert int(values['clouds_rejected']) == int(start['clouds_rejected'])
+    # Points of the moved scan are back on the façades they came from.
+    probe = xyz[np.isin(good['class'], [1])][:300]
+    answer = answers_of(client.call(QueryPoints, 'query_points', query_request(probe)))
+    on = answer['facade'] >= 0
+    assert on.mean() > 0.8 and np.median(np.abs(answer['signed_distance'][on])) < 0.05
+
+
+def test_save_reset_load_and_restart_answer_the_same(client, mapped, env, workdir, scans):
+    from std_srvs.srv import Trigger
+
+    from uncertain_facade_map.srv import LoadMap, QueryPoints, SaveMap
+
+    offline = offline_map(scans)
+    xyz = probe_points(offline, 1000)
+    saved = client.call(SaveMap, 'save_map', SaveMap.Request(path=str(workdir / 'kept.npz')))
+    assert saved.success, saved.message
+    before = answers_of(client.call(QueryPoints, 'query_points', query_request(xyz)))
+    # Errors leave the map as it is.
+    missing = client.call(LoadMap, 'load_map', LoadMap.Request(path=str(workdir / 'missing.npz')))
+    assert not missing.success and 'no such file' in missing.message
+    (workdir / 'junk.npz').write_bytes(b'not a map')
+    junk = client.call(LoadMap, 'load_map', LoadMap.Request(path=str(workdir / 'junk.npz')))
+    assert not junk.success and 'not a map file' in junk.message
+    nowhere = client.call(SaveMap, 'save_map', SaveMap.Request(path='/nonexistent/dir/map.npz'))
+    assert not nowhere.success and 'does not exist' in nowhere.message
+    assert_answers_equal(answers_of(client.call(QueryPoints, 'query_points', query_request(xyz))), before)
+    # Reset empties the map; load brings it back.
+    assert client.call(Trigger, 'reset', Trigger.Request()).success
+    empty = answers_of(client.call(QueryPoints, 'query_points', query_request(xyz)))
+    assert np.all(empty['facade'] == -1) and np.all(empty['p_occupied'] == 0.5)
+    loaded = client.call(LoadMap, 'load_map', LoadMap.Request(path=str(workdir / 'kept.npz')))
+    assert loaded.success and loaded.facades == len(offline.facades)
+    assert_answers_equal(answers_of(client.call(QueryPoints, 'query_points', query_request(xyz))), before)
+    # Kill the node (no clean shutdown) and start a new one on the saved map.
+    mapped.kill()
+    restarted = NodeProcess(node_config(workdir, **{'persistence.map_path': str(workdir / 'kept.npz')}), env,
+                            workdir / 'restarted.log')
+    try:
+        restarted.wait_ready(client)
+        again = answers_of(client.call_retrying(QueryPoints, 'query_points', query_request(xyz)))
+        assert_answers_equal(again, before)
+    finally:
+        restarted.stop()
+
+
+def test_autosave_keeps_the_map_up_to_date(client, env, workdir, scans):
+    path = workdir / 'auto.npz'
+    node = NodeProcess(node_config(workdir, **{'persistence.map_path': str(path),
+                                               'persistence.autosave_period': 0.5}), env, workdir / 'auto.log')
+    try:
+        node.wait_ready(client)
+        for msg in scans[:10]:
+            client.pub.publish(msg)
+        diagnostics(client, until=lambda v: int(v['clouds_mapped']) >= 10, timeout=120)
+        deadline = time.monotonic() + 30
+        while True:
+            if path.exists():
+                fmap = load_map(path)
+                if fmap.n_points == offline_map(scans[:10]).n_points:
+                    break
+            assert time.monotonic() < deadline, 'autosave never wrote the whole map'
+            time.sleep(0.5)
+        node.kill()
+        assert not list(workdir.glob('.auto.npz.*')), 'a temporary file was left behind'
+        # The file the killed node left answers as the offline core fed the same scans.
+        xyz = probe_points(fmap, 300)
+        band = (fmap.params.extraction.band_back, fmap.params.extraction.band_front)
+        expected = query_points(offline_map(scans[:10]).facades, xyz, 0.1, *band).as_dict()
+        assert_answers_equal(query_points(fmap.facades, xyz, 0.1, *band).as_dict(), expected)
+    finally:
+        node.stop()

@@ -1,0 +1,71 @@
+"""Helpers shared by the tests (imported as ``support``: ``test/`` is on sys.path through conftest.py).
+
+- :data:`REPO`: the repository's root;
+- :func:`assert_same_maps`: two map files hold the same map, bit for bit;
+- a seeded synthetic scene with known truth for the baseline tests: a flat wall scanned
+  from a straight drive (:func:`wall_scan`), and voxels labelled by the truth, on the wall
+  or in the free space in front of it (:func:`labelled_voxels`).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+#: The repository's root folder.
+REPO = Path(__file__).resolve().parents[1]
+
+#: The wall is the plane y = WALL_Y, x in [0, 10], z in [0, 6]; the sensor drives along y = 0.
+WALL_Y = 8.0
+
+
+def wall_scan(n_origins: int = 40, rays: int = 400, noise: float = 0.02, seed: int = 0
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) hits on the wall with Gaussian range noise and their (N, 3) sensor origins.
+
+    The sensor moves from x = 1 to x = 9 at y = 0, z = 2; each origin fires ``rays`` rays at
+    uniformly drawn points of the wall, x in [0, 10] and z in [0, 6].
+    """
+    rng = np.random.default_rng(seed)
+    origins = np.stack([np.linspace(1.0, 9.0, n_origins), np.zeros(n_origins), np.full(n_origins, 2.0)], 1)
+    origins = np.repeat(origins, rays, axis=0)
+    target = np.stack([rng.uniform(0, 10, len(origins)), np.full(len(origins), WALL_Y),
+                       rng.uniform(0, 6, len(origins))], 1)
+    direction = target - origins
+    length = np.linalg.norm(direction, axis=1, keepdims=True)
+    hits = origins + direction / length * (length + rng.normal(0.0, noise, (len(origins), 1)))
+    return hits, origins
+
+
+def labelled_voxels(resolution: float) -> tuple[np.ndarray, np.ndarray]:
+    """Voxel centres over the wall's middle and in front of it, and the truth.
+
+    Returns:
+        ``(centres, on_wall)``: (K, 3) voxel centres of the grid ``floor(x / r)`` over
+        x in [2, 8], z in [1, 5], for the voxel layers from 2 m in front of the wall to the
+        wall's own, and (K,) bool, True for the voxels the wall passes through.
+    """
+    r = resolution
+    xs = (np.arange(int(2 / r), int(8 / r)) + 0.5) * r
+    zs = (np.arange(int(1 / r), int(5 / r)) + 0.5) * r
+    wall_row = int(np.floor(WALL_Y / r))
+    ys = (np.arange(wall_row - int(2 / r), wall_row + 1) + 0.5) * r
+    grid = np.stack(np.meshgrid(xs, ys, zs, indexing='ij'), -1).reshape(-1, 3)
+    on_wall = np.floor(grid[:, 1] / r).astype(int) == wall_row
+    return grid, on_wall
+
+
+def assert_same_maps(path_a, path_b):
+    """Two map files hold the same map: every array bit for bit, the meta record but timings."""
+    a, b = np.load(path_a), np.load(path_b)
+    assert a.files == b.files
+    for key in a.files:
+        if key != 'meta':
+            assert a[key].dtype == b[key].dtype and a[key].tobytes() == b[key].tobytes(), key
+    meta_a, meta_b = json.loads(str(a['meta'])), json.loads(str(b['meta']))
+    for meta in (meta_a, meta_b):
+        for f in meta['facades']:
+            f['stats'].pop('seconds', None)
+    assert meta_a == meta_b

@@ -1,0 +1,10 @@
+"""How good a map is: against a simulated scene's truth, and as occupancy against the baselines.
+
+- ``surface``: accuracy and calibration of the mean surface and its variance against the
+  exact truth of a simulated scene;
+- ``occupancy``: the paper's occupancy protocol (Section IV.C): reference voxels from a
+  second drive, PR and ROC AUC, accurate-inference curves;
+- ``baselines``: occupancy methods behind one interface: our map and the paper's five
+  baselines (OctoMap, BGKOctoMap, GPOM, LARD Hilbert maps, GPIS maps);
+- ``report``: ``report.md`` with its tables and figures.
+"""

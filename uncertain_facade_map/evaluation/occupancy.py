@@ -1,0 +1,421 @@
+"""Occupancy evaluation against a reference scan (paper, Section IV.C).
+
+Every method maps the same points (:mod:`~uncertain_facade_map.evaluation.baselines`), all are asked for the occupancy
+probability of the same voxels, and the voxels are labelled by a *reference* scan of the
+same scene (another drive): **positives** are the voxels holding reference points,
+**negatives** the voxels the reference rays passed through on their way (sensor origin to
+point) and that hold no reference point. The figures are the precision-recall curve and
+its area (average precision: the area under the step-wise curve, which is the positives'
+share for a constant map and 1 for a perfect one), the ROC AUC beside it, and, for the
+maps that give a variance, the same areas over the voxels whose variance is below a
+threshold ("accurate inference", paper Fig. 5) or that lie within a distance of the
+mapped points (Fig. 6).
+
+Choices where the paper is silent:
+
+- Voxels form a grid aligned with the map frame's origin (voxel ``floor(x / r)``).
+- Rays are a seeded subset of the reference (``max_rays``); a ray marks the voxels of
+  samples every ``r / 3`` from the origin to ``r / 2`` before its point.
+- Free voxels far outnumber the occupied ones (that skew is why the paper uses PR, not
+  ROC). When there are more than ``max_negatives``, a seeded subset is kept and each kept
+  negative weighs ``n_negatives / max_negatives`` in every curve and area, so the figures
+  estimate those of all the negatives without asking every method for millions of voxels.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+
+from ..errors import InputError
+
+#: Bits per axis of a packed voxel key (voxel indices within +-2^20 of the origin).
+_BITS = 21
+_OFFSET = 1 << (_BITS - 1)
+
+
+def voxel_index(xyz: np.ndarray, resolution: float) -> np.ndarray:
+    """(N, 3) int64 index of the voxel holding each point: ``floor(x / r)`` per axis."""
+    return np.floor(np.asarray(xyz, dtype=np.float64) / resolution).astype(np.int64)
+
+
+def pack_keys(index: np.ndarray, unit: str = 'voxels') -> np.ndarray:
+    """(N,) int64 key of (N, 3) voxel indices (one number per voxel, for np.unique).
+
+    Args:
+        index: (N, 3) int64 cell indices.
+        unit: what a cell is, for the error message.
+
+    Raises:
+        InputError: an index beyond +-2^20 cells (the scene is too large for the resolution).
+    """
+    shifted = index + _OFFSET
+    if len(shifted) and (shifted.min() < 0 or shifted.max() >= (1 << _BITS)):
+        raise InputError(f'the points reach beyond {_OFFSET:,} {unit} from the map origin; '
+                         'use map-frame coordinates near the origin or a coarser resolution')
+    return (shifted[:, 0] << (2 * _BITS)) | (shifted[:, 1] << _BITS) | shifted[:, 2]
+
+
+def unpack_keys(keys: np.ndarray) -> np.ndarray:
+    """(N, 3) int64 voxel indices of (N,) packed keys (inverse of :func:`pack_keys`)."""
+    mask = (1 << _BITS) - 1
+    return np.stack([(keys >> (2 * _BITS)) & mask, (keys >> _BITS) & mask, keys & mask], axis=1) - _OFFSET
+
+
+@dataclass(frozen=True, eq=False)
+class ReferenceVoxels:
+    """The labelled voxels of one resolution.
+
+    Attributes:
+        resolution: voxel side, metres.
+        centres: (K, 3) float64 voxel centres, map frame, metres.
+        positive: (K,) bool, True for voxels holding reference points.
+        weight: (K,) float64 weight of each voxel in the curves (1, or more for the
+            negatives when they were subsampled).
+        n_rays: reference rays used.
+        n_negatives: free voxels found along those rays (before subsampling).
+    """
+
+    resolution: float
+    centres: np.ndarray
+    positive: np.ndarray
+    weight: np.ndarray
+    n_rays: int
+    n_negatives: int
+
+    @property
+    def n_positives(self) -> int:
+        return int(self.positive.sum())
+
+
+def reference_voxels(points: np.ndarray, origins: np.ndarray, resolution: float, max_rays: int = 50_000,
+                     max_negatives: int = 400_000, seed: int = 0, samples_per_chunk: int = 4_000_000
+                     ) -> ReferenceVoxels:
+    """Label voxels by a reference scan.
+
+    Args:
+        points: (N, 3) float64 reference points, map frame, metres.
+        origins: (N, 3) float64 sensor origin of each point, map frame, metres.
+        resolution: voxel side, metres.
+        max_rays: at most this many rays (a seeded subset) are traced.
+        max_negatives: at most this many free voxels are kept (a seeded subset, weighted).
+        seed: seed of both subsets.
+        samples_per_chunk: ray samples handled at once (bounds memory).
+
+    Returns:
+        The labelled voxels.
+
+    Raises:
+        InputError: bad shapes, non-finite values, no points, or bad limits.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    origins = np.asarray(origins, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3 or not len(points):
+        raise InputError(f'reference points must be a non-empty (N, 3) array, got shape {points.shape}')
+    if origins.shape != points.shape:
+        raise InputError(f'reference origins must have the shape of the points {points.shape}, got {origins.shape}')
+    if not (np.isfinite(points).all() and np.isfinite(origins).all()):
+        raise InputError('reference points and origins must be finite (the reference needs sensor origins)')
+    if not (np.isfinite(resolution) and resolution > 0):
+        raise InputError(f'resolution must be positive, got {resolution!r}')
+    if max_rays < 1 or max_negatives < 1:
+        raise InputError(f'max_rays and max_negatives must be >= 1, got {max_rays} and {max_negatives}')
+    rng = np.random.default_rng(seed)
+    if len(points) > max_rays:
+        pick = np.sort(rng.choice(len(points), max_rays, replace=False))
+        points, origins = points[pick], origins[pick]
+    pos_keys = np.unique(pack_keys(voxel_index(points, resolution)))
+
+    # Free space: samples every r/3 along each ray, up to r/2 before its point.
+    step = resolution / 3.0
+    direction = points - origins
+    length = np.linalg.norm(direction, axis=1)
+    n_samples = np.maximum(np.floor((length - 0.5 * resolution) / step).astype(np.int64) + 1, 0)
+    unit = direction / np.maximum(length, 1e-12)[:, None]
+    free_parts = []
+    cum = np.cumsum(n_samples)
+    start = 0
+    while start < len(points):
+        before = int(cum[start] - n_samples[start])
+        stop = max(start + 1, int(np.searchsorted(cum, before + samples_per_chunk, side='right')))
+        counts = n_samples[start:stop]
+        ray = np.repeat(np.arange(start, stop), counts)
+        t = (np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)) * step
+        keys = pack_keys(voxel_index(origins[ray] + unit[ray] * t[:, None], resolution))
+        free_parts.append(np.unique(keys))
+        start = stop
+    free = np.unique(np.concatenate(free_parts)) if free_parts else np.empty(0, np.int64)
+    free = free[~np.isin(free, pos_keys, assume_unique=True)]
+    n_negatives = len(free)
+    weight_negative = 1.0
+    if n_negatives > max_negatives:
+        free = np.sort(rng.choice(free, max_negatives, replace=False))
+        weight_negative = n_negatives / max_negatives
+    keys = np.concatenate([pos_keys, free])
+    centres = (unpack_keys(keys) + 0.5) * resolution
+    positive = np.r_[np.ones(len(pos_keys), bool), np.zeros(len(free), bool)]
+    weight = np.where(positive, 1.0, weight_negative)
+    return ReferenceVoxels(float(resolution), centres, positive, weight, len(points), n_negatives)
+
+
+def pr_auc(positive: np.ndarray, score: np.ndarray, weight: np.ndarray | None = None) -> float:
+    """Area under the precision-recall curve (average precision, step-wise).
+
+    Args:
+        positive: (K,) bool labels.
+        score: (K,) occupancy probabilities (any monotone score).
+        weight: (K,) sample weights, or None.
+
+    Returns:
+        The area in [0, 1]; NaN when there are no positives or no negatives.
+    """
+    from sklearn.metrics import average_precision_score
+
+    positive = np.asarray(positive, dtype=bool)
+    if not positive.any() or positive.all():
+        return float('nan')
+    return float(average_precision_score(positive, score, sample_weight=weight))
+
+
+def roc_auc(positive: np.ndarray, score: np.ndarray, weight: np.ndarray | None = None) -> float:
+    """Area under the ROC curve; NaN when there are no positives or no negatives."""
+    from sklearn.metrics import roc_auc_score
+
+    positive = np.asarray(positive, dtype=bool)
+    if not positive.any() or positive.all():
+        return float('nan')
+    return float(roc_auc_score(positive, score, sample_weight=weight))
+
+
+def pr_curve(positive: np.ndarray, score: np.ndarray, weight: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """``(recall, precision)`` of the precision-recall curve, recall decreasing."""
+    from sklearn.metrics import precision_recall_curve
+
+    precision, recall, _ = precision_recall_curve(positive, score, sample_weight=weight)
+    return recall, precision
+
+
+@dataclass(eq=False)
+class MethodResult:
+    """One method at one resolution.
+
+    Attributes:
+        name: the method's label.
+        resolution: voxel side, metres.
+        p: (K,) occupancy probability of each reference voxel.
+        variance: (K,) the method's variance at each voxel, or None.
+        fit_seconds: training (map building) time, seconds.
+        predict_seconds: testing (query) time, seconds.
+        pr_auc: area under the precision-recall curve.
+        roc_auc: area under the ROC curve.
+        extra: the method's per-voxel diagnostics (:meth:`OccupancyMethod.diagnostics`).
+        trains_on_predict: part of the training ran in ``predict`` (so in the testing time).
+    """
+
+    name: str
+    resolution: float
+    p: np.ndarray
+    variance: np.ndarray | None
+    fit_seconds: float
+    predict_seconds: float
+    pr_auc: float
+    roc_auc: float
+    extra: dict = field(default_factory=dict)
+    trains_on_predict: bool = False
+
+
+def run_method(method, points: np.ndarray, origins: np.ndarray, ref: ReferenceVoxels) -> MethodResult:
+    """Fit ``method`` (an :class:`~uncertain_facade_map.evaluation.baselines.base.OccupancyMethod`) on the mapped points,
+    predict the reference voxels, time both and score them.
+
+    Raises:
+        InputError: the method's predictions are not (K,) probabilities in [0, 1].
+    """
+    t0 = time.perf_counter()
+    method.fit(points, origins)
+    t1 = time.perf_counter()
+    p = np.asarray(method.predict(ref.centres), dtype=np.float64)
+    variance = method.predict_variance(ref.centres)
+    t2 = time.perf_counter()
+    if p.shape != (len(ref.centres),) or not np.all((p >= 0) & (p <= 1)):
+        raise InputError(f'{method.name} returned no (K,) probabilities in [0, 1]')
+    return MethodResult(method.name, ref.resolution, p, None if variance is None else np.asarray(variance, float),
+                        t1 - t0, t2 - t1, pr_auc(ref.positive, p, ref.weight), roc_auc(ref.positive, p, ref.weight),
+                        dict(method.diagnostics(ref.centres)), bool(getattr(method, 'trains_on_predict', False)))
+
+
+def subset_auc(result: MethodResult, ref: ReferenceVoxels, keep: np.ndarray) -> tuple[float, float]:
+    """``(pr_auc, share)`` over the voxels where ``keep`` holds; share: their weighted share
+    of all voxels."""
+    keep = np.asarray(keep, dtype=bool)
+    share = float(ref.weight[keep].sum() / ref.weight.sum())
+    return pr_auc(ref.positive[keep], result.p[keep], ref.weight[keep]), share
+
+
+def auc_by_variance(result: MethodResult, ref: ReferenceVoxels, thresholds: Sequence[float]
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """PR AUC over the voxels whose variance is at most each threshold (paper Figs. 5, 6a).
+
+    Returns:
+        ``(auc, share)``, each (T,); NaN where the subset lacks positives or negatives.
+
+    Raises:
+        InputError: the method gives no variance.
+    """
+    if result.variance is None:
+        raise InputError(f'{result.name} gives no variance')
+    out = [subset_auc(result, ref, result.variance <= t) for t in thresholds]
+    return np.array([a for a, _ in out]), np.array([s for _, s in out])
+
+
+def distance_to_points(centres: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(K,) distance of each voxel centre to the nearest of (N, 3) points, metres."""
+    from scipy.spatial import cKDTree
+
+    return cKDTree(points).query(centres, workers=-1)[0]
+
+
+def auc_by_distance(result: MethodResult, ref: ReferenceVoxels, distance: np.ndarray,
+                    limits: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+    """PR AUC over the voxels within each distance limit of the mapped points (paper Fig. 6b).
+
+    Args:
+        distance: (K,) distance of each voxel centre to the nearest mapped point, metres.
+        limits: distance limits, metres.
+
+    Returns:
+        ``(auc, share)``, each (L,).
+    """
+    out = [subset_auc(result, ref, distance <= d) for d in limits]
+    return np.array([a for a, _ in out]), np.array([s for _, s in out])
+
+
+#: Bins of the voxel centre's signed distance from our mean surface, in voxel sides
+#: (negative: behind the surface, inside the building).
+SURFACE_BINS = (-np.inf, -1.5, -0.5, 0.5, 1.5, np.inf)
+SURFACE_BIN_LABELS = ('behind, > 1.5 voxels', 'behind, 0.5-1.5 voxels', 'at the surface, +-0.5 voxel',
+                      'in front, 0.5-1.5 voxels', 'in front, > 1.5 voxels', 'no façade')
+
+
+@dataclass(frozen=True)
+class SurfaceBin:
+    """The labelled voxels of one bin of :data:`SURFACE_BINS`.
+
+    Attributes:
+        label: the bin's label.
+        positives: voxels holding reference points.
+        negatives: weighted count of free voxels.
+        mean_p: method name -> weighted mean occupancy probability over the bin's voxels.
+    """
+
+    label: str
+    positives: int
+    negatives: float
+    mean_p: dict
+
+    @property
+    def share_positive(self) -> float:
+        """The bin's share of positives (its precision if all of it were called occupied)."""
+        total = self.positives + self.negatives
+        return self.positives / total if total else float('nan')
+
+
+def surface_breakdown(ref: ReferenceVoxels, results: Sequence[MethodResult], signed_distance: np.ndarray
+                      ) -> list[SurfaceBin]:
+    """Where the labelled voxels lie relative to our mean surface, and what each method
+    gives them: explains where methods differ (the report's "why").
+
+    Args:
+        ref: the labelled voxels of one resolution.
+        results: the methods' results at that resolution.
+        signed_distance: (K,) each voxel centre's signed distance from our mean surface,
+            metres, positive in front; NaN where no façade covers it.
+
+    Returns:
+        One :class:`SurfaceBin` per bin of :data:`SURFACE_BINS`, then one for "no façade"
+        (bins without voxels included, with NaN means).
+    """
+    which = surface_bins(ref, signed_distance)
+    out = []
+    for b, label in enumerate(SURFACE_BIN_LABELS):
+        sel = which == b
+        w = ref.weight[sel]
+        mean_p = {r.name: float(np.average(r.p[sel], weights=w)) if sel.any() else float('nan') for r in results}
+        out.append(SurfaceBin(label, int(ref.positive[sel].sum()), float(w[~ref.positive[sel]].sum()), mean_p))
+    return out
+
+
+def surface_bins(ref: ReferenceVoxels, signed_distance: np.ndarray) -> np.ndarray:
+    """(K,) index into :data:`SURFACE_BIN_LABELS` of each labelled voxel.
+
+    Args:
+        ref: the labelled voxels of one resolution.
+        signed_distance: (K,) each voxel centre's signed distance from our mean surface,
+            metres, positive in front; NaN where no façade covers it (the last bin).
+    """
+    s = np.asarray(signed_distance, dtype=np.float64) / ref.resolution
+    known = np.isfinite(s)
+    return np.where(known, np.digitize(np.where(known, s, 0.0), SURFACE_BINS[1:-1]), len(SURFACE_BINS) - 1)
+
+
+def decisive_bin(ref: ReferenceVoxels, ours: MethodResult, other: MethodResult, signed_distance: np.ndarray
+                 ) -> tuple[str, float, float]:
+    """The surface bin whose voxels give ``other`` most of its PR AUC lead over ``ours``:
+    the one that, left out, shrinks ``other.pr_auc - ours.pr_auc`` the most.
+
+    Returns:
+        ``(label, other_auc, ours_auc)``: the bin and both PR AUCs without its voxels.
+    """
+    which = surface_bins(ref, signed_distance)
+    best = None
+    for b, label in enumerate(SURFACE_BIN_LABELS):
+        keep = which != b
+        if keep.all():
+            continue
+        a_other = pr_auc(ref.positive[keep], other.p[keep], ref.weight[keep])
+        a_ours = pr_auc(ref.positive[keep], ours.p[keep], ref.weight[keep])
+        if best is None or a_other - a_ours < best[1] - best[2]:
+            best = (label, a_other, a_ours)
+    return best if best is not None else ('', other.pr_auc, ours.pr_auc)
+
+
+def evaluate(methods: Sequence[Callable[[float], object]], points: np.ndarray, origins: np.ndarray,
+             ref_points: np.ndarray, ref_origins: np.ndarray, resolutions: Sequence[float] = (0.1, 0.05),
+             max_rays: int = 50_000, max_negatives: int = 400_000, seed: int = 0,
+             progress: Callable[[str], None] | None = None
+             ) -> tuple[dict[float, ReferenceVoxels], list[MethodResult]]:
+    """Run every method at every resolution on the same points and reference voxels.
+
+    Args:
+        methods: factories ``resolution -> OccupancyMethod``.
+        points: (N, 3) mapped points, map frame, metres.
+        origins: (N, 3) their sensor origins.
+        ref_points: (M, 3) reference points.
+        ref_origins: (M, 3) their sensor origins.
+        resolutions: voxel sides, metres.
+        max_rays, max_negatives, seed: see :func:`reference_voxels`.
+        progress: called with a line of text after each step.
+
+    Returns:
+        ``(references, results)``: the labelled voxels per resolution, and one result per
+        method and resolution (resolution-major, in the order of ``methods``).
+    """
+    refs, results = {}, []
+    for r in resolutions:
+        t0 = time.perf_counter()
+        ref = reference_voxels(ref_points, ref_origins, r, max_rays, max_negatives, seed)
+        refs[r] = ref
+        if progress is not None:
+            progress(f'{r:g} m: {ref.n_positives:,} occupied and {ref.n_negatives:,} free reference voxels '
+                     f'from {ref.n_rays:,} rays ({len(ref.centres):,} asked, {time.perf_counter() - t0:.1f} s)')
+        for factory in methods:
+            res = run_method(factory(r), points, origins, ref)
+            results.append(res)
+            if progress is not None:
+                progress(f'{r:g} m: {res.name:<12} PR AUC {res.pr_auc:.3f}  ROC AUC {res.roc_auc:.3f}  '
+                         f'train {res.fit_seconds:.1f} s  test {res.predict_seconds:.1f} s')
+    return refs, results

@@ -1,0 +1,239 @@
+"""The map file: the whole map in one NPZ file (a zip of .npy arrays), versioned.
+
+An open format any numpy (or any zip + .npy reader) can read, no pickle. It holds:
+
+- ``meta``: a JSON document (format name, version, map origin, parameters, façade list);
+- per façade ``i``: ``facade/<i>/<name>`` arrays (frame, layers, facets, length scales,
+  surface raster: mean, variance, facet, source);
+- ``pending/xyz`` (and ``pending/building_id``, ``pending/sensor_origins``): points
+  received but held back for the next update (live mapping);
+- per building ``b``: ``building/<b>/points``, ``building/<b>/normals`` and, if known,
+  ``building/<b>/sensor_origins`` (kept so that a loaded map goes on mapping exactly as
+  the map that was saved would have).
+
+Version 2 added what incremental mapping needs (per façade the wall's ``plane_extent``,
+the block grid's ``anchor`` and the points at the last whole fit; per building the point
+normals and the pool size at the last RANSAC run); version 1 files are upgraded on load.
+
+Loading gives back every array bit for bit. A file of a newer version is refused with a
+message saying so; older versions are upgraded by the functions in :data:`MIGRATIONS`.
+Saving is atomic: the file is written next to the target and renamed over it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import tempfile
+import zipfile
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from ..config import MapParams, UpdateParams
+from ..datatypes import DepthLayers, FacadeFrame, FacadeModel, Facets, SurfaceRaster
+from ..errors import InputError
+from ..mapping.facade_map import FacadeMap
+from ..pipeline.step1_facades import ExtractionParams
+from ..pipeline.step2_layers import LayerParams
+from ..pipeline.step4_gp_blocks import GPParams
+from ..pipeline.step5_outliers import OutlierParams
+
+FORMAT = 'uncertain_facade_map.map'
+VERSION = 2
+#: Upgrades of older files: version -> function(meta, arrays) returning the next version's.
+MIGRATIONS: dict[int, Callable[[dict, dict], tuple[dict, dict]]] = {}
+
+
+def _params_to_dict(params: MapParams) -> dict:
+    return dataclasses.asdict(params)
+
+
+def _params_from_dict(data: dict) -> MapParams:
+    def build(cls, values):
+        names = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items() if k in names})
+
+    return MapParams(extraction=build(ExtractionParams, data.get('extraction', {})),
+                     layers=build(LayerParams, data.get('layers', {})),
+                     gp=build(GPParams, data.get('gp', {})),
+                     outliers=build(OutlierParams, data.get('outliers', {})),
+                     update=build(UpdateParams, data.get('update', {})),
+                     seed=int(data.get('seed', 0)))
+
+
+def _facade_arrays(f: FacadeModel) -> dict[str, np.ndarray]:
+    p = f'facade/{f.facade_id}/'
+    s = f.surface
+    return {
+        p + 'frame': f.frame.as_array(),
+        p + 'extent': np.asarray(f.extent, dtype=np.float64),
+        p + 'layers': np.stack([f.layers.weights_, f.layers.means_, f.layers.sigmas_]),
+        p + 'facets': f.facets.facet,
+        p + 'facets_origin': f.facets.origin,
+        p + 'layer_of_facet': f.facets.layer_of_facet,
+        p + 'lengthscale2': f.lengthscale2_,
+        p + 'surface_origin': s.origin,
+        p + 'surface_mean': s.mean,
+        p + 'surface_var': s.var,
+        p + 'surface_facet': s.facet,
+        p + 'surface_source': s.source,
+        p + 'point_index': f.point_index,
+        p + 'outlier_index': f.outlier_index,
+        p + 'plane_extent': np.asarray(f.plane_extent, dtype=np.float64),
+        p + 'anchor': np.asarray(f.anchor, dtype=np.float64),
+    }
+
+
+def save_map(fmap: FacadeMap, path: str | Path) -> Path:
+    """Write the map atomically to ``path`` (conventionally ``*.npz``).
+
+    Returns:
+        The path written.
+
+    Raises:
+        OSError: the folder is missing or not writable.
+    """
+    path = Path(path)
+    meta: dict[str, Any] = {
+        'format': FORMAT,
+        'version': VERSION,
+        'map_origin': fmap.map_origin.tolist(),
+        'params': _params_to_dict(fmap.params),
+        'buildings': [int(b) for b in fmap.buildings],
+        'facades': [{'facade_id': f.facade_id, 'building': f.building, 'main_layer': f.layers.main_,
+                     'facet_cell': f.facets.cell, 'surface_cell': f.surface.cell,
+                     'global_mean': f.global_mean_, 'global_var': f.global_var_, 'noise_var': f.noise_var,
+                     'fitted_points': f.fitted_points, 'stats': f.stats} for f in fmap.facades],
+        'pool_checked': {str(b): int(n) for b, n in fmap.pool_checked.items()},
+    }
+    arrays: dict[str, np.ndarray] = {'meta': np.array(json.dumps(meta))}
+    for f in fmap.facades:
+        arrays.update(_facade_arrays(f))
+    for b in fmap.buildings:
+        arrays[f'building/{b}/points'] = fmap.points[b]
+        arrays[f'building/{b}/normals'] = fmap.normals[b]
+        so = fmap.sensor_origins.get(b)
+        if so is not None:
+            arrays[f'building/{b}/sensor_origins'] = so
+    if fmap.pending:
+        # Points held back for the next update, as one batch (merging is what the next
+        # update does first, so the loaded map goes on exactly as this one would).
+        xyz = np.vstack([p[0] for p in fmap.pending])
+        arrays['pending/xyz'] = xyz
+        if any(p[1] is not None for p in fmap.pending):
+            arrays['pending/building_id'] = np.concatenate(
+                [p[1] if p[1] is not None else np.full(len(p[0]), -1, np.int64) for p in fmap.pending])
+        if all(p[2] is not None for p in fmap.pending):
+            arrays['pending/sensor_origins'] = np.vstack([p[2] for p in fmap.pending])
+    fd, tmp = tempfile.mkstemp(prefix=f'.{path.name}.', suffix='.tmp', dir=path.parent)
+    try:
+        with os.fdopen(fd, 'wb') as fh:
+            np.savez(fh, **arrays)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def load_map(path: str | Path) -> FacadeMap:
+    """Read a map file.
+
+    Raises:
+        InputError: missing file, not a map file, damaged, or of a newer version.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f'no such file: {path}')
+    if not zipfile.is_zipfile(path):
+        raise InputError(f'{path}: not a map file (not an NPZ archive)')
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            arrays = {k: npz[k] for k in npz.files}
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
+        raise InputError(f'{path}: not a map file ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})') from None
+    if 'meta' not in arrays:
+        raise InputError(f'{path}: not a map file (no meta record)')
+    try:
+        meta = json.loads(str(arrays['meta']))
+    except json.JSONDecodeError:
+        raise InputError(f'{path}: damaged map file (meta is not JSON)') from None
+    if not isinstance(meta, dict) or meta.get('format') != FORMAT:
+        raise InputError(f'{path}: not an {FORMAT} file')
+    version = meta.get('version')
+    if not isinstance(version, int) or version < 1:
+        raise InputError(f'{path}: damaged map file (version {version!r})')
+    if version > VERSION:
+        raise InputError(f'{path}: map file version {version} was written by a newer uncertain_facade_map; '
+                         f'this one reads versions 1 to {VERSION}')
+    while version < VERSION:
+        meta, arrays = MIGRATIONS[version](meta, arrays)
+        version = meta['version']
+    try:
+        return _from_records(meta, arrays)
+    except (KeyError, ValueError, TypeError, IndexError) as exc:
+        raise InputError(f'{path}: damaged map file ({type(exc).__name__}: {exc})') from None
+
+
+def _from_records(meta: dict, arrays: dict[str, np.ndarray]) -> FacadeMap:
+    params = _params_from_dict(meta['params'])
+    facades = []
+    for info in meta['facades']:
+        p = f'facade/{info["facade_id"]}/'
+        lay = arrays[p + 'layers']
+        layers = DepthLayers(lay[0], lay[1], lay[2], int(info['main_layer']))
+        facets = Facets(arrays[p + 'facets_origin'], float(info['facet_cell']), arrays[p + 'facets'],
+                        arrays[p + 'layer_of_facet'])
+        surface = SurfaceRaster(arrays[p + 'surface_origin'], float(info['surface_cell']), arrays[p + 'surface_mean'],
+                                arrays[p + 'surface_var'], arrays[p + 'surface_facet'], arrays[p + 'surface_source'])
+        extent = tuple(float(x) for x in arrays[p + 'extent'])
+        facades.append(FacadeModel(int(info['facade_id']), int(info['building']),
+                                   FacadeFrame.from_array(arrays[p + 'frame']), extent, layers, facets,
+                                   arrays[p + 'lengthscale2'], float(info['global_mean']), float(info['global_var']),
+                                   float(info['noise_var']), surface, arrays[p + 'point_index'],
+                                   arrays[p + 'outlier_index'], info.get('stats', {}),
+                                   tuple(float(x) for x in arrays[p + 'plane_extent']), arrays[p + 'anchor'],
+                                   int(info['fitted_points'])))
+    points = {int(b): arrays[f'building/{b}/points'] for b in meta['buildings']}
+    origins = {int(b): arrays.get(f'building/{b}/sensor_origins') for b in meta['buildings']}
+    normals = {int(b): arrays[f'building/{b}/normals'] for b in meta['buildings']}
+    pool = {int(b): int(n) for b, n in meta['pool_checked'].items()}
+    pending = []
+    if 'pending/xyz' in arrays:
+        pending.append((arrays['pending/xyz'], arrays.get('pending/building_id'), arrays.get('pending/sensor_origins')))
+    return FacadeMap(params, np.asarray(meta['map_origin'], dtype=np.float64), facades, points, origins, normals,
+                     pool, pending=pending)
+
+
+def _upgrade_1(meta: dict, arrays: dict[str, np.ndarray]) -> tuple[dict, dict]:
+    """Version 1 -> 2: plane extents are the façades' extents, anchors the rasters'
+    origins, every façade counts as fitted whole, normals are estimated from the points, and
+    the pools count as checked."""
+    from ..pipeline.step1_facades import point_normals
+
+    k = int(meta['params'].get('extraction', {}).get('normal_neighbours', 10))
+    for info in meta['facades']:
+        p = f'facade/{info["facade_id"]}/'
+        arrays[p + 'plane_extent'] = arrays[p + 'extent']
+        arrays[p + 'anchor'] = arrays[p + 'surface_origin']
+        info['fitted_points'] = int(len(arrays[p + 'point_index']))
+    pool = {}
+    for b in meta['buildings']:
+        pts = arrays[f'building/{b}/points']
+        arrays[f'building/{b}/normals'] = point_normals(pts - pts.mean(axis=0), k) if len(pts) >= 3 else \
+            np.tile([0.0, 0.0, 1.0], (len(pts), 1))
+        owned = np.zeros(len(pts), dtype=bool)
+        for info in meta['facades']:
+            if int(info['building']) == int(b):
+                owned[arrays[f'facade/{info["facade_id"]}/point_index']] = True
+        pool[str(b)] = int((~owned).sum())
+    meta = dict(meta, version=2, pool_checked=pool)
+    return meta, arrays
+
+
+MIGRATIONS[1] = _upgrade_1

@@ -1,0 +1,11 @@
+"""Mapping with the pipeline: the map of all buildings, live and incremental, and what it publishes.
+
+- ``facade_map``: :class:`FacadeMap`, the orchestrator: building points in, per building
+  façades extracted and fitted (:mod:`uncertain_facade_map.pipeline`), updated block by
+  block as points arrive;
+- ``worker``: :class:`MapWorker`, the map in a thread of its own with a bounded queue and its
+  drop policy, read-only snapshots for queries; ``map_scans`` feeds recorded scans as the
+  node does;
+- ``products``: the maps the node publishes, as arrays: surface grid and mesh, voxel and
+  2D occupancy.
+"""

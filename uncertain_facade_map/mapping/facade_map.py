@@ -1,0 +1,409 @@
+"""The whole map: buildings, their façades, and each façade's uncertain surface.
+
+The orchestrator only sees arrays. Per building it extracts façades
+(:mod:`~uncertain_facade_map.pipeline.step1_facades`); per façade it runs the rest of the
+pipeline (:mod:`~uncertain_facade_map.pipeline.step6_surface`: depth layers and facets,
+training points by eqs. 7 and 8, length scales, local GPs in blocks, outliers) onto a
+raster. Queries (:mod:`~uncertain_facade_map.pipeline.step7_queries`) read the rasters.
+
+The surface of a façade is d(x) = g(x) + f(x) (paper eq. 2): g = mu_k of the facet's
+layer, f the facet's local GP. Where no facet covers a location, the global GP prior
+holds: the main layer's mean with the variance of all the façade's depths.
+
+**Incremental mapping** (:meth:`FacadeMap.add_points`): new points go to the façade whose
+depth band and grown plane extent hold them (:func:`~uncertain_facade_map.pipeline.step1_facades.assign_to_facades`,
+the extraction's own rule); the rest wait in the building's pool, where RANSAC runs again
+once the pool has grown enough. A façade's frame and its block grid's anchor never move,
+so cells and blocks keep their identity. A façade whose points have grown by
+``refit_growth`` since its last whole fit is fitted whole again (layers, length scales,
+every block); otherwise only the blocks whose extended block received a new training
+point, and the cells whose facet changed, are recomputed (:func:`update_facade`), so the
+cost of an update follows the new data. Whole refits at geometric steps cost a bounded
+multiple of one batch build in all.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from ..config import MapParams
+from ..datatypes import ExtractedFacade, FacadeFrame, FacadeModel
+from ..errors import InputError
+from ..pipeline.step1_facades import (
+    _final_frame,
+    _grid_components,
+    _plane_box,
+    _point_normals,
+    assign_to_facades,
+    check_building_ids,
+    extract_facades,
+)
+from ..pipeline.step6_surface import _extent, fit_facade, update_facade
+
+#: Offsets of a clustering cell's 3x3 neighbourhood in cell keys (see FacadeMap._cell_keys).
+_CELL_NEIGHBOURS = np.array([du * (1 << 32) + dv for du in (-1, 0, 1) for dv in (-1, 0, 1)], dtype=np.int64)
+
+
+@dataclass(eq=False)
+class FacadeMap:
+    """Façade models of all buildings, built incrementally from building points.
+
+    Attributes:
+        params: modelling parameters.
+        map_origin: (3,) georeference of the map frame, metres.
+        facades: all façade models; ``facades[i].facade_id == i``; ids never change.
+        points: per building label, the building's points (N, 3), metres, map frame.
+        sensor_origins: per building label, (N, 3) sensor origins or None.
+        normals: per building label, (N, 3) unit point normals (sign arbitrary).
+        pool_checked: per building label, the number of unallocated points at the last
+            RANSAC run on them.
+        last_update: what the last :meth:`add_points` did: ``buildings``, ``facades_new``,
+            ``facades_refitted`` (whole), ``facades_updated`` (blocks only),
+            ``updated_cells`` and ``seconds``.
+        pending: points held back by ``add_points(..., defer=True)``, in arrival order:
+            (xyz, building_id or None, sensor_origins or None) per call.
+    """
+
+    params: MapParams = field(default_factory=MapParams)
+    map_origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    facades: list[FacadeModel] = field(default_factory=list)
+    points: dict[int, np.ndarray] = field(default_factory=dict)
+    sensor_origins: dict[int, np.ndarray | None] = field(default_factory=dict)
+    normals: dict[int, np.ndarray] = field(default_factory=dict)
+    pool_checked: dict[int, int] = field(default_factory=dict)
+    last_update: dict = field(default_factory=dict)
+    pending: list[tuple[np.ndarray, np.ndarray | None, np.ndarray | None]] = field(default_factory=list)
+
+    def add_points(self, xyz: np.ndarray, building_id: np.ndarray | None = None,
+                   sensor_origins: np.ndarray | None = None,
+                   progress: Callable[[int, int], None] | None = None, defer: bool = False) -> list[int]:
+        """Add building points and update the façades they touch.
+
+        Args:
+            xyz: (N, 3) building points, metres, map frame.
+            building_id: (N,) building labels (negative: none), or None to cluster; points
+                without a label join the mapped building whose cells they touch, or form
+                new buildings.
+            sensor_origins: (N, 3) sensor origins, or None.
+            progress: called with (buildings updated, buildings to update) after each one.
+            defer: hold the points back (:attr:`pending`) until ``update.batch_points``
+                points are pending, then map them all in one update (live mapping; see
+                :meth:`flush`). The map then depends only on the sequence of calls, not
+                on their timing.
+
+        Returns:
+            The labels of the buildings updated (none while points are held back).
+
+        Raises:
+            InputError: empty input, wrong shapes or non-finite coordinates (checked
+                before anything changes).
+        """
+        xyz, building_id, sensor_origins = self._checked(xyz, building_id, sensor_origins)
+        if defer:
+            self.pending.append((xyz, building_id, sensor_origins))
+            if self.n_pending < self.params.update.batch_points:
+                return []
+            return self._map_pending(progress)
+        if self.pending:
+            self.pending.append((xyz, building_id, sensor_origins))
+            return self._map_pending(progress)
+        return self._add(xyz, building_id, sensor_origins, progress)
+
+    @property
+    def n_pending(self) -> int:
+        """Number of points held back."""
+        return int(sum(len(p[0]) for p in self.pending))
+
+    def _map_pending(self, progress: Callable[[int, int], None] | None = None) -> list[int]:
+        parts, self.pending = self.pending, []
+        if not parts:
+            return []
+        xyz = np.vstack([p[0] for p in parts])
+        ids = None
+        if any(p[1] is not None for p in parts):
+            ids = np.concatenate([p[1] if p[1] is not None else np.full(len(p[0]), -1, np.int64) for p in parts])
+        origins = None if any(p[2] is None for p in parts) else np.vstack([p[2] for p in parts])
+        return self._add(xyz, ids, origins, progress)
+
+    def flush(self, consolidate: bool = True) -> list[int]:
+        """Map the points held back, then (``consolidate``) fit whole every façade that
+        was only updated block by block since its last whole fit, so that the map is as
+        good as one built in one go from the same points.
+
+        Returns:
+            The ids of the façades fitted whole.
+        """
+        self._map_pending()
+        if not consolidate:
+            return []
+        done = []
+        for f in list(self.facades):
+            if f.fitted_points != len(f.point_index):
+                self._refit_whole(f.building, f.facade_id, f.point_index, f.plane_extent)
+                done.append(f.facade_id)
+        return done
+
+    def _checked(self, xyz: np.ndarray, building_id: np.ndarray | None, sensor_origins: np.ndarray | None
+                 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        xyz = np.asarray(xyz, dtype=np.float64)
+        if xyz.ndim != 2 or xyz.shape[1] != 3:
+            raise InputError(f'points must be an (N, 3) array, got shape {xyz.shape}')
+        if not len(xyz):
+            raise InputError('no building points to map')
+        if not np.isfinite(xyz).all():
+            raise InputError(f'{int((~np.isfinite(xyz)).any(axis=1).sum())} points have NaN or infinite coordinates')
+        if sensor_origins is not None:
+            sensor_origins = np.asarray(sensor_origins, dtype=np.float64)
+            if sensor_origins.shape != xyz.shape:
+                raise InputError(f'sensor_origins must have the shape of the points {xyz.shape}, '
+                                 f'got {sensor_origins.shape}')
+        if building_id is not None:
+            building_id = check_building_ids(building_id, len(xyz))
+        return xyz, building_id, sensor_origins
+
+    def _add(self, xyz: np.ndarray, building_id: np.ndarray | None, sensor_origins: np.ndarray | None,
+             progress: Callable[[int, int], None] | None) -> list[int]:
+        t0 = time.perf_counter()
+        labels = self._labels(xyz, building_id)
+        self.last_update = {'buildings': [], 'facades_new': [], 'facades_refitted': [], 'facades_updated': [],
+                            'updated_cells': 0}
+        changed = [int(b) for b in np.unique(labels)]
+        for done, b in enumerate(changed, 1):
+            sel = labels == b
+            first = self._append(b, xyz[sel], None if sensor_origins is None else sensor_origins[sel])
+            self._update_building(b, first)
+            if progress is not None:
+                progress(done, len(changed))
+        self.last_update['buildings'] = changed
+        self.last_update['seconds'] = time.perf_counter() - t0
+        return changed
+
+    def _labels(self, xyz: np.ndarray, building_id: np.ndarray | None) -> np.ndarray:
+        """Building label of each new point: its id, else the clustered building it touches."""
+        n = len(xyz)
+        if building_id is None:
+            labels = np.full(n, -1, dtype=np.int64)
+        else:
+            labels = np.where(building_id < 0, -1, building_id)
+        free = np.flatnonzero(labels < 0)
+        if not len(free):
+            return labels
+        cells = self._cell_keys(xyz[free])
+        comp = _grid_components(np.stack([cells >> 32, cells & 0xFFFFFFFF], axis=1))
+        near = (cells[:, None] + _CELL_NEIGHBOURS[None, :]).ravel()
+        comp_near = np.repeat(comp, 9)
+        # A cluster joins the mapped building whose cells it touches most.
+        mapping: dict[int, tuple[int, int]] = {}
+        for b, keys in self._cells.items():
+            hit = np.isin(near, keys)
+            for c, count in zip(*np.unique(comp_near[hit], return_counts=True)):
+                if count > mapping.get(int(c), (0, -1))[0]:
+                    mapping[int(c)] = (int(count), b)
+        out = np.empty(len(free), dtype=np.int64)
+        next_label = max([int(labels.max()), *self.points.keys(), -1]) + 1
+        for c in np.unique(comp):
+            if int(c) in mapping:
+                out[comp == c] = mapping[int(c)][1]
+            else:
+                out[comp == c] = next_label
+                next_label += 1
+        labels[free] = out
+        return labels
+
+    def _cell_keys(self, xyz: np.ndarray) -> np.ndarray:
+        """(N,) int64 keys of the clustering grid cells of (N, 3) points (offset to be >= 0)."""
+        c = np.floor(xyz[:, :2] / self.params.extraction.building_cell).astype(np.int64) + (1 << 30)
+        return c[:, 0] * (1 << 32) + c[:, 1]
+
+    @property
+    def _cells(self) -> dict[int, np.ndarray]:
+        """Per building, the sorted keys of its occupied clustering cells (cached)."""
+        cache = self.__dict__.setdefault('_cell_cache', {})
+        for b, pts in self.points.items():
+            if cache.get(b, (None, -1))[1] != len(pts):
+                cache[b] = (np.unique(self._cell_keys(pts)), len(pts))
+        return {b: keys for b, (keys, _) in cache.items() if b in self.points}
+
+    def _append(self, b: int, xyz: np.ndarray, origins: np.ndarray | None) -> int:
+        """Append a building's new points (and their normals); returns the first new index."""
+        old = self.points.get(b)
+        first = 0 if old is None else len(old)
+        pts = xyz if old is None else np.vstack([old, xyz])
+        self.points[b] = pts
+        old_so = self.sensor_origins.get(b)
+        self.sensor_origins[b] = origins if old is None else (None if origins is None or old_so is None
+                                                              else np.vstack([old_so, origins]))
+        k = self.params.extraction.normal_neighbours
+        if old is None:
+            normals = _point_normals(pts - pts.mean(axis=0), min(k, len(pts))) if len(pts) >= 3 else \
+                np.tile([0.0, 0.0, 1.0], (len(pts), 1))
+        else:
+            # Neighbours from the building's points near the new ones only.
+            reach = self.params.update.normal_reach
+            lo, hi = xyz.min(axis=0) - reach, xyz.max(axis=0) + reach
+            near = np.flatnonzero(np.all((old >= lo) & (old <= hi), axis=1))
+            local = np.vstack([old[near], xyz])
+            centre = local.mean(axis=0)
+            normals = np.vstack([self.normals[b], np.zeros((len(xyz), 3))])
+            if len(local) >= 3:
+                normals[first:] = _point_normals(local - centre, min(k, len(local)))[len(near):]
+            else:
+                normals[first:] = [0.0, 0.0, 1.0]
+        self.normals[b] = normals
+        return first
+
+    def facade_of_points(self, building: int) -> np.ndarray:
+        """(N,) int64 façade id of each of a building's points, -1 for none."""
+        out = np.full(len(self.points[building]), -1, dtype=np.int64)
+        for f in self.facades:
+            if f.building == building:
+                out[f.point_index] = f.facade_id
+        return out
+
+    def _extracted(self, b: int, index: np.ndarray, frame: FacadeFrame,
+                   plane_extent: tuple[float, float, float, float]) -> ExtractedFacade:
+        uvd = frame.to_local(self.points[b][index])
+        cos = np.minimum(np.abs(self.normals[b][index] @ frame.normal), 1.0)
+        return ExtractedFacade(frame, index, uvd, cos, _extent(uvd[:, :2]), plane_extent)
+
+    def _update_building(self, b: int, first: int) -> None:
+        """Allocate a building's points from ``first`` on, extract new façades from its pool,
+        and update the façades that received points."""
+        ex, params = self.params.extraction, self.params
+        pts = self.points[b]
+        n = len(pts)
+        owner = self.facade_of_points(b)
+        mine = [f.facade_id for f in self.facades if f.building == b]
+        if mine and first < n:
+            which, _ = assign_to_facades(pts[first:], [self.facades[i] for i in mine], ex)
+            owner[first:] = np.where(which >= 0, np.asarray(mine)[np.maximum(which, 0)], -1)
+        grown: dict[int, tuple[float, float, float, float]] = {}
+        pool = np.flatnonzero(owner < 0)
+        checked = self.pool_checked.get(b, 0)
+        step = max(ex.min_facade_points, params.update.extraction_growth * checked)
+        if len(pool) >= ex.min_facade_points and len(pool) >= checked + step:
+            rng = np.random.default_rng([params.seed, b, n])
+            so = self.sensor_origins.get(b)
+            extracted, _ = extract_facades(pts[pool], ex, sensor_origins=None if so is None else so[pool], rng=rng)
+            for e in extracted:
+                index = pool[e.index]
+                target = self._coplanar(b, e)
+                if target is None:
+                    fid = len(self.facades)
+                    model = fit_facade(self._extracted(b, index, e.frame, e.plane_extent), params,
+                                       np.random.default_rng([params.seed, b, fid, len(index)]), fid, b)
+                    self.facades.append(model)
+                    owner[index] = fid
+                    self.last_update['facades_new'].append(fid)
+                    continue
+                t = self.facades[target]
+                d = t.frame.to_local(pts[index])[:, 2]
+                fits = (d >= -ex.band_back) & (d <= ex.band_front)
+                owner[index[fits]] = target
+                grown[target] = _union(grown.get(target, t.plane_extent), _extent(_plane_corners_in(e, t.frame)))
+            self.pool_checked[b] = int((owner < 0).sum())
+        new_ids = set(self.last_update['facades_new'])
+        for fid in sorted(set(np.unique(owner[first:][owner[first:] >= 0]).tolist()) | set(grown)):
+            if fid in new_ids:
+                continue
+            model = self.facades[fid]
+            index = np.flatnonzero(owner == fid)
+            fresh = ~np.isin(index, model.point_index)
+            if not fresh.any():
+                continue
+            # The wall's extent grows with the new points on the plane.
+            plane = grown.get(fid, model.plane_extent)
+            uvd_new = model.frame.to_local(pts[index[fresh]])
+            on_plane = uvd_new[np.abs(uvd_new[:, 2]) <= ex.ransac_threshold]
+            if len(on_plane) >= 3:
+                plane = _union(plane, _plane_box(on_plane))
+            if len(index) >= (1.0 + params.update.refit_growth) * model.fitted_points:
+                updated = self._refit_whole(b, fid, index, plane)
+            else:
+                rng = np.random.default_rng([params.seed, b, fid, len(index)])
+                updated = update_facade(model, self._extracted(b, index, model.frame, plane), fresh, params, rng)
+                self.facades[fid] = updated
+            key = 'facades_refitted' if updated.fitted_points == len(index) else 'facades_updated'
+            self.last_update[key].append(fid)
+            self.last_update['updated_cells'] += int(updated.stats.get('updated_cells', updated.surface.mean.size))
+
+    def _refit_whole(self, b: int, fid: int, index: np.ndarray, plane: tuple[float, float, float, float]
+                     ) -> FacadeModel:
+        """Fit façade ``fid`` whole on the points ``index``, its frame estimated again (the
+        first came from a part of the wall, and a small tilt smears the depth layers)."""
+        ex, pts, model = self.params.extraction, self.points[b], self.facades[fid]
+        rng = np.random.default_rng([self.params.seed, b, fid, len(index)])
+        frame = _final_frame(pts[index], self.normals[b][index], model.frame, ex) or model.frame
+        uvd = frame.to_local(pts[index])
+        wall = uvd[np.abs(uvd[:, 2]) <= ex.ransac_threshold]
+        if len(wall) >= 3:
+            plane = _plane_box(wall)
+        elif frame is not model.frame:
+            frame, plane = model.frame, plane
+        updated = fit_facade(self._extracted(b, index, frame, plane), self.params, rng, fid, b)
+        self.facades[fid] = updated
+        return updated
+
+    def _coplanar(self, b: int, e: ExtractedFacade) -> int | None:
+        """Id of the building's façade that a newly extracted one continues (the merge rule
+        of the extraction: parallel within ``merge_angle_deg``, closer than ``merge_offset``
+        along the normal and in u), or None."""
+        ex = self.params.extraction
+        cos_max = np.cos(np.deg2rad(ex.merge_angle_deg))
+        best = None
+        for f in self.facades:
+            if f.building != b or float(e.frame.normal @ f.frame.normal) < cos_max:
+                continue
+            box = _plane_corners_in(e, f.frame)
+            d = float(f.frame.to_local(e.frame.origin[None])[0, 2])
+            gap = max(f.plane_extent[0] - box[:, 0].max(), box[:, 0].min() - f.plane_extent[1], 0.0)
+            if abs(d) < ex.merge_offset and gap <= ex.merge_offset:
+                if best is None or len(f.point_index) > len(self.facades[best].point_index):
+                    best = f.facade_id
+        return best
+
+    def rejected(self, building: int) -> np.ndarray:
+        """(N,) bool over a building's points: on no façade, or removed by the outlier test."""
+        n = len(self.points[building])
+        on_facade = np.zeros(n, dtype=bool)
+        removed = np.zeros(n, dtype=bool)
+        for f in self.facades:
+            if f.building == building:
+                on_facade[f.point_index] = True
+                removed[f.outlier_index] = True
+        return removed | ~on_facade
+
+    @property
+    def buildings(self) -> list[int]:
+        """Labels of the mapped buildings."""
+        return sorted(self.points)
+
+    @property
+    def n_points(self) -> int:
+        """Number of building points in the map."""
+        return int(sum(len(p) for p in self.points.values()))
+
+
+def _plane_corners_in(e: ExtractedFacade, frame: FacadeFrame) -> np.ndarray:
+    """(4, 2) (u, v) in ``frame`` of the corners of ``e``'s wall extent (on its plane)."""
+    b = e.plane_extent
+    corners = np.array([[b[i], b[j], 0.0] for i in (0, 1) for j in (2, 3)])
+    return frame.to_local(e.frame.to_world(corners))[:, :2]
+
+
+def _union(a: tuple[float, float, float, float], b: tuple[float, float, float, float]
+           ) -> tuple[float, float, float, float]:
+    return (min(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), max(a[3], b[3]))
+
+
+def build_map(xyz: np.ndarray, building_id: np.ndarray | None = None, sensor_origins: np.ndarray | None = None,
+              params: MapParams | None = None, map_origin: np.ndarray | None = None,
+              progress: Callable[[int, int], None] | None = None) -> FacadeMap:
+    """Build a map from building points in one go (see :meth:`FacadeMap.add_points`)."""
+    fmap = FacadeMap(params or MapParams(), np.zeros(3) if map_origin is None else np.asarray(map_origin, float))
+    fmap.add_points(xyz, building_id, sensor_origins, progress)
+    return fmap

@@ -1,0 +1,364 @@
+"""Live mapping: a worker thread that owns the map, fed through a bounded queue.
+
+The facade_mapper node (and the replay command) hand clouds of building points to a
+:class:`MapWorker`; the worker applies them to its :class:`~uncertain_facade_map.mapping.facade_map.FacadeMap` one at a
+time, in arrival order, so that a node fed the same clouds builds the same map as the
+offline core fed them in one loop. Nothing slow runs in the caller's thread.
+
+**Drop policy.** At most ``queue_size`` clouds wait. When a cloud arrives at a full queue,
+the *oldest* waiting cloud is dropped: a live map should follow the newest data, and the
+cloud that waited longest is the one most likely covered again by what follows. Drops are
+counted (:attr:`MapWorker.counters`). Commands (save, load, reset, any function given to
+:meth:`MapWorker.call`) are never dropped and run in order with the clouds.
+
+Readers never wait for the worker: after every change the worker publishes an immutable
+:class:`MapSnapshot` (the façade models are frozen), which queries read.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from ..datatypes import FacadeModel
+from .facade_map import FacadeMap
+
+
+@dataclass(frozen=True)
+class MapSnapshot:
+    """The map as it stood after one update.
+
+    Attributes:
+        version: number of changes the worker has made (0: the initial map).
+        facades: the façade models (frozen), ``facades[i].facade_id == i``.
+        map_origin: (3,) georeference of the map frame, metres.
+        buildings: number of buildings.
+        points: number of building points in the map.
+        stamp_ns: stamp of the newest cloud in the map, nanoseconds (0 if unknown).
+    """
+
+    version: int
+    facades: tuple[FacadeModel, ...]
+    map_origin: np.ndarray
+    buildings: int
+    points: int
+    stamp_ns: int = 0
+
+
+@dataclass
+class Cloud:
+    """Building points waiting to be mapped.
+
+    Attributes:
+        xyz: (N, 3) float64 points, metres, map frame.
+        building_id: (N,) int64 building ids (negative: none), or None.
+        sensor_origins: (N, 3) sensor positions, metres, map frame, or None.
+        stamp_ns: acquisition stamp, nanoseconds.
+    """
+
+    xyz: np.ndarray
+    building_id: np.ndarray | None = None
+    sensor_origins: np.ndarray | None = None
+    stamp_ns: int = 0
+
+
+@dataclass
+class _Command:
+    fn: Callable[[FacadeMap], Any]
+    done: threading.Event = field(default_factory=threading.Event)
+    result: Any = None
+    error: BaseException | None = None
+
+
+class MapWorker:
+    """Owns a :class:`FacadeMap` and updates it in a thread of its own.
+
+    Args:
+        fmap: the map to grow (the worker owns it from now on; read :attr:`snapshot`).
+        queue_size: clouds waiting at most (>= 1); see the module's drop policy.
+        on_change: called in the worker thread with each new snapshot.
+        on_error: called in the worker thread with (cloud, exception) when a cloud cannot
+            be mapped; the cloud is skipped and the map is left as it was.
+        idle_flush: once no cloud has arrived for this many seconds (the drive paused or
+            ended) and none waits, the points held back are mapped and the façades updated
+            block by block are fitted whole (:meth:`FacadeMap.flush`); <= 0: never.
+    """
+
+    def __init__(self, fmap: FacadeMap, queue_size: int = 20,
+                 on_change: Callable[[MapSnapshot], None] | None = None,
+                 on_error: Callable[[Cloud, BaseException], None] | None = None, idle_flush: float = 1.0,
+                 on_flush: Callable[[int, list[int]], None] | None = None) -> None:
+        if queue_size < 1:
+            raise ValueError(f'queue_size must be >= 1, got {queue_size}')
+        self._fmap = fmap
+        self._queue: deque[Cloud | _Command] = deque()
+        self._clouds = 0
+        self._size = queue_size
+        self._cond = threading.Condition()
+        self._on_change = on_change
+        self._on_error = on_error
+        self._on_flush = on_flush
+        self._stop = False
+        self._busy = False
+        self._stamp = 0
+        self._idle_flush = idle_flush
+        self._last_cloud = time.monotonic()
+        self._idle_since = time.monotonic()
+        self.counters = {'clouds_in': 0, 'clouds_dropped': 0, 'clouds_mapped': 0, 'clouds_failed': 0,
+                         'points_in': 0, 'points_dropped': 0, 'points_mapped': 0, 'flushes': 0}
+        self.last_update_seconds = 0.0
+        self.pending_points = fmap.n_pending
+        self.snapshot = self._snapshot(0)
+        self._thread = threading.Thread(target=self._run, name='map_worker', daemon=True)
+        self._thread.start()
+
+    # -- producers ----------------------------------------------------------------------
+    def put(self, cloud: Cloud) -> bool:
+        """Queue a cloud for mapping.
+
+        Returns:
+            False if the queue was full and the oldest waiting cloud was dropped.
+        """
+        with self._cond:
+            self.counters['clouds_in'] += 1
+            self.counters['points_in'] += len(cloud.xyz)
+            kept = True
+            if self._clouds >= self._size:
+                for i, item in enumerate(self._queue):
+                    if isinstance(item, Cloud):
+                        del self._queue[i]
+                        self._clouds -= 1
+                        self.counters['clouds_dropped'] += 1
+                        self.counters['points_dropped'] += len(item.xyz)
+                        kept = False
+                        break
+            self._queue.append(cloud)
+            self._clouds += 1
+            self._last_cloud = time.monotonic()
+            self._cond.notify_all()
+        return kept
+
+    def call(self, fn: Callable[[FacadeMap], Any], timeout: float | None = None, changes: bool = True) -> Any:
+        """Run ``fn(map)`` in the worker after the clouds queued so far, and return its result.
+
+        Args:
+            fn: the function; it may replace the map by returning ``ReplaceMap(new_map)``.
+            timeout: seconds to wait at most; None waits for ever.
+            changes: whether ``fn`` may change the map (a new snapshot follows).
+
+        Raises:
+            TimeoutError: the worker did not get to it in time (it still runs later).
+            Exception: whatever ``fn`` raised.
+        """
+        command = _Command(lambda m: (fn(m), changes))
+        with self._cond:
+            if self._stop:
+                raise RuntimeError('the map worker has stopped')
+            self._queue.append(command)
+            self._cond.notify_all()
+        if not command.done.wait(timeout):
+            raise TimeoutError(f'the map worker did not answer within {timeout} s')
+        if command.error is not None:
+            raise command.error
+        return command.result
+
+    def wait_idle(self, timeout: float | None = None) -> bool:
+        """Wait until every queued cloud and command is done; False on timeout."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._cond:
+            while self._queue or self._busy:
+                left = None if deadline is None else deadline - time.monotonic()
+                if left is not None and left <= 0:
+                    return False
+                self._cond.wait(left)
+        return True
+
+    @property
+    def settled(self) -> bool:
+        """Whether nothing waits: no cloud queued, no point held back, every façade fitted whole."""
+        with self._cond:
+            return not self._queue and not self._busy and not self._needs_flush()
+
+    @property
+    def queued(self) -> int:
+        """Clouds waiting."""
+        return self._clouds
+
+    def stop(self, timeout: float | None = 10.0) -> None:
+        """Stop after the current item; queued items are discarded."""
+        with self._cond:
+            self._stop = True
+            self._cond.notify_all()
+        self._thread.join(timeout)
+
+    # -- the worker ---------------------------------------------------------------------
+    def _snapshot(self, version: int) -> MapSnapshot:
+        fmap = self._fmap
+        return MapSnapshot(version, tuple(fmap.facades), np.asarray(fmap.map_origin, dtype=np.float64).copy(),
+                           len(fmap.points), fmap.n_points, self._stamp)
+
+    def _publish(self) -> None:
+        self.snapshot = self._snapshot(self.snapshot.version + 1)
+        if self._on_change is not None:
+            self._on_change(self.snapshot)
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._queue and not self._stop:
+                    if self._idle_flush > 0 and self._needs_flush():
+                        # Idle since the last cloud came *and* since the last work ended: while
+                        # the worker was busy, clouds may have waited upstream (in DDS, for the
+                        # node's callbacks); they get idle_flush seconds to arrive.
+                        left = max(self._last_cloud, self._idle_since) + self._idle_flush - time.monotonic()
+                        if left <= 0:
+                            break
+                        self._cond.wait(left)
+                    else:
+                        self._cond.wait()
+                if self._stop:
+                    return
+                # An empty queue here means the idle time passed: flush.
+                item = self._queue.popleft() if self._queue else _Command(self._flush)
+                if isinstance(item, Cloud):
+                    self._clouds -= 1
+                self._busy = True
+            try:
+                if isinstance(item, Cloud):
+                    self._map_cloud(item)
+                else:
+                    self._run_command(item)
+            finally:
+                with self._cond:
+                    self.pending_points = self._fmap.n_pending
+                    self._idle_since = time.monotonic()
+                    self._busy = False
+                    self._cond.notify_all()
+
+    def _flush(self, fmap: FacadeMap) -> tuple[Any, bool]:
+        pending = fmap.n_pending
+        refitted = fmap.flush()
+        self.counters['flushes'] += 1
+        if self._on_flush is not None:
+            self._on_flush(pending, refitted)
+        return refitted, True
+
+    def _needs_flush(self) -> bool:
+        fmap = self._fmap
+        return bool(fmap.pending) or any(f.fitted_points != len(f.point_index) for f in fmap.facades)
+
+    def _map_cloud(self, cloud: Cloud) -> None:
+        started = time.perf_counter()
+        try:
+            if not self._fmap.add_points(cloud.xyz, cloud.building_id, cloud.sensor_origins, defer=True):
+                self.counters['clouds_mapped'] += 1
+                self._stamp = max(self._stamp, int(cloud.stamp_ns))
+                return  # held back for the next update
+        except Exception as exc:  # noqa: BLE001 - reported, the node keeps running
+            # add_points checks its input before changing the map; nothing was added.
+            self.counters['clouds_failed'] += 1
+            if self._on_error is not None:
+                self._on_error(cloud, exc)
+            return
+        self.last_update_seconds = time.perf_counter() - started
+        self.counters['clouds_mapped'] += 1
+        self.counters['points_mapped'] += len(cloud.xyz)
+        self._stamp = max(self._stamp, int(cloud.stamp_ns))
+        self._publish()
+
+    def _run_command(self, command: _Command) -> None:
+        try:
+            result, changes = command.fn(self._fmap)
+            if isinstance(result, ReplaceMap):
+                self._fmap = result.fmap
+                self._stamp = 0
+                result = result.result
+            command.result = result
+            if changes:
+                self._publish()
+        except BaseException as exc:  # noqa: BLE001 - handed to the caller
+            command.error = exc
+        finally:
+            command.done.set()
+
+
+@dataclass(frozen=True)
+class ReplaceMap:
+    """Returned by a :meth:`MapWorker.call` function to replace the worker's map.
+
+    Attributes:
+        fmap: the new map.
+        result: what :meth:`MapWorker.call` returns.
+    """
+
+    fmap: FacadeMap
+    result: Any = None
+
+
+@dataclass(frozen=True)
+class ReplaySummary:
+    """What feeding a recording to a map did.
+
+    Attributes:
+        scans: scans read.
+        points: points in the scans.
+        building_points: building points mapped.
+        nonfinite: points skipped for NaN or infinite coordinates.
+        buildings: buildings in the map.
+        facades: façades in the map.
+        seconds: wall time of mapping, flush included.
+    """
+
+    scans: int
+    points: int
+    building_points: int
+    nonfinite: int
+    buildings: int
+    facades: int
+    seconds: float
+
+
+def map_scans(fmap: FacadeMap, scans: Any, config: Any,
+              progress: Callable[[int], None] | None = None) -> ReplaySummary:
+    """Feed scans to a map one by one, as the node's worker does, then flush.
+
+    The node maps the clouds it receives exactly so (``add_points(defer=True)`` per
+    cloud, a flush when the input pauses), so a node fed the same scans without drops ends
+    with the same map.
+
+    Args:
+        fmap: the map to grow.
+        scans: iterable of structured arrays (one per scan, fields as a PointCloud2
+            gives them: x, y, z and optionally the class, building id and sensor origin
+            fields of ``config``), in the map frame.
+        config: an :class:`~uncertain_facade_map.config.InputConfig`.
+        progress: called with the number of scans done after each one.
+
+    Returns:
+        The summary.
+
+    Raises:
+        InputError: a scan without x, y, z or with a non-integer class field.
+    """
+    from ..io.inputs import select_scan_points
+
+    started = time.perf_counter()
+    n_scans = n_points = n_building = n_bad = 0
+    for points in scans:
+        scan = select_scan_points(points, config)
+        n_scans += 1
+        n_points += len(points)
+        n_bad += scan.nonfinite
+        if len(scan.xyz):
+            n_building += len(scan.xyz)
+            fmap.add_points(scan.xyz, scan.building_id, scan.sensor_origins, defer=True)
+        if progress is not None:
+            progress(n_scans)
+    fmap.flush()
+    return ReplaySummary(n_scans, n_points, n_building, n_bad, len(fmap.points), len(fmap.facades),
+                         time.perf_counter() - started)

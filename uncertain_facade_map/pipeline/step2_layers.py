@@ -1,0 +1,202 @@
+"""GMM depth layers of a façade and their facets (paper, Section III.A).
+
+"A GMM is applied to cluster the points with different depth values to depth layers.
+Each depth layer is described by one Gaussian component in the GMM,
+p(d) = sum_k pi_k N(d | mu_k, sigma_k^2) (eq. 3), where K is determined by the number of
+peaks detected in the histogram of all depth values [...] The Gaussian component with the
+highest prior probability is the main façade plane."
+
+Facets are the connected regions of one layer on the façade plane. They are found on a
+raster of ``facet_cell`` metres: each point votes for the layer of highest
+responsibility, a cell takes the layer most of its points voted for, cells with no point
+take the layer of the nearest voted cell within ``fill_distance`` (gaps between scan
+lines), and each layer's cells are split into 4-connected components. Cells further than
+``fill_distance`` from any point belong to no facet (the global prior covers them).
+
+Choices where the paper is silent: the histogram uses 1 cm bins smoothed by a Gaussian of
+1.5 bins and counts peaks holding at least ``min_peak_share`` of the points within
++-3 bins; EM runs in scikit-learn on at most ``gmm_sample`` depths, initialised at the peaks;
+isolated cells whose layer differs from all 8 neighbours are relabelled to the
+neighbours' majority before facets are formed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+from scipy.signal import find_peaks
+from sklearn.mixture import GaussianMixture
+
+from ..datatypes import DepthLayers, Facets
+from ..errors import InputError
+
+
+@dataclass(frozen=True)
+class LayerParams:
+    """Parameters of the depth layers and facets.
+
+    Attributes:
+        histogram_bin: bin width of the depth histogram, metres.
+        min_peak_share: a histogram peak needs this share of the façade's points nearby.
+        max_layers: upper bound on K.
+        gmm_sample: EM is fitted on at most this many depths.
+        facet_cell: raster cell of the facets, metres.
+        fill_distance: empty cells this close to a voted cell join its facet, metres.
+        min_facet_cells: a connected region with fewer voted cells than this is no facet (a
+            lone outlier or a stray vote); its cells join the nearest real facet within
+            fill_distance.
+    """
+
+    histogram_bin: float = 0.01
+    min_peak_share: float = 0.01
+    max_layers: int = 8
+    gmm_sample: int = 20000
+    facet_cell: float = 0.10
+    fill_distance: float = 0.30
+    min_facet_cells: int = 2
+
+    def __post_init__(self) -> None:
+        for name in ('histogram_bin', 'facet_cell'):
+            if not getattr(self, name) > 0:
+                raise InputError(f'layers.{name} must be > 0, got {getattr(self, name)}')
+        if not 0 <= self.min_peak_share < 1:
+            raise InputError(f'layers.min_peak_share must be in [0, 1), got {self.min_peak_share}')
+        if self.max_layers < 1 or self.gmm_sample < 10:
+            raise InputError('layers.max_layers must be >= 1 and layers.gmm_sample >= 10')
+        if self.fill_distance < 0:
+            raise InputError(f'layers.fill_distance must be >= 0, got {self.fill_distance}')
+        if self.min_facet_cells < 1:
+            raise InputError(f'layers.min_facet_cells must be >= 1, got {self.min_facet_cells}')
+
+
+def count_peaks(depth: np.ndarray, params: LayerParams) -> np.ndarray:
+    """Depths of the peaks of the smoothed depth histogram (the paper's choice of K).
+
+    Args:
+        depth: (N,) depths, metres.
+        params: histogram settings.
+
+    Returns:
+        (K,) peak depths, metres, sorted by height (highest first), K >= 1.
+    """
+    lo, hi = float(depth.min()), float(depth.max())
+    n_bins = max(1, int(np.ceil((hi - lo) / params.histogram_bin)) + 1)
+    counts, edges = np.histogram(depth, bins=n_bins, range=(lo, lo + n_bins * params.histogram_bin))
+    smooth = ndimage.gaussian_filter1d(counts.astype(np.float64), 1.5, mode='constant')
+    # Mass within +-3 bins of a peak must reach min_peak_share of all points.
+    window = np.convolve(counts, np.ones(7), mode='same')
+    peaks, _ = find_peaks(np.concatenate([[0.0], smooth, [0.0]]))
+    peaks = peaks - 1
+    peaks = peaks[window[peaks] >= params.min_peak_share * len(depth)]
+    if not len(peaks):
+        peaks = np.array([int(np.argmax(smooth))])
+    peaks = peaks[np.argsort(-smooth[peaks])][: params.max_layers]
+    return 0.5 * (edges[peaks] + edges[peaks + 1])
+
+
+def fit_layers(depth: np.ndarray, params: LayerParams, rng: np.random.Generator) -> DepthLayers:
+    """Fit the GMM of depth layers by EM (paper eq. 3), K from the histogram peaks.
+
+    Args:
+        depth: (N,) depths of one façade's points, metres.
+        params: layer settings.
+        rng: random source for the EM subsample.
+
+    Returns:
+        The fitted layers.
+
+    Raises:
+        InputError: fewer than 2 finite depths.
+    """
+    depth = np.asarray(depth, dtype=np.float64)
+    depth = depth[np.isfinite(depth)]
+    if len(depth) < 2:
+        raise InputError('a façade needs at least 2 points to fit depth layers')
+    peaks = count_peaks(depth, params)
+    sample = depth if len(depth) <= params.gmm_sample else rng.choice(depth, params.gmm_sample, replace=False)
+    k = min(len(peaks), len(np.unique(sample)))
+    gmm = GaussianMixture(n_components=k, covariance_type='spherical', means_init=peaks[:k, None],
+                          init_params='random_from_data', reg_covar=1e-6, max_iter=200,
+                          random_state=int(rng.integers(2**31)))
+    gmm.fit(sample[:, None])
+    weights = gmm.weights_.astype(np.float64)
+    means = gmm.means_[:, 0].astype(np.float64)
+    sigmas = np.sqrt(gmm.covariances_.astype(np.float64))
+    order = np.argsort(means)
+    weights, means, sigmas = weights[order], means[order], sigmas[order]
+    return DepthLayers(weights, means, sigmas, int(np.argmax(weights)))
+
+
+def find_facets(uv: np.ndarray, labels: np.ndarray, n_layers: int, extent: tuple[float, float, float, float],
+                params: LayerParams) -> Facets:
+    """Connected regions of each layer on the façade plane.
+
+    Args:
+        uv: (N, 2) point locations on the plane, metres, façade frame.
+        labels: (N,) layer of each point.
+        n_layers: K.
+        extent: (u_min, u_max, v_min, v_max) of the raster, metres.
+        params: raster settings.
+
+    Returns:
+        The facets.
+    """
+    cell = params.facet_cell
+    origin = np.array([extent[0], extent[2]])
+    width = max(1, int(np.ceil((extent[1] - extent[0]) / cell)))
+    height = max(1, int(np.ceil((extent[3] - extent[2]) / cell)))
+    col = np.clip(((uv[:, 0] - origin[0]) / cell).astype(np.int64), 0, width - 1)
+    row = np.clip(((uv[:, 1] - origin[1]) / cell).astype(np.int64), 0, height - 1)
+    votes = np.zeros((height * width, n_layers), dtype=np.int32)
+    np.add.at(votes, (row * width + col, labels), 1)
+    voted = votes.sum(axis=1) > 0
+    layer = np.where(voted, votes.argmax(axis=1), -1).reshape(height, width)
+    layer = _despeckle(layer, n_layers)
+    layer = _dissolve_small(layer, n_layers, params.min_facet_cells, params.fill_distance / cell)
+    # Empty cells take the layer of the nearest voted cell within fill_distance.
+    dist, (ri, ci) = ndimage.distance_transform_edt(layer < 0, return_indices=True)
+    filled = layer[ri, ci]
+    filled[dist * cell > params.fill_distance] = -1
+    facet = np.full((height, width), -1, dtype=np.int32)
+    layer_of_facet: list[int] = []
+    for k in range(n_layers):
+        comp, n = ndimage.label(filled == k)
+        if n:
+            facet[comp > 0] = comp[comp > 0] - 1 + len(layer_of_facet)
+            layer_of_facet += [k] * n
+    return Facets(origin, cell, facet, np.asarray(layer_of_facet, dtype=np.int32))
+
+
+def _dissolve_small(layer: np.ndarray, n_layers: int, min_cells: int, reach_cells: float) -> np.ndarray:
+    """Relabel voted regions (8-connected, one layer) of fewer than ``min_cells`` cells to the
+    layer of the nearest cell outside such regions, if that cell is within ``reach_cells``."""
+    if min_cells <= 1:
+        return layer
+    small = np.zeros(layer.shape, dtype=bool)
+    for k in range(n_layers):
+        comp, n = ndimage.label(layer == k, structure=np.ones((3, 3)))
+        if n:
+            sizes = np.bincount(comp.ravel(), minlength=n + 1)
+            small |= (sizes[comp] < min_cells) & (comp > 0)
+    keep = (layer >= 0) & ~small
+    if not small.any() or not keep.any():
+        return layer
+    dist, (ri, ci) = ndimage.distance_transform_edt(~keep, return_indices=True)
+    near = small & (dist <= reach_cells)
+    out = layer.copy()
+    out[near] = layer[ri[near], ci[near]]
+    return out
+
+
+def _despeckle(layer: np.ndarray, n_layers: int) -> np.ndarray:
+    """Relabel voted cells whose layer no 8-neighbour shares to the neighbours' majority."""
+    counts = np.zeros((n_layers,) + layer.shape, dtype=np.int16)
+    for k in range(n_layers):
+        counts[k] = ndimage.convolve((layer == k).astype(np.int16), np.ones((3, 3), np.int16), mode='constant')
+    own = np.take_along_axis(counts, np.clip(layer, 0, None)[None], axis=0)[0]
+    lonely = (layer >= 0) & (own == 1) & (counts.sum(axis=0) > 1)
+    out = layer.copy()
+    out[lonely] = np.argmax(counts[:, lonely] - (np.arange(n_layers)[:, None] == layer[lonely][None]), axis=0)
+    return out

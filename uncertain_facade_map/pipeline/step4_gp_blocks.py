@@ -1,0 +1,577 @@
+"""Local Gaussian processes in blocks (paper, Sections III.B to III.D).
+
+Kernel (paper eq. 4, ARD squared exponential)::
+
+    k0(x, x') = sigma_p^2 exp(-1/2 sum_m b_m (x_m - x'_m)^2),   x in R^2 (u, v)
+
+with sigma_p = sigma_k of the facet's layer, noise sigma_eta (eq. 5), prior mean mu_k of
+the layer. Posterior (eqs. 6 and 7, Rasmussen & Williams Algorithm 2.1)::
+
+    L = cholesky(K + sigma_eta^2 I);  alpha = L^T \\ (L \\ (y - mu_k))
+    mean = mu_k + k_*^T alpha;        var = k0(x_*, x_*) - |L \\ k_*|^2
+
+(``var`` is the variance of the surface; the noise variance sigma_eta^2 is reported
+apart, the paper's eq. 7 adds it.)
+
+Blocks (Section III.D): the block size per axis is the distance at which the kernel with
+sigma_p = 1 falls to c_min, ``s_m = sqrt(-2 ln(c_min) / b_m)``; each block is predicted
+from the training points of its extended block (itself and its 8 neighbours) of the same
+facet. All blocks of a façade are solved at once: padded to a common size per bucket and
+factorised by batched Cholesky.
+
+Hyper-parameters: b_1, b_2 by maximum marginal likelihood in log space within bounds
+(L-BFGS-B with the analytic gradient, R&W eq. 5.9), started at 1/b = 0.0025 m^2, on a
+small subset of the training points: a few square patches, so that the subset holds
+neighbours at the scale being learnt.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve
+from scipy.optimize import minimize
+
+LOG_2PI = float(np.log(2.0 * np.pi))
+
+
+@dataclass(frozen=True)
+class GPParams:
+    """Local GP parameters (paper defaults where the paper gives them).
+
+    Attributes:
+        noise_sigma: sigma_eta, metres (paper: 0.02).
+        initial_lengthscale2: initial 1/b_1 = 1/b_2, m^2 (paper: 0.0025).
+        lengthscale2_min: lower bound of 1/b_m in the optimisation, m^2.
+        lengthscale2_max: upper bound of 1/b_m in the optimisation, m^2.
+        c_min: covariance threshold that sets the block size (paper: 1e-4).
+        alpha_z_deg: a point whose normal deviates more than this from the façade
+            normal is a training point (paper eq. 8: 25 degrees).
+        inlier_sigmas: a point further than this many sigma_k from its layer is a training
+            point (paper eq. 7: 1.96).
+        max_planar_sigma: spread of a planar layer at most; a wider layer (a slope, a round
+            bay, merged recesses) leaves only the points within inlier_sigmas of this to the
+            plane, the rest are training points, metres.
+        optimise: fit b_1, b_2 by maximum marginal likelihood (else keep the initial value).
+        opt_points: size of the optimisation subset.
+        opt_patch: side of the square patches the subset is drawn from, metres.
+        max_block_points: at most this many training points per extended block (a
+            random subset beyond); bounds the cost of a block.
+        planar_per_block: planar points (not selected by eqs. 7 and 8) added to the
+            training points per block, so that the variance shrinks where the plane was
+            observed; 0 reproduces the paper.
+        grid_resolution: cell of the raster the surface is predicted on, metres.
+    """
+
+    noise_sigma: float = 0.02
+    initial_lengthscale2: float = 0.0025
+    lengthscale2_min: float = 0.0025
+    lengthscale2_max: float = 0.04
+    c_min: float = 1e-4
+    alpha_z_deg: float = 25.0
+    inlier_sigmas: float = 1.96
+    max_planar_sigma: float = 0.035
+    optimise: bool = True
+    opt_points: int = 150
+    opt_patch: float = 1.0
+    max_block_points: int = 64
+    planar_per_block: int = 0
+    grid_resolution: float = 0.1
+
+    def __post_init__(self) -> None:
+        from ..errors import InputError
+
+        positive = ('noise_sigma', 'initial_lengthscale2', 'lengthscale2_min', 'lengthscale2_max', 'opt_patch',
+                    'grid_resolution')
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise InputError(f'gp.{name} must be > 0, got {getattr(self, name)}')
+        if not self.lengthscale2_min <= self.initial_lengthscale2 <= self.lengthscale2_max:
+            raise InputError('gp: need lengthscale2_min <= initial_lengthscale2 <= lengthscale2_max')
+        if not 0 < self.c_min < 1:
+            raise InputError(f'gp.c_min must be in (0, 1), got {self.c_min}')
+        if not 0 <= self.alpha_z_deg <= 90 or self.inlier_sigmas <= 0:
+            raise InputError('gp: alpha_z_deg must be in [0, 90] and inlier_sigmas > 0')
+        if self.max_block_points < 1 or self.planar_per_block < 0 or self.opt_points < 10:
+            raise InputError('gp: need max_block_points >= 1, planar_per_block >= 0, opt_points >= 10')
+
+
+def kernel(xa: np.ndarray, xb: np.ndarray, sigma_p: np.ndarray | float, lengthscale2: np.ndarray) -> np.ndarray:
+    """ARD squared-exponential kernel, paper eq. 4.
+
+    Args:
+        xa: (..., n, 2) inputs (u, v), metres.
+        xb: (..., m, 2) inputs, metres.
+        sigma_p: prior standard deviation, metres; scalar or (...,) per batch.
+        lengthscale2: (2,) or (..., 2) squared length scales 1/b_m, m^2.
+
+    Returns:
+        (..., n, m) covariances, m^2.
+    """
+    scale = np.sqrt(1.0 / np.asarray(lengthscale2, dtype=np.float64))  # sqrt(b_m)
+    scale = scale[..., None, :] if scale.ndim > 1 else scale
+    a = xa * scale
+    b = xb * scale
+    # |a - b|^2 = |a|^2 + |b|^2 - 2 a.b, by matrix products instead of an (n, m, 2) difference array.
+    sq = (a * a).sum(-1)[..., :, None] + (b * b).sum(-1)[..., None, :] - 2.0 * (a @ np.swapaxes(b, -1, -2))
+    s2 = np.asarray(sigma_p, dtype=np.float64) ** 2
+    s2 = s2[..., None, None] if np.ndim(s2) else s2
+    return s2 * np.exp(-0.5 * np.maximum(sq, 0.0))
+
+
+def _tri_solve(lower: np.ndarray, rhs: np.ndarray, transpose: bool = False) -> np.ndarray:
+    """Solve L X = B (or L^T X = B) for stacks of lower-triangular L (B, n, n), rhs (B, n, k).
+
+    Forward (backward) substitution vectorised over the stack: n steps of (B, k) work.
+    numpy has no batched triangular solver, scipy's loops over the stack in Python, and a
+    general batched solve redoes an LU factorisation of every L.
+    """
+    n = lower.shape[-1]
+    x = np.empty(np.broadcast_shapes(lower.shape[:-2], rhs.shape[:-2]) + rhs.shape[-2:],
+                 dtype=np.result_type(lower, rhs))
+    steps = range(n - 1, -1, -1) if transpose else range(n)
+    for i in steps:
+        if transpose:
+            coef = lower[..., i + 1:, i]  # column i below the diagonal = row i of L^T right of it
+            acc = np.einsum('bj,bjk->bk', coef, x[..., i + 1:, :]) if i + 1 < n else 0.0
+        else:
+            coef = lower[..., i, :i]
+            acc = np.einsum('bj,bjk->bk', coef, x[..., :i, :]) if i else 0.0
+        x[..., i, :] = (rhs[..., i, :] - acc) / lower[..., i, i][..., None]
+    return x
+
+
+def block_size(lengthscale2: np.ndarray, c_min: float) -> np.ndarray:
+    """Block side per axis where exp(-1/2 b r^2) = c_min (paper eq. 9), metres.
+
+    Args:
+        lengthscale2: (..., 2) squared length scales 1/b_m, m^2.
+        c_min: covariance threshold in (0, 1).
+    """
+    return np.sqrt(-2.0 * np.log(c_min) * np.asarray(lengthscale2, dtype=np.float64))
+
+
+# ----------------------------------------------------------------------------------------
+# Marginal likelihood and its optimisation
+# ----------------------------------------------------------------------------------------
+def neg_log_marginal_likelihood(log_b: np.ndarray, patches: list[tuple[np.ndarray, np.ndarray, float]],
+                                noise2: float) -> tuple[float, np.ndarray]:
+    """Negative log marginal likelihood of independent patches and its gradient in log b.
+
+    R&W eq. 2.30 for the value and eq. 5.9 for the gradient:
+    d/d theta = 1/2 tr((K^-1 - alpha alpha^T) dK/d theta), with
+    dK/d log b_m = -1/2 b_m (x_m - x'_m)^2 * k0.
+
+    Args:
+        log_b: (2,) log of b_1, b_2 (1/m^2).
+        patches: per patch (X (n, 2) metres, y (n,) metres centred by the prior mean,
+            sigma_p metres).
+        noise2: sigma_eta^2, m^2.
+
+    Returns:
+        (value, (2,) gradient).
+    """
+    b = np.exp(log_b)
+    value = 0.0
+    grad = np.zeros(2)
+    for x, y, sigma_p in patches:
+        diff2 = (x[:, None, :] - x[None, :, :]) ** 2  # (n, n, 2)
+        kf = sigma_p**2 * np.exp(-0.5 * diff2 @ b)
+        factor = cho_factor(kf + noise2 * np.eye(len(x)), lower=True, check_finite=False)
+        alpha = cho_solve(factor, y, check_finite=False)
+        value += 0.5 * y @ alpha + np.log(np.diag(factor[0])).sum() + 0.5 * len(x) * LOG_2PI
+        w = cho_solve(factor, np.eye(len(x)), check_finite=False) - np.outer(alpha, alpha)
+        for m in range(2):
+            grad[m] += 0.5 * np.sum(w * (-0.5 * b[m] * diff2[:, :, m] * kf))
+    return value, grad
+
+
+def optimise_lengthscales(patches: list[tuple[np.ndarray, np.ndarray, float]], params: GPParams) -> np.ndarray:
+    """Maximum-marginal-likelihood 1/b_1, 1/b_2 (m^2) for a set of patches.
+
+    Starts at ``initial_lengthscale2`` and keeps the result within the bounds (log space).
+    Returns the initial value if there are no patches or the optimiser fails.
+    """
+    initial = np.full(2, params.initial_lengthscale2)
+    if not params.optimise or not patches:
+        return initial
+    noise2 = params.noise_sigma**2
+    bounds = [(-np.log(params.lengthscale2_max), -np.log(params.lengthscale2_min))] * 2
+    result = minimize(neg_log_marginal_likelihood, -np.log(initial), args=(patches, noise2), jac=True,
+                      method='L-BFGS-B', bounds=bounds, options={'maxiter': 20})
+    if not np.all(np.isfinite(result.x)):
+        return initial
+    return np.exp(-result.x)
+
+
+def optimisation_patches(uv: np.ndarray, y: np.ndarray, sigma_p: np.ndarray, params: GPParams,
+                         rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray, float]]:
+    """Draw the small optimisation subset: square patches around random training points.
+
+    Args:
+        uv: (N, 2) training inputs of one layer, metres.
+        y: (N,) targets centred by their facet's prior mean, metres.
+        sigma_p: (N,) prior standard deviation of each point's facet, metres.
+        params: subset size and patch side.
+        rng: random source.
+
+    Returns:
+        Patches (X, y, sigma_p) with at most ``opt_points`` points in all.
+    """
+    patches = []
+    budget = params.opt_points
+    remaining = np.ones(len(uv), dtype=bool)
+    half = params.opt_patch / 2
+    per_patch = max(20, params.opt_points // 4)
+    while budget >= 10 and remaining.any():
+        centre = uv[rng.choice(np.flatnonzero(remaining))]
+        near = remaining & np.all(np.abs(uv - centre) <= half, axis=1)
+        idx = np.flatnonzero(near)
+        remaining &= ~near
+        if len(idx) < 10:
+            continue
+        idx = rng.choice(idx, min(len(idx), per_patch, budget), replace=False)
+        patches.append((uv[idx], y[idx], float(np.median(sigma_p[idx]))))
+        budget -= len(idx)
+    return patches
+
+
+# ----------------------------------------------------------------------------------------
+# Batched block solves
+# ----------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class BlockSystem:
+    """Factorised GPs of B blocks, padded to n training points each.
+
+    Attributes:
+        x: (B, n, 2) training inputs, metres (padding rows are zero).
+        mask: (B, n) True for real training points.
+        point: (B, n) index of each training point in the caller's arrays, -1 for padding.
+        lower: (B, n, n) Cholesky factors of K + sigma_eta^2 I (identity on padding).
+        alpha: (B, n) (K + sigma_eta^2 I)^-1 (y - mu), zero on padding.
+        sigma_p: (B,) prior standard deviation, metres.
+        lengthscale2: (B, 2) 1/b, m^2.
+    """
+
+    x: np.ndarray
+    mask: np.ndarray
+    point: np.ndarray
+    lower: np.ndarray
+    alpha: np.ndarray
+    sigma_p: np.ndarray
+    lengthscale2: np.ndarray
+
+
+def solve_blocks(x: np.ndarray, y: np.ndarray, mask: np.ndarray, point: np.ndarray, sigma_p: np.ndarray,
+                 lengthscale2: np.ndarray, noise2: float) -> BlockSystem:
+    """Factorise the padded training sets of B blocks (R&W Algorithm 2.1, lines 2 and 3).
+
+    Args:
+        x: (B, n, 2) inputs, metres.
+        y: (B, n) targets minus the prior mean, metres (anything on padding).
+        mask: (B, n) real points.
+        point: (B, n) caller's index of each point.
+        sigma_p: (B,) metres.
+        lengthscale2: (B, 2) m^2.
+        noise2: sigma_eta^2, m^2.
+    """
+    k = kernel(x, x, sigma_p, lengthscale2)
+    pair = mask[:, :, None] & mask[:, None, :]
+    n = x.shape[1]
+    eye = np.eye(n, dtype=bool)[None]
+    k = np.where(pair, k, 0.0) + np.where(eye, np.where(mask[:, :, None], noise2, 1.0), 0.0)
+    lower = np.linalg.cholesky(k)
+    y = np.where(mask, y, 0.0)
+    alpha = _tri_solve(lower, _tri_solve(lower, y[..., None]), transpose=True)[..., 0]
+    return BlockSystem(x, mask, point, lower, alpha, np.asarray(sigma_p, float), np.asarray(lengthscale2, float))
+
+
+def predict_blocks(system: BlockSystem, xs: np.ndarray, xs_mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Posterior deviation from the prior mean and variance at B x m test inputs (eqs. 6, 7).
+
+    Args:
+        system: factorised blocks.
+        xs: (B, m, 2) test inputs, metres.
+        xs_mask: (B, m) real test inputs.
+
+    Returns:
+        ``(mean, var)``, each (B, m): mean deviation from mu_k (metres) and surface variance
+        (m^2, without the noise variance); zero where ``xs_mask`` is False.
+    """
+    ks = kernel(system.x, xs, system.sigma_p, system.lengthscale2)  # (B, n, m)
+    ks = np.where(system.mask[:, :, None] & xs_mask[:, None, :], ks, 0.0)
+    mean = np.einsum('bnm,bn->bm', ks, system.alpha)
+    v = _tri_solve(system.lower, ks)
+    var = system.sigma_p[:, None] ** 2 - np.einsum('bnm,bnm->bm', v, v)
+    return np.where(xs_mask, mean, 0.0), np.where(xs_mask, np.maximum(var, 0.0), 0.0)
+
+
+def loo_statistic(system: BlockSystem) -> np.ndarray:
+    """Leave-one-out chi-squared statistic of every training point (R&W eq. 5.12).
+
+    v_i^2 = (y_i - mu_-i)^2 / sigma_-i^2 = alpha_i^2 / [K^-1]_ii, where mu_-i and
+    sigma_-i^2 are the mean and variance (noise included) predicted for point i by the
+    block's GP without it.
+
+    Returns:
+        (B, n) statistics, NaN on padding.
+    """
+    n = system.x.shape[1]
+    l_inv = _tri_solve(system.lower, np.broadcast_to(np.eye(n), system.lower.shape))
+    k_inv_diag = np.einsum('bij,bij->bj', l_inv, l_inv)
+    return np.where(system.mask, system.alpha**2 / k_inv_diag, np.nan)
+
+
+# ----------------------------------------------------------------------------------------
+# Block assembly: which training points each block sees
+# ----------------------------------------------------------------------------------------
+_NB = np.int64(1 << 20)  # codes: (facet * NB + bu) * NB + bv, block indices offset by NB/2
+_HALF = np.int64(1 << 19)
+#: Code offsets of a block's extended block: itself and its 8 neighbours (same facet).
+_NEIGHBOURS = np.array([du * _NB + dv for du in (-1, 0, 1) for dv in (-1, 0, 1)], dtype=np.int64)
+#: Padded sizes of block systems; a block with n points goes to the first size >= n.
+BUCKETS = (8, 16, 32, 48, 64, 96, 128, 192, 256)
+#: Blocks factorised at once (bounds memory: 1000 x 64 x 64 doubles = 33 MB).
+CHUNK = 1000
+#: Threads factorising chunks.
+THREADS = 2
+
+
+def block_codes(uv: np.ndarray, facet: np.ndarray, origin: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+    """(N,) int64 code of the block holding each location, in its facet's block grid.
+
+    Args:
+        uv: (N, 2) locations, metres, façade frame.
+        facet: (N,) facet index (>= 0).
+        origin: (2,) corner of the block grids, metres.
+        sizes: (F, 2) block side per facet and axis, metres.
+    """
+    b = np.floor((uv - origin) / sizes[facet]).astype(np.int64) + _HALF
+    return (facet.astype(np.int64) * _NB + b[:, 0]) * _NB + b[:, 1]
+
+
+def _ranks(group: np.ndarray) -> np.ndarray:
+    """Rank of each element within its run of equal values in a sorted array."""
+    start = np.r_[0, np.flatnonzero(np.diff(group)) + 1]
+    lengths = np.diff(np.r_[start, len(group)])
+    return np.arange(len(group)) - np.repeat(start, lengths)
+
+
+def gather_blocks(blocks: np.ndarray, train_codes: np.ndarray, cap: int, rng: np.random.Generator
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Training points of each block's extended block (the block and its 8 neighbours).
+
+    Args:
+        blocks: (B,) block codes.
+        train_codes: (T,) block code of each training point.
+        cap: at most this many points per block; points of the block itself are kept
+            first, the rest drawn at random.
+        rng: random source for the draw.
+
+    Returns:
+        ``(block, point, rank)``: flat arrays, one row per (block, member): the block's
+        position in ``blocks``, the member's index in the training arrays, and its slot
+        (0 .. n_b - 1).
+    """
+    order = np.argsort(train_codes, kind='stable')
+    sorted_codes = train_codes[order]
+    neighbours = blocks[:, None] + _NEIGHBOURS[None, :]  # (B, 9); facet stays, |du|,|dv| <= 1
+    start = np.searchsorted(sorted_codes, neighbours, side='left')
+    count = np.searchsorted(sorted_codes, neighbours, side='right') - start
+    counts = count.ravel()
+    total = int(counts.sum())
+    block = np.repeat(np.repeat(np.arange(len(blocks)), 9), counts)
+    first = np.repeat(start.ravel() - (np.cumsum(counts) - counts), counts)
+    point = order[first + np.arange(total)]
+    central = np.repeat(np.tile(_NEIGHBOURS == 0, len(blocks)), counts)
+    key = rng.random(total) + np.where(central, 0.0, 1.0)
+    arrange = np.lexsort((key, block))
+    block, point = block[arrange], point[arrange]
+    rank = _ranks(block)
+    keep = rank < cap
+    return block[keep], point[keep], rank[keep]
+
+
+def padded_systems(block: np.ndarray, point: np.ndarray, rank: np.ndarray, n_blocks: int
+                   ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Group blocks into buckets of padded size.
+
+    Returns:
+        Per non-empty bucket and chunk: (block ids (Bk,), member index matrix (Bk, n),
+        -1 on padding).
+    """
+    n_of = np.bincount(block, minlength=n_blocks)
+    out = []
+    lower = 0
+    for size in BUCKETS + (int(n_of.max(initial=0)),):
+        if size <= lower:
+            continue
+        ids = np.flatnonzero((n_of > lower) & (n_of <= size))
+        lower = size
+        if not len(ids):
+            continue
+        slot = np.full(n_blocks, -1, dtype=np.int64)
+        slot[ids] = np.arange(len(ids))
+        members = np.full((len(ids), size), -1, dtype=np.int64)
+        rows = slot[block]
+        sel = rows >= 0
+        members[rows[sel], rank[sel]] = point[sel]
+        for c in range(0, len(ids), CHUNK):
+            out.append((ids[c:c + CHUNK], members[c:c + CHUNK]))
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class BlockData:
+    """Training data of one façade's local GPs, with what each facet's GP needs.
+
+    Attributes:
+        uv: (T, 2) training inputs, metres, façade frame.
+        y: (T,) depth minus the prior mean mu_k of the point's facet, metres.
+        facet: (T,) facet of each point.
+        sigma_p: (F,) prior standard deviation per facet, metres.
+        lengthscale2: (F, 2) 1/b per facet and axis, m^2.
+        origin: (2,) corner of the block grids, metres.
+    """
+
+    uv: np.ndarray
+    y: np.ndarray
+    facet: np.ndarray
+    sigma_p: np.ndarray
+    lengthscale2: np.ndarray
+    origin: np.ndarray
+
+    def sizes(self, c_min: float) -> np.ndarray:
+        """(F, 2) block side per facet, metres (paper eq. 9)."""
+        return block_size(self.lengthscale2, c_min)
+
+    def subset(self, keep: np.ndarray) -> BlockData:
+        """The same GPs with only the training points where ``keep`` holds."""
+        return BlockData(self.uv[keep], self.y[keep], self.facet[keep], self.sigma_p, self.lengthscale2, self.origin)
+
+
+def _systems(data: BlockData, blocks: np.ndarray, params: GPParams, rng: np.random.Generator, then=None):
+    """Yield (block ids, BlockSystem, then(ids, system)) for all blocks that see training points.
+
+    Chunks are factorised two at a time in threads (numpy's linear algebra releases the
+    GIL), in a fixed order, so results do not depend on timing; ``then`` runs in the
+    worker thread too.
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    codes = block_codes(data.uv, data.facet, data.origin, data.sizes(params.c_min))
+    block, point, rank = gather_blocks(blocks, codes, params.max_block_points, rng)
+    facet_of_block = (blocks // _NB // _NB).astype(np.int64)
+    noise2 = params.noise_sigma**2
+
+    def solve(chunk):
+        ids, members = chunk
+        mask = members >= 0
+        safe = np.where(mask, members, 0)
+        f = facet_of_block[ids]
+        system = solve_blocks(np.where(mask[..., None], data.uv[safe], 0.0), data.y[safe], mask, members,
+                              data.sigma_p[f], data.lengthscale2[f], noise2)
+        return ids, system, (then(ids, system) if then is not None else None)
+
+    chunks = padded_systems(block, point, rank, len(blocks))
+    if len(chunks) <= 1 or THREADS <= 1:
+        yield from map(solve, chunks)
+        return
+    with ThreadPoolExecutor(max_workers=THREADS) as pool:
+        yield from pool.map(solve, chunks)
+
+
+def _test_slots(inverse_order: np.ndarray, starts: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(Bk, m) test-location indices of blocks ``ids`` (-1 padding) and the mask."""
+    counts = starts[ids + 1] - starts[ids]
+    m = max(int(counts.max(initial=0)), 1)
+    slot = np.arange(m)[None, :]
+    tests = np.where(slot < counts[:, None],
+                     inverse_order[np.minimum(starts[ids][:, None] + slot, len(inverse_order) - 1)], -1)
+    return tests, tests >= 0
+
+
+def fit_surface(data: BlockData, uv: np.ndarray, facet: np.ndarray, params: GPParams, rng: np.random.Generator,
+                outlier_alpha: float | None = None, outlier_iterations: int = 0
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Filter outliers and predict each facet's local GPs at test locations, block by block.
+
+    Every block holding test locations is solved once; the same factorisation gives the
+    leave-one-out statistic of the block's own training points (outlier test, see
+    :mod:`~uncertain_facade_map.pipeline.step5_outliers`) and the prediction. After removing outliers,
+    only blocks whose extended block lost a point are solved again.
+
+    Args:
+        data: training data and GP parameters.
+        uv: (P, 2) test locations, metres, façade frame.
+        facet: (P,) facet of each test location (>= 0).
+        params: GP settings.
+        rng: random source for capping large blocks.
+        outlier_alpha: significance level of the chi-squared test; None for no test.
+        outlier_iterations: test-remove rounds.
+
+    Returns:
+        ``(mean, var, seen, outlier)``: (P,) deviation from the facet's prior mean
+        (metres), (P,) surface variance (m^2), (P,) whether the block's GP had training
+        points (else mean 0 and var sigma_p^2), and (T,) bool training points removed as
+        outliers.
+    """
+    from .step5_outliers import flag_outliers
+
+    sizes = data.sizes(params.c_min)
+    codes = block_codes(uv, facet, data.origin, sizes)
+    blocks, inverse = np.unique(codes, return_inverse=True)
+    order = np.argsort(inverse, kind='stable')
+    starts = np.searchsorted(inverse[order], np.arange(len(blocks) + 1))
+    train_codes = block_codes(data.uv, data.facet, data.origin, sizes)
+    mean = np.zeros(len(uv))
+    var = data.sigma_p[facet] ** 2
+    seen = np.zeros(len(uv), dtype=bool)
+    removed = np.zeros(len(data.y), dtype=bool)
+    active = np.ones(len(data.y), dtype=bool)
+    todo = np.arange(len(blocks))
+    for round_ in range(outlier_iterations + 1):
+        test = outlier_alpha is not None and round_ < outlier_iterations
+        stat = np.full(len(data.y), np.nan)
+        live = np.flatnonzero(active)
+        sub = data.subset(active)
+        touched = np.zeros(len(blocks), dtype=bool)
+        def work(ids, system):
+            ids = todo[ids]
+            tests, tmask = _test_slots(order, starts, ids)
+            xs = np.where(tmask[..., None], uv[np.where(tmask, tests, 0)], 0.0)
+            mu, v = predict_blocks(system, xs, tmask)
+            own_stat = None
+            if test:
+                members = np.where(system.mask, live[np.where(system.mask, system.point, 0)], -1)
+                own = system.mask & (train_codes[np.maximum(members, 0)] == blocks[ids][:, None])
+                own_stat = (members[own], loo_statistic(system)[own])
+            return ids, tests, tmask, mu, v, own_stat
+
+        for _, _, (ids, tests, tmask, mu, v, own_stat) in _systems(sub, blocks[todo], params, rng, work):
+            # Blocks solved again get their prediction replaced; blocks that lost all points revert below.
+            mean[tests[tmask]] = mu[tmask]
+            var[tests[tmask]] = v[tmask]
+            seen[tests[tmask]] = True
+            touched[ids] = True
+            if own_stat is not None:
+                stat[own_stat[0]] = own_stat[1]
+        # Blocks to redo that have no training point left fall back to the prior.
+        lost = np.setdiff1d(todo, np.flatnonzero(touched))
+        for b in lost:
+            cells = order[starts[b]:starts[b + 1]]
+            mean[cells] = 0.0
+            var[cells] = data.sigma_p[facet[cells]] ** 2
+            seen[cells] = False
+        if not test:
+            break
+        flagged = flag_outliers(stat, outlier_alpha) & active
+        if not flagged.any():
+            break
+        removed |= flagged
+        active &= ~flagged
+        # Blocks whose extended block held a removed point are solved again.
+        hit = np.unique(train_codes[flagged][:, None] + _NEIGHBOURS[None, :])
+        todo = np.flatnonzero(np.isin(blocks, hit))
+    return mean, var, seen, removed

@@ -1,0 +1,176 @@
+"""Queries: the surface at façade locations, and everything about 3D points.
+
+At a façade location (u, v) the mean depth and variance come from the façade's raster:
+bilinear between the four nearest cell centres when they lie in one facet (smooth
+inside a facet), the nearest cell otherwise (a depth step between facets stays a step).
+
+A 3D point belongs to the façade whose band (``band_back`` behind to ``band_front`` in
+front of the plane) and raster extent contain it, the nearest plane winning; it gets the
+façade id, mean depth, variance, noise variance, signed distance to the mean surface along
+the façade normal (positive outside the building) and the occupancy probability of the
+voxel centred there (:mod:`~uncertain_facade_map.pipeline.step8_occupancy`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from ..datatypes import FacadeModel, SurfaceRaster
+from ..errors import InputError
+from .step8_occupancy import occupancy_probability
+
+#: Points handled at once (bounds memory of the (N, F) façade test).
+CHUNK = 262_144
+
+
+def surface_at(raster: SurfaceRaster, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean depth and variance of a façade's surface at (N, 2) locations (u, v), metres.
+
+    Locations outside the raster get the value of the nearest edge cell.
+
+    Returns:
+        ``(mean, var)``, each (N,), metres and m^2.
+    """
+    h, w = raster.mean.shape
+    fu = (uv[:, 0] - raster.origin[0]) / raster.cell - 0.5
+    fv = (uv[:, 1] - raster.origin[1]) / raster.cell - 0.5
+    c0 = np.clip(np.floor(fu).astype(np.int64), 0, max(w - 2, 0))
+    r0 = np.clip(np.floor(fv).astype(np.int64), 0, max(h - 2, 0))
+    c1 = np.minimum(c0 + 1, w - 1)
+    r1 = np.minimum(r0 + 1, h - 1)
+    tu = np.clip(fu - c0, 0.0, 1.0)
+    tv = np.clip(fv - r0, 0.0, 1.0)
+    facet = raster.facet
+    same = (facet[r0, c0] == facet[r0, c1]) & (facet[r0, c0] == facet[r1, c0]) & (facet[r0, c0] == facet[r1, c1])
+    w00, w01, w10, w11 = (1 - tu) * (1 - tv), tu * (1 - tv), (1 - tu) * tv, tu * tv
+    out = []
+    for grid in (raster.mean, raster.var):
+        bilinear = w00 * grid[r0, c0] + w01 * grid[r0, c1] + w10 * grid[r1, c0] + w11 * grid[r1, c1]
+        rn = np.where(tv < 0.5, r0, r1)
+        cn = np.where(tu < 0.5, c0, c1)
+        out.append(np.where(same, bilinear, grid[rn, cn]))
+    return out[0], out[1]
+
+
+@dataclass(frozen=True, eq=False)
+class PointQuery:
+    """Answers for N 3D points (the command line's R.npz holds these arrays).
+
+    Attributes:
+        facade: (N,) int32 façade id, -1 where the point belongs to no façade.
+        mean_depth: (N,) mean surface depth at the point's façade location, metres.
+        variance: (N,) surface variance there, m^2.
+        noise_variance: (N,) sigma_eta^2, m^2.
+        signed_distance: (N,) point depth minus mean depth, metres, positive outside.
+        p_occupied: (N,) occupancy probability of the voxel centred at the point.
+    """
+
+    facade: np.ndarray
+    mean_depth: np.ndarray
+    variance: np.ndarray
+    noise_variance: np.ndarray
+    signed_distance: np.ndarray
+    p_occupied: np.ndarray
+
+    def as_dict(self) -> dict[str, np.ndarray]:
+        """The arrays by name."""
+        return {k: getattr(self, k) for k in ('facade', 'mean_depth', 'variance', 'noise_variance',
+                                              'signed_distance', 'p_occupied')}
+
+
+def assign_facades(facades: Sequence[FacadeModel], xyz: np.ndarray, band_back: float, band_front: float
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Façade of each 3D point and its façade coordinates.
+
+    Args:
+        facades: the façade models.
+        xyz: (N, 3) points, metres, map frame.
+        band_back: metres behind a plane still belonging to it.
+        band_front: metres in front of it.
+
+    Returns:
+        ``(facade, uvd)``: (N,) int32 index into ``facades`` (-1 for none) and (N, 3) the
+        point in that façade's frame (NaN for none).
+
+    A point within several façades' slabs goes to the one with the smallest ``|d|`` among
+    those whose raster holds a facet at the point, else among all: near a corner, the air
+    in front of one wall lies in the margin of the other wall's raster, where only that
+    wall's global prior holds, and would otherwise read as that wall's solid.
+    """
+    n = len(xyz)
+    best = np.full(n, -1, dtype=np.int32)
+    best_abs = np.full(n, np.inf)
+    no_facet = 1e6  # added to |d| where the façade has no facet at the point
+    uvd = np.full((n, 3), np.nan)
+    for i, f in enumerate(facades):
+        r = f.surface
+        h, w = r.mean.shape
+        u0, u1 = r.origin[0], r.origin[0] + w * r.cell
+        v0, v1 = r.origin[1], r.origin[1] + h * r.cell
+        # Cheap pre-selection by the map-frame box around the façade's slab.
+        corners = f.frame.to_world(np.array([[u, v, d] for u in (u0, u1) for v in (v0, v1)
+                                             for d in (-band_back, band_front)]))
+        lo, hi = corners.min(axis=0), corners.max(axis=0)
+        cand = np.flatnonzero(np.all((xyz >= lo) & (xyz <= hi), axis=1))
+        if not len(cand):
+            continue
+        local = f.frame.to_local(xyz[cand])
+        inside = ((local[:, 0] >= u0) & (local[:, 0] <= u1) & (local[:, 1] >= v0) & (local[:, 1] <= v1)
+                  & (local[:, 2] >= -band_back) & (local[:, 2] <= band_front))
+        col = np.clip(((local[:, 0] - u0) / r.cell).astype(np.int64), 0, w - 1)
+        row = np.clip(((local[:, 1] - v0) / r.cell).astype(np.int64), 0, h - 1)
+        key = np.abs(local[:, 2]) + np.where(r.facet[row, col] >= 0, 0.0, no_facet)
+        better = inside & (key < best_abs[cand])
+        sel = cand[better]
+        best[sel] = i
+        best_abs[sel] = key[better]
+        uvd[sel] = local[better]
+    return best, uvd
+
+
+def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: float, band_back: float,
+                 band_front: float) -> PointQuery:
+    """Answer the 3D point query for (N, 3) points in the map frame.
+
+    Args:
+        facades: the façade models (``facades[i].facade_id == i``).
+        xyz: (N, 3) float64 points, metres, map frame.
+        resolution: voxel side for the occupancy probability, metres.
+        band_back: see :func:`assign_facades`.
+        band_front: see :func:`assign_facades`.
+
+    Returns:
+        The answers; NaN depth, variance, noise variance and distance, and occupancy 0.5,
+        where a point belongs to no façade.
+
+    Raises:
+        InputError: a non-(N, 3) array, NaN or infinite coordinates, or a resolution <= 0.
+    """
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise InputError(f'query points must be an (N, 3) array, got shape {xyz.shape}')
+    if not np.isfinite(xyz).all():
+        raise InputError(f'{int((~np.isfinite(xyz)).any(axis=1).sum())} query points have NaN or infinite coordinates')
+    if not resolution > 0:
+        raise InputError(f'resolution must be positive, got {resolution}')
+    n = len(xyz)
+    facade = np.full(n, -1, dtype=np.int32)
+    mean = np.full(n, np.nan)
+    var = np.full(n, np.nan)
+    noise = np.full(n, np.nan)
+    dist = np.full(n, np.nan)
+    for start in range(0, n, CHUNK):
+        part = slice(start, min(start + CHUNK, n))
+        which, uvd = assign_facades(facades, xyz[part], band_back, band_front)
+        facade[part] = which
+        for i in np.unique(which[which >= 0]):
+            sel = np.flatnonzero(which == i) + start
+            m, v = surface_at(facades[i].surface, uvd[sel - start, :2])
+            mean[sel], var[sel] = m, v
+            noise[sel] = facades[i].noise_var
+            dist[sel] = uvd[sel - start, 2] - m
+    p = occupancy_probability(dist, var, np.where(np.isfinite(noise), noise, 0.0), resolution)
+    return PointQuery(facade, mean, var, noise, dist, p)

@@ -1,0 +1,120 @@
+"""``make bench``: throughput and peak memory of the hot paths, printed as a table.
+
+A benchmark, not a test: it asserts nothing and prints figures to quote in commit messages
+and closing notes. Stages run one after the other, each in a fresh child process, so that
+its peak memory (max RSS) is its own:
+
+- ``simulate``: one campaign of the default ``street`` scene (written to a temporary NPZ);
+- ``build``: the façade map of that campaign (reading the NPZ is not timed);
+- ``query``: 500 000 points near the façades against the saved map (loading not timed).
+
+Rates are input points per second of the timed part.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import platform
+import resource
+import tempfile
+import time
+from pathlib import Path
+
+
+def _simulate(work: Path, scene_name: str) -> dict:
+    from uncertain_facade_map.io.clouds import write_npz
+    from uncertain_facade_map.simulation.campaign import SCENE_SENSORS, simulate_campaign
+    from uncertain_facade_map.simulation.scenes import build_scene
+
+    scene = build_scene(scene_name, 0)
+    started = time.perf_counter()
+    cloud = simulate_campaign(scene, 0)
+    seconds = time.perf_counter() - started
+    write_npz(work / 'cloud.npz', cloud)
+    sensor = SCENE_SENSORS[scene_name]
+    return {'stage': f'simulate {scene_name}', 'items': len(cloud), 'unit': 'points', 'seconds': seconds,
+            'note': f'{sensor.scan_rate_hz:g} Hz x {len(sensor.mount)} scanners, {sensor.angular_step_deg:g} deg'}
+
+
+def _build(work: Path, scene_name: str) -> dict:
+    from uncertain_facade_map.config import Config
+    from uncertain_facade_map.io.clouds import read_npz
+    from uncertain_facade_map.io.inputs import select_building_points
+    from uncertain_facade_map.io.map_file import save_map
+    from uncertain_facade_map.mapping.facade_map import FacadeMap, MapParams
+
+    cloud = read_npz(work / 'cloud.npz')
+    started = time.perf_counter()
+    points = select_building_points(cloud, Config().input)
+    fmap = FacadeMap(MapParams(), points.map_origin)
+    fmap.add_points(points.xyz, points.building_id, points.sensor_origins)
+    seconds = time.perf_counter() - started
+    save_map(fmap, work / 'map.npz')
+    return {'stage': f'build {scene_name}', 'items': len(cloud), 'unit': 'points', 'seconds': seconds,
+            'note': f'{len(points):,} building points, {len(fmap.facades)} façades'}
+
+
+def _query(work: Path, scene_name: str) -> dict:
+    import numpy as np
+
+    from uncertain_facade_map.io.clouds import read_npz
+    from uncertain_facade_map.io.map_file import load_map
+    from uncertain_facade_map.pipeline.step7_queries import query_points
+
+    fmap = load_map(work / 'map.npz')
+    cloud = read_npz(work / 'cloud.npz')
+    xyz = cloud.xyz[cloud.points['class'] == 1]
+    rng = np.random.default_rng(0)
+    pts = xyz[rng.choice(len(xyz), 500_000)] + rng.normal(0.0, 0.3, (500_000, 3))
+    started = time.perf_counter()
+    res = query_points(fmap.facades, pts, 0.1, fmap.params.extraction.band_back, fmap.params.extraction.band_front)
+    seconds = time.perf_counter() - started
+    return {'stage': f'query {scene_name}', 'items': len(pts), 'unit': 'points', 'seconds': seconds,
+            'note': f'{(res.facade >= 0).mean():.0%} on a façade, {len(fmap.facades)} façades'}
+
+
+STAGES = {'simulate': _simulate, 'build': _build, 'query': _query}
+
+
+def _run(stage: str, work: str, scene: str, queue: mp.Queue) -> None:
+    result = STAGES[stage](Path(work), scene)
+    result['peak_mb'] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    queue.put(result)
+
+
+def run_stage(stage: str, work: Path, scene: str) -> dict:
+    """Run one stage in a fresh process and return its figures."""
+    ctx = mp.get_context('spawn')
+    queue = ctx.Queue()
+    proc = ctx.Process(target=_run, args=(stage, str(work), scene, queue))
+    proc.start()
+    result = queue.get()
+    proc.join()
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Print the benchmark table (and JSON lines with ``--json``)."""
+    parser = argparse.ArgumentParser(prog='python -m uncertain_facade_map_apps.bench', description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument('--scene', default='street', choices=('street', 'small', 'zurich'))
+    parser.add_argument('--json', action='store_true', help='print JSON lines instead of a table')
+    args = parser.parse_args(argv)
+    print(f'# {platform.node()}: {mp.cpu_count()} cores, Python {platform.python_version()}')
+    print(f'{"stage":18s} {"items":>12s} {"seconds":>8s} {"per second":>14s} {"peak MB":>8s}  note')
+    with tempfile.TemporaryDirectory(prefix='ufm-bench-') as work:
+        for stage in STAGES:
+            r = run_stage(stage, Path(work), args.scene)
+            if args.json:
+                print(json.dumps(r))
+                continue
+            rate = r['items'] / r['seconds']
+            print(f'{r["stage"]:18s} {r["items"]:>12,} {r["seconds"]:>8.1f} {rate:>10,.0f} pt/s '
+                  f'{r["peak_mb"]:>8.0f}  {r["note"]}', flush=True)
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,541 @@
+"""The ``uncertain-facade-map`` command line.
+
+Sub-commands:
+    simulate   scan a built-in scene in one or more campaigns and write clouds and bags
+    build      build a façade map from classified point clouds or bags
+    query      answer point queries against a map
+    replay     replay bags into a map (offline) or to a running facade_mapper (publish)
+    plot       draw a map's façades and an overview as PNG figures
+    evaluate   compare the map's occupancy with the baselines' against a reference scan
+
+Every error a user can cause ends in one line on stderr and exit status 2; nothing ends in
+a traceback. Bag formats need ``msg_adapters`` (rosbags), imported only when asked for.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import shutil
+import sys
+import time
+from pathlib import Path
+from typing import Callable, Iterator, Sequence
+
+from uncertain_facade_map.errors import FacadeMapError
+
+PROG = 'uncertain-facade-map'
+CLOUD_FORMATS = ('npz', 'ply')
+BAG_FORMATS = ('sqlite3', 'mcap', 'rosbag1')
+#: Output name of each format after the campaign stem (ROS 2 bags are folders).
+SUFFIXES = {'npz': '.npz', 'ply': '.ply', 'sqlite3': '_sqlite3', 'mcap': '_mcap', 'rosbag1': '.bag'}
+
+
+class CliError(FacadeMapError):
+    """A usage error found after argument parsing."""
+
+
+def _formats(text: str) -> tuple[str, ...]:
+    items = tuple(x.strip() for x in text.split(',') if x.strip())
+    bad = [x for x in items if x not in CLOUD_FORMATS + BAG_FORMATS]
+    if bad or not items:
+        raise argparse.ArgumentTypeError(
+            f'unknown format {", ".join(bad) or "(none)"}; choose from {", ".join(CLOUD_FORMATS + BAG_FORMATS)}')
+    return items
+
+
+def _progress_bar(total: float, desc: str, quiet: bool) -> tuple[Callable[[float], None], Callable[[], None]]:
+    """A tqdm bar over ``total`` units driven by absolute positions; no-ops when quiet."""
+    if quiet:
+        return (lambda _pos: None), (lambda: None)
+    from tqdm import tqdm
+
+    bar = tqdm(total=round(total, 1), desc=desc, unit='s', leave=False, file=sys.stderr,
+               bar_format='{desc}: {percentage:3.0f}%|{bar}| {n:.1f}/{total:.1f} s of drive [{elapsed}<{remaining}]')
+
+    def update(pos: float) -> None:
+        bar.update(round(pos, 1) - bar.n)
+
+    return update, bar.close
+
+
+@contextlib.contextmanager
+def _counter(desc: str, unit: str, quiet: bool, total: int | None = None) -> Iterator[Callable[..., None]]:
+    """A tqdm bar over counted items on stderr, as ``update(done, total=None)``; a no-op when quiet."""
+    if quiet:
+        yield lambda done, total=None: None
+        return
+    from tqdm import tqdm
+
+    bar = tqdm(total=total, desc=desc, unit=unit, leave=False, file=sys.stderr)
+
+    def update(done: int, total: int | None = None) -> None:
+        if total is not None:
+            bar.total = total
+        bar.update(done - bar.n)
+
+    try:
+        yield update
+    finally:
+        bar.close()
+
+
+def _output_path(out: Path, name: str, force: bool) -> Path:
+    path = out / name
+    if path.exists():
+        if not force:
+            raise CliError(f'{path} exists; use --force to replace it')
+        shutil.rmtree(path) if path.is_dir() else path.unlink()
+    return path
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    """Simulate campaigns of a scene and write them (see ``simulate --help``)."""
+    from uncertain_facade_map.io.clouds import write_npz, write_ply
+    from uncertain_facade_map.simulation.campaign import (
+        SCENE_SENSORS,
+        SensorConfig,
+        campaign,
+        drive_duration,
+        simulate_campaign,
+        with_overrides,
+    )
+    from uncertain_facade_map.simulation.export import scene_description, split_scans, write_scene_json
+    from uncertain_facade_map.simulation.scenes import build_scene, zurich_scene
+
+    if args.scene == 'zurich' and args.cityjson:
+        scene = zurich_scene(args.seed, args.cityjson)
+    else:
+        scene = build_scene(args.scene, args.seed)
+    sensor = with_overrides(SCENE_SENSORS.get(scene.name, SensorConfig()), range_noise=args.range_noise,
+                            outlier_share=args.outlier_share, range_max=args.range_max,
+                            angular_step_deg=args.angular_step, scan_rate_hz=args.scan_rate, speed=args.speed)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for index in range(args.campaigns):
+        drive = campaign(scene, index)
+        formats = args.formats if index == 0 else args.reference_formats
+        stem = f'campaign{index}'
+        targets = {fmt: _output_path(out, stem + SUFFIXES[fmt], args.force) for fmt in formats}
+        update, close = _progress_bar(drive_duration(scene, drive, sensor),
+                                      f'{scene.name} campaign {index}', args.quiet)
+        started = time.perf_counter()
+        try:
+            cloud = simulate_campaign(scene, index, sensor, xyz_dtype=args.dtype, progress=update)
+        finally:
+            close()
+        elapsed = time.perf_counter() - started
+        files = {}
+        for fmt, path in targets.items():
+            if fmt == 'npz':
+                write_npz(path, cloud)
+            elif fmt == 'ply':
+                write_ply(path, cloud)
+            else:
+                from msg_adapters.bag_io import write_bag
+
+                write_bag(path, split_scans(cloud, args.scan_period), storage=fmt, topic=args.topic,
+                          frame_id='map', map_origin=tuple(cloud.map_origin))
+            files[fmt] = path.name
+        written.append((drive, len(cloud), files))
+        role = 'mapped' if index == 0 else 'reference'
+        print(f'campaign {index} ({role}): {len(cloud):,} points in {elapsed:.1f} s, lane {drive.lane:+.2f} m'
+              f'{" reversed" if drive.reverse else ""}')
+        for fmt, name in files.items():
+            print(f'  {fmt:8s} {out / name}')
+    scene_json = write_scene_json(out / 'scene.json', scene_description(scene, sensor, written))
+    print(f'scene    {scene_json}  ({len(scene.buildings)} buildings, {len(scene.facades)} façades, seed {scene.seed})')
+    return 0
+
+
+def cmd_build(args: argparse.Namespace) -> int:
+    """Build a map from inputs and save it (see ``build --help``)."""
+    import numpy as np
+
+    from uncertain_facade_map.config import load_config, map_params
+    from uncertain_facade_map.io.inputs import load_inputs, select_building_points
+    from uncertain_facade_map.io.map_file import save_map
+    from uncertain_facade_map.mapping.facade_map import FacadeMap
+
+    config = load_config(args.config)
+    out = Path(args.out)
+    if not out.parent.exists():
+        raise CliError(f'output folder {out.parent} does not exist')
+    started = time.perf_counter()
+    cloud = load_inputs(args.inputs, topic=args.topic)
+    points = select_building_points(cloud, config.input)
+    read_s = time.perf_counter() - started
+    fmap = FacadeMap(map_params(config), points.map_origin)
+    with _counter('buildings', 'building', args.quiet) as update:
+        fmap.add_points(points.xyz, points.building_id, points.sensor_origins, progress=update)
+    build_s = time.perf_counter() - started - read_s
+    save_map(fmap, out)
+    total_s = time.perf_counter() - started
+    stats = [f.stats for f in fmap.facades]
+    print(f'read     {len(cloud):,} points ({len(points):,} building) from {len(args.inputs)} input(s) in {read_s:.1f} s')
+    print(f'mapped   {len(fmap.buildings)} buildings, {len(fmap.facades)} façades in {build_s:.1f} s '
+          f'({len(cloud) / max(build_s, 1e-9):,.0f} points/s)')
+    print(f'gp       {sum(s["training"] for s in stats):,} training points, '
+          f'{sum(s["outliers_removed"] for s in stats):,} removed as outliers')
+    var = np.concatenate([f.surface.var[f.surface.source == 2].ravel() for f in fmap.facades] or [np.empty(0)])
+    if len(var):
+        print(f'surface  median std {np.sqrt(np.median(var)) * 100:.1f} cm where observed')
+    print(f'map      {out} ({out.stat().st_size / 1e6:.1f} MB, {total_s:.1f} s in all)')
+    return 0
+
+
+def cmd_query(args: argparse.Namespace) -> int:
+    """Answer point queries (see ``query --help``)."""
+    import numpy as np
+
+    from uncertain_facade_map.config import load_config
+    from uncertain_facade_map.io.map_file import load_map
+    from uncertain_facade_map.pipeline.step7_queries import query_points
+
+    fmap = load_map(args.map)
+    path = Path(args.points)
+    if not path.exists():
+        raise CliError(f'no such file: {path}')
+    try:
+        xyz = np.load(path, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise CliError(f'{path}: not a .npy array ({exc})') from None
+    if xyz.dtype != np.float64 or xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise CliError(f'{path}: expected a float64 (N, 3) array, got {xyz.dtype} {xyz.shape}')
+    resolution = args.resolution if args.resolution is not None else load_config(args.config).query.resolution
+    started = time.perf_counter()
+    result = query_points(fmap.facades, xyz, resolution, fmap.params.extraction.band_back,
+                          fmap.params.extraction.band_front)
+    seconds = time.perf_counter() - started
+    out = Path(args.out)
+    with open(out, 'wb') as fh:
+        np.savez(fh, **result.as_dict())
+    print(f'queried  {len(xyz):,} points in {seconds:.2f} s ({len(xyz) / max(seconds, 1e-9):,.0f} points/s), '
+          f'{int((result.facade >= 0).sum()):,} on a façade')
+    print(f'answers  {out}')
+    return 0
+
+
+def _read_bags(paths: Sequence[str], topic: str | None):
+    """Scans of the bags in order, their map origin and the topic read; checks the fields."""
+    from msg_adapters.bag_io import list_topics, read_bag
+
+    scans, origin, name = [], None, topic
+    for path in paths:
+        bag = read_bag(path, topic=topic)
+        if not bag.scans:
+            raise CliError(f'{path}: no messages on {bag.topic}')
+        names = bag.scans[0][1].dtype.names or ()
+        missing = [c for c in ('x', 'y', 'z') if c not in names]
+        if missing:
+            topics = ', '.join(f'{t} ({m})' for t, m in list_topics(path).items())
+            raise CliError(f'{path}: the clouds on {bag.topic} have no {", ".join(missing)} field (fields: '
+                           f'{", ".join(names)}); topics: {topics}')
+        scans += bag.scans
+        origin = bag.map_origin if origin is None else origin
+        name = bag.topic
+    return scans, origin, name
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    """Replay bags offline into a map, or publish them to a running node (see ``replay --help``)."""
+    from uncertain_facade_map.config import load_config, map_params
+    from uncertain_facade_map.io.map_file import save_map
+    from uncertain_facade_map.mapping.facade_map import FacadeMap
+    from uncertain_facade_map.mapping.worker import map_scans
+
+    config = load_config(args.config)
+    if args.out and not Path(args.out).parent.exists():
+        raise CliError(f'output folder {Path(args.out).parent} does not exist')
+    scans, origin, topic = _read_bags(args.bags, args.topic)
+    if args.mode == 'publish':
+        from uncertain_facade_map_node.replay import publish_scans, select_window
+
+        window = select_window(scans, args.start, args.duration)
+        span = (window[-1][0] - window[0][0]) / 1e9
+        with _counter('published', 'scan', args.quiet, len(window)) as update:
+            done = publish_scans(window, topic=args.publish_topic, frame_id=config.input.frame_id, rate=args.rate,
+                                 loop=args.loop, reliable=not args.best_effort, progress=update)
+        print(f'published {done["published"]:,} scans of {topic} ({span:.1f} s of recording) on '
+              f'{args.publish_topic} in {done["seconds"]:.1f} s (rate {args.rate:g})')
+        return 0
+    if args.start or args.duration is not None or args.loop:
+        from uncertain_facade_map_node.replay import select_window
+
+        if args.loop:
+            raise CliError('--loop is for --mode publish')
+        scans = select_window(scans, args.start, args.duration)
+    fmap = FacadeMap(map_params(config), origin)
+    with _counter('mapped', 'scan', args.quiet, len(scans)) as update:
+        summary = map_scans(fmap, (points for _, points in scans), config.input, update)
+    print(f'replayed {summary.scans:,} scans of {topic}: {summary.points:,} points, {summary.building_points:,} '
+          f'building, {summary.nonfinite:,} skipped (NaN/Inf)')
+    print(f'mapped   {summary.buildings} buildings, {summary.facades} façades in {summary.seconds:.1f} s '
+          f'({summary.points / max(summary.seconds, 1e-9):,.0f} points/s)')
+    if args.out:
+        save_map(fmap, args.out)
+        print(f'map      {args.out}')
+    return 0
+
+
+def _facade_ids(text: str) -> list[int]:
+    """``0,3,5-7`` -> [0, 3, 5, 6, 7]."""
+    ids: list[int] = []
+    for item in (x.strip() for x in text.split(',')):
+        a, _, b = item.partition('-') if item.find('-') > 0 else (item, '', '')
+        try:
+            first, last = int(a), int(b or a)
+        except ValueError:
+            first, last = 0, -1
+        if last < first:
+            raise CliError(f'--facades takes façade ids like 0,3,5-7, got {text!r}')
+        ids += range(first, last + 1)
+    return ids
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    """Draw a map's façades and an overview (see ``plot --help``)."""
+    from uncertain_facade_map.io.map_file import load_map
+
+    from .plots import DPI_RANGE, output_folder, plot_map, select_facades
+
+    if not DPI_RANGE[0] <= args.dpi <= DPI_RANGE[1]:
+        raise CliError(f'--dpi must be from {DPI_RANGE[0]} to {DPI_RANGE[1]}, got {args.dpi}')
+    ids = None if args.facades is None else _facade_ids(args.facades)
+    fmap = load_map(args.map)
+    ids = select_facades(fmap, ids)
+    output_folder(args.out)
+    if not fmap.facades:
+        print(f'{PROG}: note: {args.map} has no façades; writing only the overview', file=sys.stderr)
+    started = time.perf_counter()
+    with _counter('façades', 'façade', args.quiet, len(ids)) as update:
+        paths = plot_map(fmap, args.out, ids, dpi=args.dpi, progress=update)
+    for path in paths:
+        print(path)
+    if not args.quiet:
+        print(f'plotted  {len(paths) - 1} façades and the overview in {time.perf_counter() - started:.1f} s',
+              file=sys.stderr)
+    return 0
+
+
+def _evaluation_points(cloud, config, what: str, drop_outliers: bool):
+    """(N, 3) building points and their (N, 3) sensor origins of a cloud."""
+    from uncertain_facade_map.io.inputs import select_building_points
+
+    if drop_outliers and 'gt_outlier' in (cloud.points.dtype.names or ()):
+        cloud = cloud.select(cloud.points['gt_outlier'] == 0)
+    points = select_building_points(cloud, config.input)
+    if points.sensor_origins is None:
+        raise CliError(f'the {what} cloud has no origin_x, origin_y, origin_z fields: the evaluation traces rays '
+                       'from the sensor origins')
+    return points.xyz, points.sensor_origins
+
+
+def _float_list(text: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(x) for x in text.split(',') if x.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'expected comma-separated numbers, got {text!r}') from None
+    if not values or not all(v > 0 for v in values):
+        raise argparse.ArgumentTypeError(f'expected positive numbers, got {text!r}')
+    return values
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    """Evaluate every method's occupancy against a reference scan (see ``evaluate --help``)."""
+    from uncertain_facade_map.config import load_config
+    from uncertain_facade_map.evaluation.baselines import METHODS, make_method
+    from uncertain_facade_map.evaluation.occupancy import distance_to_points, evaluate, subset_auc
+    from uncertain_facade_map.evaluation.report import OURS, accurate_label, write_report
+    from uncertain_facade_map.io.inputs import load_inputs
+
+    config = load_config(args.config)
+    methods = [m.strip() for m in args.methods.split(',') if m.strip()]
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown or not methods:
+        raise CliError(f'unknown method {", ".join(unknown) or "(none)"}; choose from {", ".join(METHODS)}')
+    if args.report is not None and not Path(args.report).parent.exists():
+        raise CliError(f'output folder {Path(args.report).parent} does not exist')
+    started = time.perf_counter()
+    if args.scene is not None:
+        if args.clouds:
+            raise CliError('give either --scene or MAPPED REFERENCE, not both')
+        from uncertain_facade_map.simulation.campaign import simulate_campaign
+        from uncertain_facade_map.simulation.scenes import build_scene
+
+        scene = build_scene(args.scene, args.seed)
+        mapped, reference = simulate_campaign(scene, 0), simulate_campaign(scene, 1)
+        what = f'scene {args.scene} (seed {args.seed}): campaign 0 mapped, campaign 1 as reference'
+    else:
+        if len(args.clouds) != 2:
+            raise CliError('give MAPPED and REFERENCE clouds, or --scene')
+        mapped, reference = load_inputs([args.clouds[0]]), load_inputs([args.clouds[1]])
+        what = f'{args.clouds[0]} mapped, {args.clouds[1]} as reference'
+    pts, org = _evaluation_points(mapped, config, 'mapped', drop_outliers=False)
+    ref_pts, ref_org = _evaluation_points(reference, config, 'reference', drop_outliers=True)
+    say = (lambda line: None) if args.quiet else (lambda line: print(line, file=sys.stderr, flush=True))
+    say(f'{what}: {len(pts):,} mapped and {len(ref_pts):,} reference building points')
+    factories = [lambda r, m=m: make_method(m, r) for m in methods]
+    refs, results = evaluate(factories, pts, org, ref_pts, ref_org, args.resolutions, args.rays, args.negatives,
+                             args.seed, progress=say)
+    by = {(r.name, r.resolution): r for r in results}
+    print(f'{"method":<14}' + ''.join(f'  PR AUC {res:<5g}  ROC AUC {res:<5g}  train s  test s'
+                                      for res in args.resolutions))
+    for name in dict.fromkeys(r.name for r in results):
+        print(f'{name:<14}' + ''.join(f'  {by[(name, res)].pr_auc:12.3f}  {by[(name, res)].roc_auc:13.3f}'
+                                      f'  {by[(name, res)].fit_seconds:7.1f}  {by[(name, res)].predict_seconds:6.1f}'
+                                      for res in args.resolutions))
+    for res in args.resolutions:
+        ours = by.get((OURS, res))
+        if ours is not None and ours.variance is not None:
+            auc, share = subset_auc(ours, refs[res], ours.variance <= args.variance_threshold)
+            print(f'{accurate_label(args.variance_threshold)} at {res:g} m: PR AUC {auc:.3f} over {share:.0%} of the voxels')
+    if args.report is not None:
+        distances = {res: distance_to_points(refs[res].centres, pts) for res in args.resolutions}
+        notes = [what, f'{len(pts):,} mapped and {len(ref_pts):,} reference building points '
+                       '(reference points flagged gt_outlier by the simulator left out)',
+                 f'command: uncertain-facade-map evaluate {" ".join(sys.argv[2:]) if len(sys.argv) > 2 else ""}'.rstrip(),
+                 f'{time.perf_counter() - started:.0f} s in all']
+        path = write_report(args.report, refs, results, distances, args.variance_threshold,
+                            'Occupancy evaluation against the baselines', notes)
+        print(f'report   {path}')
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of all sub-commands."""
+    from uncertain_facade_map.evaluation.baselines import METHODS
+
+    parser = argparse.ArgumentParser(prog=PROG, description='Façade maps with calibrated uncertainty.')
+    sub = parser.add_subparsers(dest='command', required=True, metavar='COMMAND')
+
+    sim = sub.add_parser('simulate', help='scan a built-in scene with a simulated mobile-mapping system',
+                         description='Scan a built-in scene (deterministic by seed) in one or more campaigns. '
+                                     'Campaign 0 is the mapped one, the others are the reference.')
+    sim.add_argument('--scene', default='street', choices=('street', 'small', 'zurich'),
+                     help='street: ~1.7 M points, 7 buildings (default); small: < 50 000 points; '
+                          'zurich: real CityJSON footprints')
+    sim.add_argument('--seed', type=int, default=0, help='scene seed (default 0)')
+    sim.add_argument('--campaigns', type=int, default=1, help='number of drives, 1 mapped + references (default 1)')
+    sim.add_argument('--out', default='output/simulation', help='output folder (default output/simulation)')
+    sim.add_argument('--formats', type=_formats, default=('npz', 'ply', 'sqlite3', 'mcap'),
+                     help='formats of the mapped campaign, comma-separated from '
+                          f'{",".join(CLOUD_FORMATS + BAG_FORMATS)} (default npz,ply,sqlite3,mcap)')
+    sim.add_argument('--reference-formats', type=_formats, default=('npz',),
+                     help='formats of the reference campaigns (default npz)')
+    sim.add_argument('--dtype', choices=('f8', 'f4'), default='f8',
+                     help='coordinate type: f8 (float64) or f4 (float32, map frame near the map origin)')
+    sim.add_argument('--scan-period', type=float, default=0.1, help='seconds of data per bag message (default 0.1)')
+    sim.add_argument('--topic', default='/points', help='PointCloud2 topic in bags (default /points)')
+    sim.add_argument('--range-noise', type=float, help='range noise sigma, metres (default 0.02)')
+    sim.add_argument('--outlier-share', type=float, help='share of building returns turned into outliers (default 0.01)')
+    sim.add_argument('--range-max', type=float, help='range limit, metres (default 60)')
+    sim.add_argument('--angular-step', type=float, help='angle between shots, degrees')
+    sim.add_argument('--scan-rate', type=float, help='profiles per second per scanner')
+    sim.add_argument('--speed', type=float, help='driving speed, m/s (default 5)')
+    sim.add_argument('--cityjson', help='CityJSON file for --scene zurich (default: the shared Zurich subset)')
+    sim.add_argument('--force', action='store_true', help='replace existing output files')
+    sim.add_argument('--quiet', action='store_true', help='no progress bar')
+    sim.set_defaults(func=cmd_simulate)
+
+    build = sub.add_parser('build', help='build a façade map from classified point clouds or bags',
+                           description='Build the uncertain façade map from PLY, LAS/LAZ, PCD, NPZ files or ROS bags '
+                                       '(ROS 1 .bag, ROS 2 folders, .db3, .mcap) of PointCloud2. A cloud without the '
+                                       'class field is taken as all building points.')
+    build.add_argument('inputs', nargs='+', metavar='INPUT', help='point clouds or bags')
+    build.add_argument('--out', required=True, metavar='MAP', help='map file to write (.npz)')
+    build.add_argument('--config', metavar='YAML', help='ROS 2 parameter file (default: config/facade_mapper.yaml)')
+    build.add_argument('--topic', help='PointCloud2 topic of bag inputs (default: the only one)')
+    build.add_argument('--quiet', action='store_true', help='no progress bar')
+    build.set_defaults(func=cmd_build)
+
+    query = sub.add_parser('query', help='answer point queries against a map',
+                           description='For each point of P.npy (float64 (N, 3), map frame) write to R.npz: facade '
+                                       '(-1 for none), mean_depth, variance, noise_variance, signed_distance '
+                                       '(positive outside the building) and p_occupied.')
+    query.add_argument('map', metavar='MAP', help='map file from build')
+    query.add_argument('--points', required=True, metavar='P.npy', help='float64 (N, 3) points, map frame')
+    query.add_argument('--out', required=True, metavar='R.npz', help='answers to write')
+    query.add_argument('--resolution', type=float, metavar='R', help='voxel side for p_occupied, metres (default 0.1)')
+    query.add_argument('--config', metavar='YAML', help='ROS 2 parameter file (for the default resolution)')
+    query.set_defaults(func=cmd_query)
+
+    replay = sub.add_parser('replay', help='replay bags into a map (offline) or to a running facade_mapper (publish)',
+                            description='Replay the PointCloud2 scans of ROS 1 (.bag) and ROS 2 (folder, .db3, .mcap) '
+                                        'bags. offline: feed the mapper directly, as fast as it goes, as the node '
+                                        'would (the same map); publish: republish them to a running facade_mapper '
+                                        'with their recorded timing.')
+    replay.add_argument('bags', nargs='+', metavar='BAG', help='bags, replayed one after the other')
+    replay.add_argument('--topic', help='PointCloud2 topic to read (default: the only one)')
+    replay.add_argument('--mode', choices=('offline', 'publish'), default='offline', help='default offline')
+    replay.add_argument('--out', metavar='MAP', help='offline: map file to write')
+    replay.add_argument('--config', metavar='YAML', help='ROS 2 parameter file (default: config/facade_mapper.yaml)')
+    replay.add_argument('--rate', type=float, default=1.0, help='publish: speed factor of the recorded timing')
+    replay.add_argument('--loop', action='store_true', help='publish: start again after the last scan')
+    replay.add_argument('--start', type=float, default=0.0, help='seconds into the recording to start at')
+    replay.add_argument('--duration', type=float, help='seconds of recording to replay (default: all)')
+    replay.add_argument('--publish-topic', default='points', help='publish: topic to publish on (default points)')
+    replay.add_argument('--best-effort', action='store_true', help='publish: best-effort QoS (default reliable)')
+    replay.add_argument('--quiet', action='store_true', help='no progress bar')
+    replay.set_defaults(func=cmd_replay)
+
+    plot = sub.add_parser('plot', help="draw a map's façades and an overview as PNG figures",
+                          description='Write per façade facade_<id>.png (points by GMM layer, GP training points '
+                                      'and outliers, local GP blocks, mean surface, standard deviation, depth '
+                                      'histogram with the GMM) and overview.png (the map from above and in 3D, '
+                                      'coloured by standard deviation); print their paths. A map without façades '
+                                      'gives only the overview.')
+    plot.add_argument('map', metavar='MAP', help='map file from build')
+    plot.add_argument('--out', required=True, metavar='DIR', help='output folder (created if its parent exists)')
+    plot.add_argument('--facades', metavar='IDS', help='façade ids to draw, e.g. 0,3,5-7 (default: all)')
+    plot.add_argument('--dpi', type=int, default=100, help='resolution of the PNG files (default 100)')
+    plot.add_argument('--quiet', action='store_true', help='no progress bar')
+    plot.set_defaults(func=cmd_plot)
+
+    ev = sub.add_parser('evaluate', help="compare the map's occupancy with the baselines' against a reference scan",
+                        description='Map the same points with every method, turn each map into voxel occupancy '
+                                    'probabilities and score them against a reference scan: positives are voxels '
+                                    'holding reference points, negatives voxels its rays passed through. Prints PR '
+                                    'and ROC AUC and training/testing times per method and resolution, and the '
+                                    'accurate-inference AUC of our map; --report writes report.md with figures.')
+    ev.add_argument('clouds', nargs='*', metavar='CLOUD', help='MAPPED and REFERENCE clouds (with origin_x/y/z)')
+    ev.add_argument('--scene', choices=('street', 'small', 'zurich'),
+                    help='simulate this scene instead: campaign 0 mapped, campaign 1 as reference')
+    ev.add_argument('--seed', type=int, default=0, help='scene seed and seed of the voxel subsets (default 0)')
+    ev.add_argument('--methods', default=','.join(METHODS),
+                    help=f'comma-separated from {",".join(METHODS)} (default: all)')
+    ev.add_argument('--resolutions', type=_float_list, default=(0.1, 0.05), help='voxel sides, metres (default 0.1,0.05)')
+    ev.add_argument('--variance-threshold', type=float, default=0.01,
+                    help='accurate inference: voxels with a variance at most this, m^2 (default 0.01)')
+    ev.add_argument('--rays', type=int, default=50_000, help='reference rays traced (default 50000)')
+    ev.add_argument('--negatives', type=int, default=400_000,
+                    help='free voxels kept at most, a weighted subset (default 400000)')
+    ev.add_argument('--report', metavar='DIR', help='write DIR/report.md and its figures')
+    ev.add_argument('--config', metavar='YAML', help='ROS 2 parameter file (input section)')
+    ev.add_argument('--quiet', action='store_true', help='no progress lines')
+    ev.set_defaults(func=cmd_evaluate)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line; returns the exit status (0 ok, 2 bad input, 1 I/O failure)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if getattr(args, 'campaigns', 1) < 1:
+        parser.error('--campaigns must be at least 1')
+    try:
+        return int(args.func(args))
+    except FacadeMapError as exc:
+        print(f'{PROG}: error: {exc}', file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f'{PROG}: error: {exc.strerror or exc}{f": {exc.filename}" if exc.filename else ""}', file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f'{PROG}: interrupted', file=sys.stderr)
+        return 130
+
+
+if __name__ == '__main__':
+    sys.exit(main())
