@@ -2,6 +2,8 @@
 
 - :data:`REPO`: the repository's root;
 - :func:`assert_same_maps`: two map files hold the same map, bit for bit;
+- :func:`edge_cases`, :func:`assignments`: every parameter's advertised range ends, and one
+  value beyond each, as the node and the command line must take or refuse them;
 - a seeded synthetic scene with known truth for the baseline tests: a flat wall scanned
   from a straight drive (:func:`wall_scan`), and voxels labelled by the truth, on the wall
   or in the free space in front of it (:func:`labelled_voxels`).
@@ -10,9 +12,12 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
+
+from uncertain_facade_map.params import Config, parameters
 
 #: The repository's root folder.
 REPO = Path(__file__).resolve().parents[1]
@@ -69,3 +74,44 @@ def assert_same_maps(path_a, path_b):
         for f in meta['facades']:
             f['stats'].pop('seconds', None)
     assert meta_a == meta_b
+
+
+def _outside(value: float, kind: type, up: bool) -> float:
+    """The next value of type ``kind`` beyond ``value`` (above if ``up``)."""
+    if kind is int:
+        return value + (1 if up else -1)
+    return math.nextafter(value, math.inf if up else -math.inf)
+
+
+def edge_cases() -> list[tuple[str, object, bool, tuple[str, ...]]]:
+    """(parameter, value, accepted?, relation partners) for both ends of every advertised range."""
+    cases = []
+    for info in parameters():
+        bounds = info.closed_range()
+        if bounds is None:
+            continue
+        partners = tuple(n for rel in info.relations for n in _relation_names(info.name, rel))
+        for end, up in ((bounds[0], False), (bounds[1], True)):
+            value = info.type(end)
+            cases.append((info.name, value, True, partners))
+            beyond = _outside(value, info.type, up)
+            if abs(beyond) < 1e308:
+                cases.append((info.name, beyond, False, partners))
+    return cases
+
+
+def _relation_names(name: str, text: str) -> list[str]:
+    section = name.split('.')[0]
+    for rel in type(getattr(Config(), section)).relations:
+        if rel.text == text:
+            return [f'{section}.{n}' for n in rel.names]
+    return []
+
+
+def assignments(name: str, value: object, partners: tuple[str, ...]) -> list[dict]:
+    """The value alone, then (if a relation with the others' defaults forbids it) with its
+    relation partners at the same value."""
+    out = [{name: value}]
+    if partners:
+        out.append({n: value for n in partners})
+    return out

@@ -39,11 +39,11 @@ def _simulate(work: Path, scene_name: str) -> dict:
 
 
 def _build(work: Path, scene_name: str) -> dict:
-    from uncertain_facade_map.config import Config
     from uncertain_facade_map.io.clouds import read_npz
     from uncertain_facade_map.io.inputs import select_building_points
     from uncertain_facade_map.io.map_file import save_map
-    from uncertain_facade_map.mapping.facade_map import FacadeMap, MapParams
+    from uncertain_facade_map.mapping.facade_map import FacadeMap
+    from uncertain_facade_map.params import Config, MapParams
 
     cloud = read_npz(work / 'cloud.npz')
     started = time.perf_counter()

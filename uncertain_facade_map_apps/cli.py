@@ -153,10 +153,11 @@ def cmd_build(args: argparse.Namespace) -> int:
     """Build a map from inputs and save it (see ``build --help``)."""
     import numpy as np
 
-    from uncertain_facade_map.config import load_config, map_params
     from uncertain_facade_map.io.inputs import load_inputs, select_building_points
     from uncertain_facade_map.io.map_file import save_map
+    from uncertain_facade_map.io.parameter_file import load_config
     from uncertain_facade_map.mapping.facade_map import FacadeMap
+    from uncertain_facade_map.params import map_params
 
     config = load_config(args.config)
     out = Path(args.out)
@@ -189,8 +190,8 @@ def cmd_query(args: argparse.Namespace) -> int:
     """Answer point queries (see ``query --help``)."""
     import numpy as np
 
-    from uncertain_facade_map.config import load_config
     from uncertain_facade_map.io.map_file import load_map
+    from uncertain_facade_map.io.parameter_file import load_config
     from uncertain_facade_map.pipeline.step7_queries import query_points
 
     fmap = load_map(args.map)
@@ -240,10 +241,11 @@ def _read_bags(paths: Sequence[str], topic: str | None):
 
 def cmd_replay(args: argparse.Namespace) -> int:
     """Replay bags offline into a map, or publish them to a running node (see ``replay --help``)."""
-    from uncertain_facade_map.config import load_config, map_params
     from uncertain_facade_map.io.map_file import save_map
+    from uncertain_facade_map.io.parameter_file import load_config
     from uncertain_facade_map.mapping.facade_map import FacadeMap
     from uncertain_facade_map.mapping.worker import map_scans
+    from uncertain_facade_map.params import map_params
 
     config = load_config(args.config)
     if args.out and not Path(args.out).parent.exists():
@@ -344,11 +346,11 @@ def _float_list(text: str) -> tuple[float, ...]:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     """Evaluate every method's occupancy against a reference scan (see ``evaluate --help``)."""
-    from uncertain_facade_map.config import load_config
     from uncertain_facade_map.evaluation.baselines import METHODS, make_method
     from uncertain_facade_map.evaluation.occupancy import distance_to_points, evaluate, subset_auc
     from uncertain_facade_map.evaluation.report import OURS, accurate_label, write_report
     from uncertain_facade_map.io.inputs import load_inputs
+    from uncertain_facade_map.io.parameter_file import load_config
 
     config = load_config(args.config)
     methods = [m.strip() for m in args.methods.split(',') if m.strip()]

@@ -29,7 +29,8 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def _config_file(out: Path) -> Path:
     """The demo's parameter file: the defaults, a reliable input and a queue the whole drive fits in."""
-    from uncertain_facade_map.config import Config, dump_config
+    from uncertain_facade_map.io.parameter_file import dump_config
+    from uncertain_facade_map.params import Config
 
     config = Config()
     # Maps are published every 20 s: drawing the street's maps takes seconds the mapping needs.

@@ -46,8 +46,9 @@ import numpy as np
 from uncertain_facade_map.datatypes import SOURCE_GP, FacadeModel, SurfaceRaster
 from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.mapping.facade_map import FacadeMap
+from uncertain_facade_map.params import GPParams
 from uncertain_facade_map.pipeline.step3_training import select_training
-from uncertain_facade_map.pipeline.step4_gp_blocks import GPParams, block_codes, block_size
+from uncertain_facade_map.pipeline.step4_gp_blocks import block_codes, block_size
 
 #: Points drawn per scatter panel at most (a seeded random subset beyond).
 MAX_POINTS = 50_000

@@ -35,8 +35,8 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TransformStamped
 from nav_msgs.msg import OccupancyGrid
 from nav_msgs.srv import GetMap
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import PointCloud2
@@ -45,7 +45,7 @@ from visualization_msgs.msg import MarkerArray
 
 import msg_adapters as ma
 from msg_adapters import map_messages as mm
-from uncertain_facade_map.config import Config, config_from_parameters, map_params, parameter_items
+from msg_adapters import parameters as mp_params
 from uncertain_facade_map.errors import FacadeMapError, InputError
 from uncertain_facade_map.io.inputs import select_scan_points
 from uncertain_facade_map.io.map_file import load_map, save_map
@@ -53,6 +53,12 @@ from uncertain_facade_map.mapping import products as mp
 from uncertain_facade_map.mapping.facade_map import FacadeMap
 from uncertain_facade_map.mapping.worker import Cloud, MapSnapshot, MapWorker, ReplaceMap
 from uncertain_facade_map.msg import FacadeGridArray
+from uncertain_facade_map.params import (
+    Config,
+    config_from_parameters,
+    map_params,
+    parameters,
+)
 from uncertain_facade_map.pipeline.step7_queries import query_points
 from uncertain_facade_map.srv import GetFacades, LoadMap, QueryPoints, SaveMap
 
@@ -61,20 +67,29 @@ NODE_NAME = 'facade_mapper'
 COMMAND_TIMEOUT = 120.0
 
 
-def _descriptor(name: str, value: Any, description: str, bounds: tuple) -> Any:
-    """A read-only ParameterDescriptor with the description and range of a config field."""
-    d = ParameterDescriptor(name=name, description=description, read_only=True)
-    lo, hi = bounds
-    if lo is not None or hi is not None:
-        if isinstance(value, bool):
-            pass
-        elif isinstance(value, int):
-            d.integer_range = [IntegerRange(from_value=int(lo if lo is not None else -2**63),
-                                            to_value=int(hi if hi is not None else 2**63 - 1), step=0)]
-        elif isinstance(value, float):
-            d.floating_point_range = [FloatingPointRange(from_value=float(lo if lo is not None else -1e300),
-                                                         to_value=float(hi if hi is not None else 1e300), step=0.0)]
-    return d
+def declare_config(node: Any) -> Config:
+    """Declare every parameter on ``node`` (read-only, with its descriptor) and read the configuration.
+
+    The node's parameter path: each parameter's default, description, unit, range and
+    relations come from its declaration (:mod:`uncertain_facade_map.params`); rclpy checks
+    the advertised range of a ``-p`` or parameter-file override, then the declarations
+    check everything (open ends, relations).
+
+    Raises:
+        InputError: a parameter of the wrong type, out of its range or breaking a relation,
+            with a message naming it.
+    """
+    types = mp_params.rclpy_parameter_types()
+    values = {}
+    for info in parameters():
+        default = list(info.value) if info.is_list else info.value
+        try:
+            node.declare_parameter(info.name, default, mp_params.parameter_descriptor(info, types))
+        except ParameterException as exc:
+            raise InputError(f'parameter {info.name}: {" ".join(str(exc).split())} '
+                             f'(allowed: {info.spec.constraint_text() or "any " + info.type.__name__})') from exc
+        values[info.name] = mp_params.parameter_value(node.get_parameter(info.name).value)
+    return config_from_parameters(values)
 
 
 def _stamp_ns(header: Any) -> int:
@@ -144,14 +159,8 @@ class FacadeMapperNode(Node):
 
     # -- set-up ---------------------------------------------------------------------
     def _read_parameters(self) -> Config:
-        values = {}
-        for name, value, description, bounds in parameter_items():
-            default = list(value) if isinstance(value, tuple) else value
-            self.declare_parameter(name, default, _descriptor(name, value, description, bounds))
-            values[name] = self.get_parameter(name).value
         try:
-            return config_from_parameters({k: tuple(v) if hasattr(v, '__len__') and not isinstance(v, str)
-                                           else v for k, v in values.items()})
+            return declare_config(self)
         except InputError as exc:
             self.get_logger().fatal(f'bad parameters: {exc}')
             raise

@@ -10,11 +10,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from uncertain_facade_map.config import InputConfig
 from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.io.cloud import Cloud
 from uncertain_facade_map.io.clouds import LAS_SCALE, write_cloud, write_npz, write_pcd, write_ply
 from uncertain_facade_map.io.inputs import BuildingPoints, load_inputs, read_input, select_building_points
+from uncertain_facade_map.params import InputConfig
 
 SETTINGS = settings(max_examples=60, deadline=None,
                     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])

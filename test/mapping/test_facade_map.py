@@ -9,7 +9,8 @@ import pytest
 
 from uncertain_facade_map.datatypes import SOURCE_GP
 from uncertain_facade_map.evaluation.surface import evaluate_surface, outlier_removal
-from uncertain_facade_map.mapping.facade_map import MapParams, build_map
+from uncertain_facade_map.mapping.facade_map import build_map
+from uncertain_facade_map.params import MapParams
 
 
 @pytest.fixture(scope='module')

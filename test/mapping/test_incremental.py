@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from support import assert_same_maps
 
-from uncertain_facade_map.config import MapParams, UpdateParams
 from uncertain_facade_map.evaluation.surface import evaluate_surface
 from uncertain_facade_map.io.map_file import load_map, save_map
 from uncertain_facade_map.mapping.facade_map import FacadeMap, build_map
+from uncertain_facade_map.params import MapParams, UpdateParams
 
 
 @pytest.fixture(scope='module')

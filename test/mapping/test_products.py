@@ -17,8 +17,9 @@ import pytest
 import uncertain_facade_map.mapping.products as products
 from uncertain_facade_map.datatypes import ExtractedFacade, FacadeFrame
 from uncertain_facade_map.errors import InputError
-from uncertain_facade_map.mapping.facade_map import MapParams, build_map
+from uncertain_facade_map.mapping.facade_map import build_map
 from uncertain_facade_map.mapping.products import height_band_grid, surface_grid, surface_mesh, voxel_occupancy
+from uncertain_facade_map.params import MapParams
 from uncertain_facade_map.pipeline.step6_surface import fit_facade
 from uncertain_facade_map.pipeline.step7_queries import query_points, surface_at
 

@@ -6,9 +6,9 @@ import time
 import numpy as np
 import pytest
 
-from uncertain_facade_map.config import MapParams, UpdateParams
 from uncertain_facade_map.mapping.facade_map import FacadeMap
 from uncertain_facade_map.mapping.worker import Cloud, MapWorker, ReplaceMap
+from uncertain_facade_map.params import MapParams, UpdateParams
 
 
 def wall(n=400, seed=0, u0=0.0):

@@ -28,10 +28,15 @@ rclpy = pytest.importorskip('rclpy')
 pytest.importorskip('uncertain_facade_map.srv')
 
 import msg_adapters as ma  # noqa: E402
-from uncertain_facade_map.config import Config, InputConfig, dump_config, map_params  # noqa: E402
 from uncertain_facade_map.io.map_file import load_map  # noqa: E402
+from uncertain_facade_map.io.parameter_file import dump_config
 from uncertain_facade_map.mapping.facade_map import FacadeMap  # noqa: E402
 from uncertain_facade_map.mapping.worker import map_scans  # noqa: E402
+from uncertain_facade_map.params import (
+    Config,
+    InputConfig,
+    map_params,  # noqa: E402  # FIXME
+)
 from uncertain_facade_map.pipeline.step7_queries import query_points  # noqa: E402
 from uncertain_facade_map.simulation.export import split_scans  # noqa: E402
 

@@ -13,10 +13,11 @@ import pytest
 from support import assert_same_maps
 
 from msg_adapters.bag_io import write_bag
-from uncertain_facade_map.config import Config, UpdateParams, dump_config, map_params
 from uncertain_facade_map.io.map_file import load_map, save_map
+from uncertain_facade_map.io.parameter_file import dump_config
 from uncertain_facade_map.mapping.facade_map import FacadeMap
 from uncertain_facade_map.mapping.worker import map_scans
+from uncertain_facade_map.params import Config, UpdateParams, map_params
 from uncertain_facade_map.simulation.export import split_scans
 from uncertain_facade_map_apps.cli import main
 
@@ -42,7 +43,7 @@ def recording(tmp_path_factory, scenes):
 
 
 def offline_core(scans, map_origin, params):
-    from uncertain_facade_map.config import load_config
+    from uncertain_facade_map.io.parameter_file import load_config
 
     config = load_config(params)
     fmap = FacadeMap(map_params(config), map_origin)

@@ -17,8 +17,8 @@ import pytest
 from uncertain_facade_map.datatypes import ExtractedFacade, FacadeFrame
 from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.io.cloud import CLASS_BUILDING
+from uncertain_facade_map.params import ExtractionParams
 from uncertain_facade_map.pipeline.step1_facades import (
-    ExtractionParams,
     assign_to_facades,
     extract_facades,
     point_normals,

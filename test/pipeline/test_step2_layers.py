@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from uncertain_facade_map.pipeline.step2_layers import LayerParams, count_peaks, find_facets, fit_layers
+from uncertain_facade_map.params import LayerParams
+from uncertain_facade_map.pipeline.step2_layers import count_peaks, find_facets, fit_layers
 
 
 def three_layer_depths(rng, n=30000):

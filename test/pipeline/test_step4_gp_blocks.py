@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from scipy.optimize import approx_fprime
 
+from uncertain_facade_map.params import GPParams
 from uncertain_facade_map.pipeline.step4_gp_blocks import (
     BlockData,
-    GPParams,
     block_codes,
     block_size,
     fit_surface,

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from uncertain_facade_map.errors import InputError
-from uncertain_facade_map.pipeline.step5_outliers import OutlierParams, chi2_threshold, flag_outliers
+from uncertain_facade_map.params import OutlierParams
+from uncertain_facade_map.pipeline.step5_outliers import chi2_threshold, flag_outliers
 
 
 def test_threshold_is_the_chi2_quantile():

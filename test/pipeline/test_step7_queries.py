@@ -5,7 +5,7 @@ import pytest
 
 from uncertain_facade_map.datatypes import ExtractedFacade, FacadeFrame
 from uncertain_facade_map.errors import InputError
-from uncertain_facade_map.mapping.facade_map import MapParams
+from uncertain_facade_map.params import MapParams
 from uncertain_facade_map.pipeline.step6_surface import fit_facade
 from uncertain_facade_map.pipeline.step7_queries import query_points, surface_at
 

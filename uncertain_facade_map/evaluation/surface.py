@@ -196,7 +196,8 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
     import time
 
-    from ..mapping.facade_map import FacadeMap, MapParams
+    from ..mapping.facade_map import FacadeMap
+    from ..params import MapParams
     from ..simulation.campaign import simulate_campaign
     from ..simulation.scenes import build_scene
 

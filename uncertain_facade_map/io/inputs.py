@@ -21,8 +21,8 @@ from typing import Sequence
 
 import numpy as np
 
-from ..config import InputConfig
 from ..errors import InputError
+from ..params import InputConfig
 from .cloud import COORDINATE_FIELDS, Cloud
 from .clouds import SUPPORTED_SUFFIXES, read_cloud
 

@@ -22,7 +22,6 @@ Saving is atomic: the file is written next to the target and renamed over it.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import tempfile
@@ -32,36 +31,15 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..config import MapParams, UpdateParams
 from ..datatypes import DepthLayers, FacadeFrame, FacadeModel, Facets, SurfaceRaster
 from ..errors import InputError
 from ..mapping.facade_map import FacadeMap
-from ..pipeline.step1_facades import ExtractionParams
-from ..pipeline.step2_layers import LayerParams
-from ..pipeline.step4_gp_blocks import GPParams
-from ..pipeline.step5_outliers import OutlierParams
+from ..params import map_params_from_record, map_params_record
 
 FORMAT = 'uncertain_facade_map.map'
 VERSION = 2
 #: Upgrades of older files: version -> function(meta, arrays) returning the next version's.
 MIGRATIONS: dict[int, Callable[[dict, dict], tuple[dict, dict]]] = {}
-
-
-def _params_to_dict(params: MapParams) -> dict:
-    return dataclasses.asdict(params)
-
-
-def _params_from_dict(data: dict) -> MapParams:
-    def build(cls, values):
-        names = {f.name for f in dataclasses.fields(cls)}
-        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items() if k in names})
-
-    return MapParams(extraction=build(ExtractionParams, data.get('extraction', {})),
-                     layers=build(LayerParams, data.get('layers', {})),
-                     gp=build(GPParams, data.get('gp', {})),
-                     outliers=build(OutlierParams, data.get('outliers', {})),
-                     update=build(UpdateParams, data.get('update', {})),
-                     seed=int(data.get('seed', 0)))
 
 
 def _facade_arrays(f: FacadeModel) -> dict[str, np.ndarray]:
@@ -101,7 +79,7 @@ def save_map(fmap: FacadeMap, path: str | Path) -> Path:
         'format': FORMAT,
         'version': VERSION,
         'map_origin': fmap.map_origin.tolist(),
-        'params': _params_to_dict(fmap.params),
+        'params': map_params_record(fmap.params),
         'buildings': [int(b) for b in fmap.buildings],
         'facades': [{'facade_id': f.facade_id, 'building': f.building, 'main_layer': f.layers.main_,
                      'facet_cell': f.facets.cell, 'surface_cell': f.surface.cell,
@@ -176,12 +154,14 @@ def load_map(path: str | Path) -> FacadeMap:
         version = meta['version']
     try:
         return _from_records(meta, arrays)
+    except InputError as exc:  # a parameter record that the declarations refuse
+        raise InputError(f'{path}: {exc}') from exc
     except (KeyError, ValueError, TypeError, IndexError) as exc:
         raise InputError(f'{path}: damaged map file ({type(exc).__name__}: {exc})') from None
 
 
 def _from_records(meta: dict, arrays: dict[str, np.ndarray]) -> FacadeMap:
-    params = _params_from_dict(meta['params'])
+    params = map_params_from_record(meta['params'])
     facades = []
     for info in meta['facades']:
         p = f'facade/{info["facade_id"]}/'

@@ -30,9 +30,9 @@ from typing import Callable
 
 import numpy as np
 
-from ..config import MapParams
 from ..datatypes import ExtractedFacade, FacadeFrame, FacadeModel
 from ..errors import InputError
+from ..params import MapParams
 from ..pipeline.step1_facades import (
     _final_frame,
     _grid_components,

@@ -61,7 +61,7 @@ from scipy.ndimage import maximum_filter, minimum_filter
 
 from ..datatypes import FacadeFrame, FacadeModel, SurfaceRaster
 from ..errors import InputError
-from ..pipeline.step1_facades import ExtractionParams
+from ..params import ExtractionParams
 from ..pipeline.step7_queries import query_points, surface_at
 
 #: Defaults of the query band, as the map's extraction parameters have them.

@@ -98,6 +98,7 @@ from scipy.spatial import cKDTree
 
 from ..datatypes import ExtractedFacade, FacadeFrame
 from ..errors import InputError
+from ..params import ExtractionParams
 
 #: Points on which all hypotheses are scored before the best few are scored on the pool.
 _PREEMPTIVE_POINTS = 2000
@@ -122,66 +123,6 @@ _REFINE_PASSES = 3
 _NORMAL_CHUNK = 200_000
 #: Largest dense occupancy grid of :func:`split_buildings`; larger clouds use a sparse graph.
 _MAX_DENSE_CELLS = 20_000_000
-
-
-@dataclass(frozen=True)
-class ExtractionParams:
-    """Parameters of the façade extraction (lengths in metres, angles in degrees).
-
-    Attributes:
-        ransac_threshold: inlier distance of plane hypotheses, m.
-        ransac_iterations: hypotheses per RANSAC round.
-        ransac_sample: points drawn per building for hypothesis scoring.
-        min_facade_points: a plane with fewer allocated points is no façade.
-        max_facades: most planes per building.
-        max_tilt_deg: planes tilted more than this from vertical (roofs, balcony
-            undersides) are no façades.
-        merge_angle_deg: parallel planes within this angle ...
-        merge_offset: ... and closer than this (m) are one façade.
-        band_front: distance in front of the plane (outwards) still allocated to it, m
-            (balconies, oriels, clutter).
-        band_back: distance behind the plane still allocated to it, m (recesses).
-        extent_margin: margin around a façade's (u, v) extent for allocation, m.
-        normal_neighbours: k of the per-point normal estimate (the point included).
-        building_cell: grid cell of the clustering of points without building ids, m.
-
-    Raises:
-        InputError: a parameter is out of range.
-    """
-
-    ransac_threshold: float = 0.08
-    ransac_iterations: int = 400
-    ransac_sample: int = 30000
-    min_facade_points: int = 300
-    max_facades: int = 20
-    max_tilt_deg: float = 45.0
-    merge_angle_deg: float = 10.0
-    merge_offset: float = 2.0
-    band_front: float = 2.0
-    band_back: float = 1.0
-    extent_margin: float = 1.0
-    normal_neighbours: int = 10
-    building_cell: float = 0.5
-
-    def __post_init__(self) -> None:
-        checks = [
-            (self.ransac_threshold > 0, 'ransac_threshold must be > 0'),
-            (self.ransac_iterations >= 1, 'ransac_iterations must be >= 1'),
-            (self.ransac_sample >= 3, 'ransac_sample must be >= 3'),
-            (self.min_facade_points >= 3, 'min_facade_points must be >= 3'),
-            (self.max_facades >= 1, 'max_facades must be >= 1'),
-            (0 <= self.max_tilt_deg < 90, 'max_tilt_deg must be in [0, 90)'),
-            (0 <= self.merge_angle_deg < 90, 'merge_angle_deg must be in [0, 90)'),
-            (self.merge_offset >= 0, 'merge_offset must be >= 0'),
-            (self.band_front >= 0 and self.band_back >= 0, 'band_front and band_back must be >= 0'),
-            (self.band_front + self.band_back > 0, 'the band (band_front + band_back) must be wider than 0'),
-            (self.extent_margin >= 0, 'extent_margin must be >= 0'),
-            (self.normal_neighbours >= 3, 'normal_neighbours must be >= 3'),
-            (self.building_cell > 0, 'building_cell must be > 0'),
-        ]
-        for ok, message in checks:
-            if not ok:
-                raise InputError(f'extraction: {message}')
 
 
 # ----------------------------------------------------------------------------------------

@@ -22,8 +22,6 @@ neighbours' majority before facets are formed.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 from scipy import ndimage
 from scipy.signal import find_peaks
@@ -31,44 +29,7 @@ from sklearn.mixture import GaussianMixture
 
 from ..datatypes import DepthLayers, Facets
 from ..errors import InputError
-
-
-@dataclass(frozen=True)
-class LayerParams:
-    """Parameters of the depth layers and facets.
-
-    Attributes:
-        histogram_bin: bin width of the depth histogram, metres.
-        min_peak_share: a histogram peak needs this share of the façade's points nearby.
-        max_layers: upper bound on K.
-        gmm_sample: EM is fitted on at most this many depths.
-        facet_cell: raster cell of the facets, metres.
-        fill_distance: empty cells this close to a voted cell join its facet, metres.
-        min_facet_cells: a connected region with fewer voted cells than this is no facet (a
-            lone outlier or a stray vote); its cells join the nearest real facet within
-            fill_distance.
-    """
-
-    histogram_bin: float = 0.01
-    min_peak_share: float = 0.01
-    max_layers: int = 8
-    gmm_sample: int = 20000
-    facet_cell: float = 0.10
-    fill_distance: float = 0.30
-    min_facet_cells: int = 2
-
-    def __post_init__(self) -> None:
-        for name in ('histogram_bin', 'facet_cell'):
-            if not getattr(self, name) > 0:
-                raise InputError(f'layers.{name} must be > 0, got {getattr(self, name)}')
-        if not 0 <= self.min_peak_share < 1:
-            raise InputError(f'layers.min_peak_share must be in [0, 1), got {self.min_peak_share}')
-        if self.max_layers < 1 or self.gmm_sample < 10:
-            raise InputError('layers.max_layers must be >= 1 and layers.gmm_sample >= 10')
-        if self.fill_distance < 0:
-            raise InputError(f'layers.fill_distance must be >= 0, got {self.fill_distance}')
-        if self.min_facet_cells < 1:
-            raise InputError(f'layers.min_facet_cells must be >= 1, got {self.min_facet_cells}')
+from ..params import LayerParams
 
 
 def count_peaks(depth: np.ndarray, params: LayerParams) -> np.ndarray:

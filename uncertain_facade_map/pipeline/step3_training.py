@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from uncertain_facade_map.datatypes import DepthLayers
-from uncertain_facade_map.pipeline.step4_gp_blocks import GPParams, _ranks, block_codes
+from ..datatypes import DepthLayers
+from ..params import GPParams
+from .step4_gp_blocks import _ranks, block_codes
 
 
 def select_training(depth: np.ndarray, normal_cos: np.ndarray, layer: np.ndarray, layers: DepthLayers,

@@ -33,68 +33,9 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 from scipy.optimize import minimize
 
+from ..params import GPParams
+
 LOG_2PI = float(np.log(2.0 * np.pi))
-
-
-@dataclass(frozen=True)
-class GPParams:
-    """Local GP parameters (paper defaults where the paper gives them).
-
-    Attributes:
-        noise_sigma: sigma_eta, metres (paper: 0.02).
-        initial_lengthscale2: initial 1/b_1 = 1/b_2, m^2 (paper: 0.0025).
-        lengthscale2_min: lower bound of 1/b_m in the optimisation, m^2.
-        lengthscale2_max: upper bound of 1/b_m in the optimisation, m^2.
-        c_min: covariance threshold that sets the block size (paper: 1e-4).
-        alpha_z_deg: a point whose normal deviates more than this from the façade
-            normal is a training point (paper eq. 8: 25 degrees).
-        inlier_sigmas: a point further than this many sigma_k from its layer is a training
-            point (paper eq. 7: 1.96).
-        max_planar_sigma: spread of a planar layer at most; a wider layer (a slope, a round
-            bay, merged recesses) leaves only the points within inlier_sigmas of this to the
-            plane, the rest are training points, metres.
-        optimise: fit b_1, b_2 by maximum marginal likelihood (else keep the initial value).
-        opt_points: size of the optimisation subset.
-        opt_patch: side of the square patches the subset is drawn from, metres.
-        max_block_points: at most this many training points per extended block (a
-            random subset beyond); bounds the cost of a block.
-        planar_per_block: planar points (not selected by eqs. 7 and 8) added to the
-            training points per block, so that the variance shrinks where the plane was
-            observed; 0 reproduces the paper.
-        grid_resolution: cell of the raster the surface is predicted on, metres.
-    """
-
-    noise_sigma: float = 0.02
-    initial_lengthscale2: float = 0.0025
-    lengthscale2_min: float = 0.0025
-    lengthscale2_max: float = 0.04
-    c_min: float = 1e-4
-    alpha_z_deg: float = 25.0
-    inlier_sigmas: float = 1.96
-    max_planar_sigma: float = 0.035
-    optimise: bool = True
-    opt_points: int = 150
-    opt_patch: float = 1.0
-    max_block_points: int = 64
-    planar_per_block: int = 0
-    grid_resolution: float = 0.1
-
-    def __post_init__(self) -> None:
-        from ..errors import InputError
-
-        positive = ('noise_sigma', 'initial_lengthscale2', 'lengthscale2_min', 'lengthscale2_max', 'opt_patch',
-                    'grid_resolution')
-        for name in positive:
-            if not getattr(self, name) > 0:
-                raise InputError(f'gp.{name} must be > 0, got {getattr(self, name)}')
-        if not self.lengthscale2_min <= self.initial_lengthscale2 <= self.lengthscale2_max:
-            raise InputError('gp: need lengthscale2_min <= initial_lengthscale2 <= lengthscale2_max')
-        if not 0 < self.c_min < 1:
-            raise InputError(f'gp.c_min must be in (0, 1), got {self.c_min}')
-        if not 0 <= self.alpha_z_deg <= 90 or self.inlier_sigmas <= 0:
-            raise InputError('gp: alpha_z_deg must be in [0, 90] and inlier_sigmas > 0')
-        if self.max_block_points < 1 or self.planar_per_block < 0 or self.opt_points < 10:
-            raise InputError('gp: need max_block_points >= 1, planar_per_block >= 0, opt_points >= 10')
 
 
 def kernel(xa: np.ndarray, xb: np.ndarray, sigma_p: np.ndarray | float, lengthscale2: np.ndarray) -> np.ndarray:

@@ -17,31 +17,8 @@ v_i^2 > chi2.ppf(1 - alpha, 1); a larger alpha removes more points, as in the pa
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 from scipy.stats import chi2
-
-from ..errors import InputError
-
-
-@dataclass(frozen=True)
-class OutlierParams:
-    """Outlier test settings.
-
-    Attributes:
-        alpha: significance level of the chi-squared test (1 degree of freedom).
-        iterations: train-test-remove rounds before the final training (paper: 1).
-    """
-
-    alpha: float = 0.01
-    iterations: int = 1
-
-    def __post_init__(self) -> None:
-        if not 0.0 < self.alpha < 1.0:
-            raise InputError(f'outliers.alpha must be in (0, 1), got {self.alpha}')
-        if self.iterations < 0:
-            raise InputError(f'outliers.iterations must be >= 0, got {self.iterations}')
 
 
 def chi2_threshold(alpha: float) -> float:

@@ -16,8 +16,7 @@ import time
 import numpy as np
 from scipy import ndimage
 
-from uncertain_facade_map.config import MapParams
-from uncertain_facade_map.datatypes import (
+from ..datatypes import (
     SOURCE_FACET_PRIOR,
     SOURCE_GLOBAL,
     SOURCE_GP,
@@ -25,10 +24,11 @@ from uncertain_facade_map.datatypes import (
     FacadeModel,
     SurfaceRaster,
 )
-from uncertain_facade_map.errors import InputError
-from uncertain_facade_map.pipeline.step2_layers import find_facets, fit_layers
-from uncertain_facade_map.pipeline.step3_training import _thin_planar, select_training
-from uncertain_facade_map.pipeline.step4_gp_blocks import (
+from ..errors import InputError
+from ..params import MapParams
+from .step2_layers import find_facets, fit_layers
+from .step3_training import _thin_planar, select_training
+from .step4_gp_blocks import (
     _NEIGHBOURS,
     BlockData,
     block_codes,

@@ -33,7 +33,8 @@ from __future__ import annotations
 import numpy as np
 
 from ...errors import InputError
-from ...mapping.facade_map import FacadeMap, MapParams, build_map
+from ...mapping.facade_map import FacadeMap, build_map
+from ...params import MapParams
 from ...pipeline.step7_queries import query_points
 from ...pipeline.step8_occupancy import READINGS, half_depth, surface_probability
 from .base import OccupancyMethod, check_queries, check_scans

@@ -1,0 +1,648 @@
+"""Every parameter of the map, the node and the command line, declared once.
+
+A parameter is a field of a frozen dataclass (a *section* of the parameter file) declared
+with :func:`param`: its default, its unit, the values it may take (an :class:`Interval`
+with open or closed ends, in the spirit of scikit-learn's ``_parameter_constraints``, or
+:class:`Options`) and its description. Its type is the field's annotation. Everything
+else derives from that one declaration:
+
+- the checks: :class:`Section` validates every field on construction, then the section's
+  :class:`Relation` s between fields, and raises :class:`~uncertain_facade_map.errors.InputError`
+  naming the parameter (``parameter gp.noise_sigma: 0.0 is outside (0, 100]``);
+- the parameter file and its comments (:mod:`uncertain_facade_map.io.parameter_file`);
+- the node's ``ParameterDescriptor`` s, whose ranges are :meth:`Interval.closed_range`
+  (ROS ranges are closed: an open end is advertised as the nearest value inside);
+- the map file's parameter record (:func:`map_params_record`, :func:`map_params_from_record`).
+
+Sections, in the order of the parameter file: the modelling stages (``extraction``,
+``layers``, ``gp``, ``outliers``, ``update``) make :class:`MapParams`, the rest
+(``input``, ``query``, ``model``, ``node``, ``publish``, ``service``, ``persistence``)
+complete :class:`Config`, the whole file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+from dataclasses import dataclass, field
+from typing import Any, Callable, ClassVar, Iterator, Literal, get_args, get_origin, get_type_hints
+
+from .errors import InputError
+
+__all__ = [
+    'Config', 'ExtractionParams', 'GPParams', 'InputConfig', 'Interval', 'LayerParams', 'MapParams', 'ModelConfig',
+    'NodeConfig', 'Options', 'OutlierParams', 'Param', 'PersistenceConfig', 'PublishConfig', 'QueryConfig',
+    'Relation', 'Section', 'ServiceConfig', 'UpdateParams', 'config_from_parameters', 'map_params',
+    'map_params_from_record', 'map_params_record', 'parameters', 'NODE_NAME',
+]
+
+#: The node's name, and the section of the parameter file it reads.
+NODE_NAME = 'facade_mapper'
+#: Largest int64 (ROS integer parameters are int64).
+INT64_MAX = 2**63 - 1
+
+
+# ----------------------------------------------------------------------------------------
+# What a parameter may be
+# ----------------------------------------------------------------------------------------
+def _number(x: float) -> str:
+    return str(x) if isinstance(x, int) else f'{x:g}'
+
+
+@dataclass(frozen=True)
+class Interval:
+    """Numbers between two ends, each open, closed or absent (unbounded).
+
+    Attributes:
+        left: lower end, or None for none.
+        right: upper end, or None for none.
+        closed: which ends belong to the interval: ``'both'``, ``'left'``, ``'right'`` or
+            ``'neither'``.
+    """
+
+    left: float | None
+    right: float | None
+    closed: Literal['both', 'left', 'right', 'neither'] = 'both'
+
+    def __contains__(self, value: float) -> bool:
+        left_ok = self.left is None or (value >= self.left if self.closed in ('both', 'left') else value > self.left)
+        right_ok = self.right is None or (value <= self.right if self.closed in ('both', 'right')
+                                          else value < self.right)
+        return bool(left_ok and right_ok)
+
+    def __str__(self) -> str:
+        lo = '-inf' if self.left is None else _number(self.left)
+        hi = 'inf' if self.right is None else _number(self.right)
+        return (f'{"[" if self.closed in ("both", "left") and self.left is not None else "("}{lo}, '
+                f'{hi}{"]" if self.closed in ("both", "right") and self.right is not None else ")"}')
+
+    def closed_range(self, kind: type) -> tuple[float, float]:
+        """The closed range ``[lo, hi]`` of the values of type ``kind`` (int or float) inside.
+
+        An open float end becomes the next float inside (``math.nextafter``), an open
+        integer end the next integer; an absent end the type's extreme (int64, or the
+        largest finite float), as a ROS parameter range needs both ends.
+        """
+        if kind is int:
+            lo = -INT64_MAX - 1 if self.left is None else math.ceil(self.left)
+            hi = INT64_MAX if self.right is None else math.floor(self.right)
+            if self.left is not None and self.closed in ('right', 'neither') and lo == self.left:
+                lo += 1
+            if self.right is not None and self.closed in ('left', 'neither') and hi == self.right:
+                hi -= 1
+            return int(lo), int(hi)
+        big = sys.float_info.max
+        lo = -big if self.left is None else float(self.left)
+        hi = big if self.right is None else float(self.right)
+        if self.left is not None and self.closed in ('right', 'neither'):
+            lo = math.nextafter(lo, math.inf)
+        if self.right is not None and self.closed in ('left', 'neither'):
+            hi = math.nextafter(hi, -math.inf)
+        return lo, hi
+
+
+@dataclass(frozen=True)
+class Options:
+    """One of a fixed set of values."""
+
+    values: tuple
+
+    def __contains__(self, value: Any) -> bool:
+        return value in self.values
+
+    def __str__(self) -> str:
+        return 'one of ' + ', '.join(str(v) for v in self.values)
+
+
+@dataclass(frozen=True)
+class Param:
+    """The declaration of one parameter (see :func:`param`)."""
+
+    description: str
+    unit: str = ''
+    allowed: Interval | Options | None = None
+
+    def constraint_text(self) -> str:
+        """The unit and the allowed values, for comments and descriptors (e.g. ``m; (0, 10]``)."""
+        return '; '.join(x for x in (self.unit, '' if self.allowed is None else str(self.allowed)) if x)
+
+
+def param(default: Any, description: str, *, unit: str = '', allowed: Interval | Options | None = None) -> Any:
+    """A dataclass field declaring a parameter: default, description, unit, allowed values.
+
+    For a tuple-typed parameter, ``allowed`` applies to every item.
+    """
+    spec = Param(description, unit, allowed)
+    if isinstance(default, (list, tuple)):
+        value = tuple(default)
+        return field(default=value, metadata={'param': spec})
+    return field(default=default, metadata={'param': spec})
+
+
+@dataclass(frozen=True)
+class Relation:
+    """A condition between parameters of one section.
+
+    Attributes:
+        names: the parameters involved (in the section).
+        holds: called with their values in that order; True if the condition holds.
+        text: the condition as a user reads it (in messages and descriptors).
+    """
+
+    names: tuple[str, ...]
+    holds: Callable[..., bool]
+    text: str
+
+
+# ----------------------------------------------------------------------------------------
+# Sections: validation derived from the declarations
+# ----------------------------------------------------------------------------------------
+def _closed(lo: float, hi: float) -> Interval:
+    return Interval(lo, hi, 'both')
+
+
+def _positive(hi: float | None = None) -> Interval:
+    return Interval(0, hi, 'neither' if hi is None else 'right')
+
+
+@dataclass(frozen=True)
+class Section:
+    """Base of the parameter sections: checks and normalises every field from its declaration.
+
+    A value of the wrong type, outside its interval or options, or breaking one of the
+    section's :attr:`relations` raises :class:`InputError` naming ``section.parameter``.
+    Integers are accepted for float parameters (and stored as floats); lists for tuples.
+    """
+
+    #: Name of the section in the parameter file.
+    section: ClassVar[str] = ''
+    #: Conditions between the section's parameters.
+    relations: ClassVar[tuple[Relation, ...]] = ()
+
+    def __post_init__(self) -> None:
+        hints = _hints(type(self))
+        for f in dataclasses.fields(self):
+            if 'param' not in f.metadata:
+                continue
+            name = f'{self.section}.{f.name}'
+            value = _checked(name, getattr(self, f.name), hints[f.name], f.metadata['param'].allowed)
+            object.__setattr__(self, f.name, value)
+        for rel in self.relations:
+            if not rel.holds(*(getattr(self, n) for n in rel.names)):
+                values = ', '.join(f'{self.section}.{n} = {getattr(self, n)!r}' for n in rel.names)
+                raise InputError(f'parameter {self.section}.{rel.names[0]}: need {rel.text} (got {values})')
+
+
+_HINTS: dict[type, dict[str, Any]] = {}
+
+
+def _hints(cls: type) -> dict[str, Any]:
+    if cls not in _HINTS:
+        _HINTS[cls] = get_type_hints(cls)
+    return _HINTS[cls]
+
+
+def _type_name(typ: Any) -> str:
+    return {int: 'an integer', float: 'a number', str: 'a string', bool: 'true or false'}.get(typ, str(typ))
+
+
+def _checked(name: str, value: Any, typ: Any, allowed: Interval | Options | None) -> Any:
+    """``value`` checked against its type and allowed values, normalised (int -> float, list -> tuple)."""
+    if get_origin(typ) is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise InputError(f'parameter {name}: expected a list, got {value!r}')
+        args = get_args(typ)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_checked(name, v, args[0], allowed) for v in value)
+        if len(value) != len(args):
+            raise InputError(f'parameter {name}: expected {len(args)} values, got {len(value)}')
+        return tuple(_checked(name, v, a, allowed) for v, a in zip(value, args))
+    if typ is bool:
+        ok = isinstance(value, bool)
+    elif typ is int:
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    elif typ is float:
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        if ok:
+            value = float(value)
+            if not math.isfinite(value):
+                raise InputError(f'parameter {name}: must be finite, got {value!r}')
+    elif typ is str:
+        ok = isinstance(value, str)
+    else:
+        ok = True
+    if not ok:
+        raise InputError(f'parameter {name}: expected {_type_name(typ)}, got {value!r}')
+    if allowed is not None and value not in allowed:
+        if isinstance(allowed, Options):
+            raise InputError(f'parameter {name}: expected {allowed}, got {value!r}')
+        raise InputError(f'parameter {name}: {value!r} is outside {allowed}')
+    return value
+
+
+# ----------------------------------------------------------------------------------------
+# The modelling stages (paper, Section III)
+# ----------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ExtractionParams(Section):
+    """Buildings, RANSAC façade planes, PCA frames and point normals (:mod:`~.pipeline.step1_facades`)."""
+
+    section: ClassVar[str] = 'extraction'
+    relations: ClassVar[tuple[Relation, ...]] = (
+        Relation(('band_front', 'band_back'), lambda front, back: front + back > 0, 'band_front + band_back > 0'),
+    )
+
+    ransac_threshold: float = param(0.08, 'inlier distance of plane hypotheses', unit='m',
+                                    allowed=_closed(1e-4, 10.0))
+    ransac_iterations: int = param(400, 'hypotheses per RANSAC round', allowed=_closed(1, 1_000_000))
+    ransac_sample: int = param(30000, 'points drawn per building for hypothesis scoring',
+                               allowed=_closed(3, 1_000_000_000))
+    min_facade_points: int = param(300, 'a plane with fewer allocated points is no façade',
+                                   allowed=_closed(3, 1_000_000_000))
+    max_facades: int = param(20, 'most planes per building', allowed=_closed(1, 10_000))
+    max_tilt_deg: float = param(45.0, 'planes tilted more than this from vertical (roofs, balcony undersides) are '
+                                      'no façades', unit='degrees', allowed=Interval(0.0, 90.0, 'left'))
+    merge_angle_deg: float = param(10.0, 'parallel planes within this angle ...', unit='degrees',
+                                   allowed=Interval(0.0, 90.0, 'left'))
+    merge_offset: float = param(2.0, '... and closer than this are one façade', unit='m', allowed=_closed(0.0, 1000.0))
+    band_front: float = param(2.0, 'distance in front of the plane (outwards) still allocated to it (balconies, '
+                                   'oriels, clutter)', unit='m', allowed=_closed(0.0, 1000.0))
+    band_back: float = param(1.0, 'distance behind the plane still allocated to it (recesses)', unit='m',
+                             allowed=_closed(0.0, 1000.0))
+    extent_margin: float = param(1.0, "margin around a façade's (u, v) extent for allocation", unit='m',
+                                 allowed=_closed(0.0, 1000.0))
+    normal_neighbours: int = param(10, 'k of the per-point normal estimate (the point included)',
+                                   allowed=_closed(3, 10_000))
+    building_cell: float = param(0.5, 'grid cell of the clustering of points without building ids', unit='m',
+                                 allowed=_closed(1e-3, 1000.0))
+
+
+@dataclass(frozen=True)
+class LayerParams(Section):
+    """The GMM depth layers and their facets (:mod:`~.pipeline.step2_layers`)."""
+
+    section: ClassVar[str] = 'layers'
+
+    histogram_bin: float = param(0.01, 'bin width of the depth histogram', unit='m', allowed=_closed(1e-5, 10.0))
+    min_peak_share: float = param(0.01, "a histogram peak needs this share of the façade's points nearby",
+                                  allowed=Interval(0.0, 1.0, 'left'))
+    max_layers: int = param(8, 'upper bound on K, the number of layers', allowed=_closed(1, 1000))
+    gmm_sample: int = param(20000, 'EM is fitted on at most this many depths', allowed=_closed(10, 1_000_000_000))
+    facet_cell: float = param(0.1, 'raster cell of the facets', unit='m', allowed=_closed(1e-3, 100.0))
+    fill_distance: float = param(0.3, 'empty cells this close to a voted cell join its facet', unit='m',
+                                 allowed=_closed(0.0, 100.0))
+    min_facet_cells: int = param(2, 'a connected region with fewer voted cells than this is no facet (a lone '
+                                    'outlier or a stray vote); its cells join the nearest real facet within '
+                                    'fill_distance', allowed=_closed(1, 1_000_000))
+
+
+@dataclass(frozen=True)
+class GPParams(Section):
+    """Training points and the local GPs in blocks (:mod:`~.pipeline.step3_training`,
+    :mod:`~.pipeline.step4_gp_blocks`); the paper's values where it gives them."""
+
+    section: ClassVar[str] = 'gp'
+    relations: ClassVar[tuple[Relation, ...]] = (
+        Relation(('lengthscale2_min', 'initial_lengthscale2', 'lengthscale2_max'), lambda lo, x, hi: lo <= x <= hi,
+                 'lengthscale2_min <= initial_lengthscale2 <= lengthscale2_max'),
+    )
+
+    noise_sigma: float = param(0.02, 'sigma_eta, the noise of the points (paper: 0.02)', unit='m',
+                               allowed=_closed(1e-6, 100.0))
+    initial_lengthscale2: float = param(0.0025, 'initial 1/b_1 = 1/b_2 (paper: 0.0025)', unit='m^2',
+                                        allowed=_closed(1e-8, 1e4))
+    lengthscale2_min: float = param(0.0025, 'lower bound of 1/b_m in the optimisation', unit='m^2',
+                                    allowed=_closed(1e-8, 1e4))
+    lengthscale2_max: float = param(0.04, 'upper bound of 1/b_m in the optimisation', unit='m^2',
+                                    allowed=_closed(1e-8, 1e4))
+    c_min: float = param(1e-4, 'covariance threshold that sets the block size (paper: 1e-4)',
+                         allowed=Interval(0.0, 1.0, 'neither'))
+    alpha_z_deg: float = param(25.0, 'a point whose normal deviates more than this from the façade normal is a '
+                                     'training point (paper eq. 8: 25 degrees)', unit='degrees',
+                               allowed=_closed(0.0, 90.0))
+    inlier_sigmas: float = param(1.96, 'a point further than this many sigma_k from its layer is a training point '
+                                       '(paper eq. 7: 1.96)', allowed=_positive(1000.0))
+    max_planar_sigma: float = param(0.035, 'spread of a planar layer at most; a wider layer (a slope, a round bay, '
+                                           'merged recesses) leaves only the points within inlier_sigmas of this to '
+                                           'the plane, the rest are training points', unit='m',
+                                    allowed=_closed(0.0, 1000.0))
+    optimise: bool = param(True, 'fit b_1, b_2 by maximum marginal likelihood (else keep the initial value)')
+    opt_points: int = param(150, 'size of the optimisation subset', allowed=_closed(10, 1_000_000))
+    opt_patch: float = param(1.0, 'side of the square patches the subset is drawn from', unit='m',
+                             allowed=_closed(1e-3, 1e4))
+    max_block_points: int = param(64, 'at most this many training points per extended block (a random subset '
+                                      'beyond); bounds the cost of a block', allowed=_closed(1, 100_000))
+    planar_per_block: int = param(0, 'planar points (not selected by eqs. 7 and 8) added to the training points per '
+                                     'block, so that the variance shrinks where the plane was observed; 0 '
+                                     'reproduces the paper', allowed=_closed(0, 100_000))
+    grid_resolution: float = param(0.1, 'cell of the raster the surface is predicted on', unit='m',
+                                   allowed=_closed(1e-3, 100.0))
+
+
+@dataclass(frozen=True)
+class OutlierParams(Section):
+    """The chi-squared outlier test (:mod:`~.pipeline.step5_outliers`)."""
+
+    section: ClassVar[str] = 'outliers'
+
+    alpha: float = param(0.01, 'significance level of the chi-squared test (1 degree of freedom)',
+                         allowed=Interval(0.0, 1.0, 'neither'))
+    iterations: int = param(1, 'train-test-remove rounds before the final training (paper: 1)',
+                            allowed=_closed(0, 1000))
+
+
+@dataclass(frozen=True)
+class UpdateParams(Section):
+    """How the map grows with new points (:mod:`~.mapping.facade_map`)."""
+
+    section: ClassVar[str] = 'update'
+
+    refit_growth: float = param(1.0, 'a façade is fitted whole again (GMM layers, length scales, every block) once '
+                                     'its points have grown by this share since its last whole fit; below it only '
+                                     'the blocks near new training points and the cells whose facet changed are '
+                                     'recomputed', allowed=_positive(1e3))
+    extraction_growth: float = param(0.5, "RANSAC runs again on a building's unallocated points once they have "
+                                          'grown by this share (and by at least min_facade_points) since the last '
+                                          'run', allowed=_positive(1e3))
+    normal_reach: float = param(1.0, "new points' normals use the building's points within this distance of the "
+                                     "new points' bounding box", unit='m', allowed=_positive(1e3))
+    batch_points: int = param(100000, 'live mapping (add_points(..., defer=True)) holds new points back until at '
+                                      'least this many have arrived, then maps them in one update: an update '
+                                      'recomputes every block near a new training point, and the points of a few '
+                                      'scans fall all over a façade, so small batches would solve the same blocks '
+                                      'again and again (100 000: about 3 s of the street drive; 3x the throughput '
+                                      'of 20 000 there)', allowed=_closed(1, 1_000_000_000))
+
+
+@dataclass(frozen=True)
+class MapParams:
+    """All modelling parameters, by stage, and the seed of every random draw."""
+
+    extraction: ExtractionParams = field(default_factory=ExtractionParams)
+    layers: LayerParams = field(default_factory=LayerParams)
+    gp: GPParams = field(default_factory=GPParams)
+    outliers: OutlierParams = field(default_factory=OutlierParams)
+    update: UpdateParams = field(default_factory=UpdateParams)
+    seed: int = 0
+
+
+# ----------------------------------------------------------------------------------------
+# The rest of the parameter file: inputs, queries, the node
+# ----------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class InputConfig(Section):
+    """Which points of a classified cloud are mapped, and in which frame."""
+
+    section: ClassVar[str] = 'input'
+
+    class_field: str = param('class', 'point field holding the semantic class')
+    building_classes: tuple[int, ...] = param(
+        (1,), 'class values that mean "building"; a cloud without the class field is all building')
+    building_id_field: str = param('building_id', 'point field with a building id, used when present')
+    frame_id: str = param('map', 'frame of the map; clouds must be in it')
+    map_origin: tuple[float, float, float] = param(
+        (0.0, 0.0, 0.0), 'georeference of the map frame (georeferenced = map + origin)', unit='m')
+
+
+@dataclass(frozen=True)
+class QueryConfig(Section):
+    """Answers to point queries."""
+
+    section: ClassVar[str] = 'query'
+
+    resolution: float = param(0.1, 'default voxel side of the occupancy probability', unit='m',
+                              allowed=_closed(1e-3, 10.0))
+
+
+@dataclass(frozen=True)
+class ModelConfig(Section):
+    """The map as a whole."""
+
+    section: ClassVar[str] = 'model'
+
+    seed: int = param(0, 'seed of every random draw of the modelling (EM subsample, RANSAC, subsets)',
+                      allowed=_closed(0, 2**31 - 1))
+
+
+@dataclass(frozen=True)
+class NodeConfig(Section):
+    """The facade_mapper node's input handling (the command line ignores this section)."""
+
+    section: ClassVar[str] = 'node'
+
+    qos: str = param('sensor_data', 'QoS of the points subscription: sensor_data (best effort, as drivers publish) '
+                                    'or reliable', allowed=Options(('sensor_data', 'reliable')))
+    queue_size: int = param(20, 'clouds waiting for the mapping worker at most; when full the oldest waiting cloud '
+                                'is dropped (and counted), so the map follows the newest data',
+                            allowed=_closed(1, 10000))
+    max_cloud_points: int = param(5_000_000, 'a cloud with more points is refused with a warning',
+                                  allowed=_closed(1, 1_000_000_000))
+    idle_flush: float = param(2.0, 'when no cloud has come for this long, the points held back '
+                                   '(update.batch_points) are mapped and the façades updated block by block are '
+                                   'fitted whole (0: never)', unit='s', allowed=_closed(0.0, 3600.0))
+    pose_tolerance: float = param(0.05, 'a cloud in another frame is mapped with the sensor pose nearest its stamp '
+                                        'if closer than this', unit='s', allowed=_closed(0.0, 3600.0))
+    pose_buffer: int = param(1000, 'sensor poses kept for clouds in another frame', allowed=_closed(1, 1_000_000))
+
+
+@dataclass(frozen=True)
+class PublishConfig(Section):
+    """What the node publishes, and how often."""
+
+    section: ClassVar[str] = 'publish'
+    relations: ClassVar[tuple[Relation, ...]] = (
+        Relation(('grid_z_max', 'grid_z_min'), lambda hi, lo: hi > lo, 'grid_z_max > grid_z_min'),
+    )
+
+    period: float = param(5.0, 'the maps are published at most this often after an update (0: after every update)',
+                          unit='s', allowed=_closed(0.0, 3600.0))
+    surface_step: float = param(0.1, 'grid step of the mean-surface cloud (a multiple of gp.grid_resolution keeps '
+                                     'the raster values)', unit='m', allowed=_closed(1e-3, 10.0))
+    mesh_step: float = param(0.2, 'grid step of the surface mesh (RViz and the message size set the limit)',
+                             unit='m', allowed=_closed(1e-3, 10.0))
+    voxel_resolution: float = param(0.2, 'voxel side of the 3D occupancy map', unit='m', allowed=_closed(1e-3, 10.0))
+    voxel_shell: float = param(0.3, 'the 3D occupancy map holds the voxels within this distance of a mean surface',
+                               unit='m', allowed=_closed(0.0, 10.0))
+    grid_resolution: float = param(0.1, 'cell of the 2D occupancy grid', unit='m', allowed=_closed(1e-3, 10.0))
+    grid_z_min: float = param(0.5, "lower end of the 2D grid's height band, map frame", unit='m')
+    grid_z_max: float = param(2.0, "upper end of the 2D grid's height band, map frame", unit='m')
+    diagnostics_period: float = param(1.0, 'diagnostics are published this often', unit='s',
+                                      allowed=_closed(0.01, 3600.0))
+
+
+@dataclass(frozen=True)
+class ServiceConfig(Section):
+    """Limits of the node's services."""
+
+    section: ClassVar[str] = 'service'
+
+    max_query_points: int = param(1_000_000, 'a query with more points is refused (ask in batches)',
+                                  allowed=_closed(1, 100_000_000))
+
+
+@dataclass(frozen=True)
+class PersistenceConfig(Section):
+    """Where the node keeps its map."""
+
+    section: ClassVar[str] = 'persistence'
+
+    map_path: str = param('', 'map file loaded at start when it exists, and the default of the save and load '
+                              'services ("" for none)')
+    autosave_period: float = param(0.0, 'save the map to map_path this often when it changed (0: never)', unit='s',
+                                   allowed=_closed(0.0, 1e6))
+
+
+@dataclass(frozen=True)
+class Config:
+    """All parameters of the parameter file, by section (the modelling stages, then the rest)."""
+
+    input: InputConfig = field(default_factory=InputConfig)
+    extraction: ExtractionParams = field(default_factory=ExtractionParams)
+    layers: LayerParams = field(default_factory=LayerParams)
+    gp: GPParams = field(default_factory=GPParams)
+    outliers: OutlierParams = field(default_factory=OutlierParams)
+    update: UpdateParams = field(default_factory=UpdateParams)
+    query: QueryConfig = field(default_factory=QueryConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    node: NodeConfig = field(default_factory=NodeConfig)
+    publish: PublishConfig = field(default_factory=PublishConfig)
+    service: ServiceConfig = field(default_factory=ServiceConfig)
+    persistence: PersistenceConfig = field(default_factory=PersistenceConfig)
+
+
+def map_params(config: Config) -> MapParams:
+    """The modelling parameters of a configuration."""
+    return MapParams(extraction=config.extraction, layers=config.layers, gp=config.gp, outliers=config.outliers,
+                     update=config.update, seed=config.model.seed)
+
+
+# ----------------------------------------------------------------------------------------
+# Derived views: the flat list of parameters, and configurations from flat names
+# ----------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ParameterInfo:
+    """One parameter as the node and the parameter file see it.
+
+    Attributes:
+        name: dotted name, ``section.parameter``.
+        value: its value (tuples for lists).
+        type: its Python type (for a tuple, the items' type).
+        spec: its declaration.
+        relations: the conditions it takes part in (their text).
+    """
+
+    name: str
+    value: Any
+    type: Any
+    spec: Param
+    relations: tuple[str, ...] = ()
+
+    @property
+    def is_list(self) -> bool:
+        """True for a list parameter."""
+        return isinstance(self.value, tuple)
+
+    def closed_range(self) -> tuple[float, float] | None:
+        """The closed range a ROS descriptor advertises, or None (no interval, or a list)."""
+        if not isinstance(self.spec.allowed, Interval) or self.is_list or self.type not in (int, float):
+            return None
+        return self.spec.allowed.closed_range(self.type)
+
+
+def _sections(cls: type = Config) -> Iterator[tuple[str, type]]:
+    hints = get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        yield f.name, hints[f.name]
+
+
+def _item_type(typ: Any) -> Any:
+    return get_args(typ)[0] if get_origin(typ) is tuple else typ
+
+
+def parameters(config: Config | None = None) -> Iterator[ParameterInfo]:
+    """Every parameter of the parameter file, in file order, with its value in ``config``.
+
+    Args:
+        config: the values to list; the defaults if None.
+    """
+    config = config or Config()
+    for section, cls in _sections():
+        sub = getattr(config, section)
+        hints = _hints(cls)
+        for f in dataclasses.fields(cls):
+            related = tuple(r.text for r in cls.relations if f.name in r.names)
+            yield ParameterInfo(f'{section}.{f.name}', getattr(sub, f.name), _item_type(hints[f.name]),
+                                f.metadata['param'], related)
+
+
+def _section_from(cls: type, values: dict[str, Any], where: str) -> Any:
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - names)
+    if unknown:
+        raise InputError(f'unknown parameter {cls.section}.{unknown[0]}{where} '
+                         f'(known in {cls.section}: {", ".join(sorted(names))})')
+    return cls(**values)
+
+
+def config_from_parameters(params: dict[str, Any]) -> Config:
+    """A :class:`Config` from flat dotted parameter names (as rclpy and the parameter file give them).
+
+    Args:
+        params: ``{'section.name': value}``; missing names keep their defaults.
+
+    Raises:
+        InputError: an unknown name, or a value of the wrong type, outside its allowed values
+            or breaking a relation; the message names the parameter.
+    """
+    sections = dict(_sections())
+    values: dict[str, dict[str, Any]] = {}
+    for name, value in params.items():
+        section, _, key = name.partition('.')
+        if section not in sections or not key:
+            raise InputError(f'unknown parameter {name} (sections: {", ".join(sections)})')
+        values.setdefault(section, {})[key] = value
+    return Config(**{s: _section_from(cls, values.get(s, {}), '') for s, cls in sections.items()})
+
+
+# ----------------------------------------------------------------------------------------
+# The map file's parameter record
+# ----------------------------------------------------------------------------------------
+_MAP_SECTIONS = {'extraction': ExtractionParams, 'layers': LayerParams, 'gp': GPParams, 'outliers': OutlierParams,
+                 'update': UpdateParams}
+
+
+def map_params_record(params: MapParams) -> dict[str, Any]:
+    """The modelling parameters as a JSON-ready record: ``{section: {name: value}, 'seed': seed}``."""
+    record: dict[str, Any] = {}
+    for section, cls in _MAP_SECTIONS.items():
+        sub = getattr(params, section)
+        record[section] = {f.name: (list(v) if isinstance(v := getattr(sub, f.name), tuple) else v)
+                           for f in dataclasses.fields(cls)}
+    record['seed'] = params.seed
+    return record
+
+
+def map_params_from_record(record: dict[str, Any]) -> MapParams:
+    """The modelling parameters of a map file's record (see :func:`map_params_record`).
+
+    Parameters a record lacks (an older file) take their defaults.
+
+    Raises:
+        InputError: an unknown section or parameter, or a value that is not allowed; the
+            message names it.
+    """
+    if not isinstance(record, dict):
+        raise InputError(f'parameters: expected a record, got {type(record).__name__}')
+    unknown = sorted(set(record) - set(_MAP_SECTIONS) - {'seed'})
+    if unknown:
+        raise InputError(f'unknown parameter section {unknown[0]}')
+    sections = {}
+    for section, cls in _MAP_SECTIONS.items():
+        values = record.get(section, {})
+        if not isinstance(values, dict):
+            raise InputError(f'parameters: section {section} is not a record')
+        sections[section] = _section_from(cls, values, ' in the map file')
+    seed = _checked('model.seed', record.get('seed', 0), int, ModelConfig.__dataclass_fields__['seed'].metadata[
+        'param'].allowed)
+    return MapParams(seed=seed, **sections)
