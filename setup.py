@@ -18,7 +18,9 @@ setup(
     packages=find_packages(include=[PACKAGE, f'{PACKAGE}.*', 'msg_adapters', 'msg_adapters.*',
                                     'uncertain_facade_map_node', 'uncertain_facade_map_node.*',
                                     'uncertain_facade_map_apps', 'uncertain_facade_map_apps.*']),
-    package_data={PACKAGE: ['py.typed']},
+    package_data={PACKAGE: ['py.typed'],
+                  # the zurich scene's CityJSON (cjio test data, MIT) with its licence and README
+                  f'{PACKAGE}.simulation': ['data/*.json', 'data/*.txt', 'data/*.md']},
     data_files=[
         ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
         (f'share/{PACKAGE}', ['package.xml']),

@@ -436,7 +436,8 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument('--angular-step', type=float, help='angle between shots, degrees')
     sim.add_argument('--scan-rate', type=float, help='profiles per second per scanner')
     sim.add_argument('--speed', type=float, help='driving speed, m/s (default 5)')
-    sim.add_argument('--cityjson', help='CityJSON file for --scene zurich (default: the shared Zurich subset)')
+    sim.add_argument('--cityjson',
+                     help='CityJSON file for --scene zurich (default: the Zurich subset shipped with the package)')
     sim.add_argument('--force', action='store_true', help='replace existing output files')
     sim.add_argument('--quiet', action='store_true', help='no progress bar')
     sim.set_defaults(func=cmd_simulate)

@@ -13,8 +13,12 @@ import pytest
 
 from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.simulation.cityjson import Footprint, load_footprints
+from uncertain_facade_map.simulation.scenes import DEFAULT_CITYJSON
 
-ZURICH = Path(__file__).resolve().parents[3] / 'shared' / 'data' / 'cityjson' / 'zurich_subset_lod2.json'
+#: The Zurich subset shipped with the package (the zurich scene's default).
+ZURICH = DEFAULT_CITYJSON
+#: Where it was copied from: the project's shared data folder beside the repository, if present.
+SHARED_ZURICH = Path(__file__).resolve().parents[3] / 'shared' / 'data' / 'cityjson' / 'zurich_subset_lod2.json'
 SCALE = np.array([0.001, 0.001, 0.001])
 TRANSLATE = np.array([2683000.0, 1247000.0, 400.0])
 
@@ -292,9 +296,7 @@ def test_bad_parameters(tmp_path: Path, kwargs: dict[str, float]) -> None:
 
 
 # ----------------------------------------------------------------------------------------
-# the real Zurich file
-
-needs_zurich = pytest.mark.skipif(not ZURICH.is_file(), reason=f'{ZURICH} not available')
+# the real Zurich file (packaged with the simulator)
 
 
 @pytest.fixture(scope='module')
@@ -303,7 +305,6 @@ def zurich() -> tuple[dict[str, Any], list[Footprint]]:
     return doc, load_footprints(ZURICH)
 
 
-@needs_zurich
 def test_zurich_footprints(zurich: tuple[dict[str, Any], list[Footprint]]) -> None:
     doc, footprints = zurich
     buildings = [k for k, v in doc['CityObjects'].items() if v['type'] == 'Building']
@@ -324,7 +325,6 @@ def test_zurich_footprints(zurich: tuple[dict[str, Any], list[Footprint]]) -> No
         assert ext[2] - 0.5 <= fp.ground_z <= ext[5], fp.building_id
 
 
-@needs_zurich
 def test_zurich_areas_match_ground_polygons(zurich: tuple[dict[str, Any], list[Footprint]]) -> None:
     doc, footprints = zurich
     vertices = np.array(doc['vertices'], dtype=np.float64) * doc['transform']['scale'] \
@@ -340,7 +340,6 @@ def test_zurich_areas_match_ground_polygons(zurich: tuple[dict[str, Any], list[F
         assert signed_area(fp.polygon) == pytest.approx(total, rel=0.05), fp.building_id
 
 
-@needs_zurich
 def test_zurich_wall_bottoms_give_the_same_footprints(
         tmp_path: Path, zurich: tuple[dict[str, Any], list[Footprint]]) -> None:
     doc, footprints = zurich

@@ -2,7 +2,7 @@
 
 :func:`load_footprints` turns every ``Building`` of a CityJSON file (1.0, 1.1 or 2.0, with a
 ``transform``) into a :class:`Footprint`: a simple, counter-clockwise polygon in the
-file's reference system (metres; EPSG:2056 for the shared Zurich subset), the ground
+file's reference system (metres; EPSG:2056 for the packaged Zurich subset), the ground
 height and the eave and ridge heights above it.
 
 How the footprint is made
@@ -46,9 +46,10 @@ How the footprint is made
    height; a building without walls takes the lowest roof z as its eave. Buildings whose
    heights are not positive are dropped.
 
-For the shared Zurich subset (49 buildings) the defaults give 45 footprints (4 buildings
-are sheds or kiosks under 20 m^2) with 4 to 20 vertices, areas within 2.4 % of the area of
-their ground polygons, eave heights of 5.1 to 28.7 m and ridge heights of 5.6 to 31.4 m.
+For the packaged Zurich subset (``data/zurich_subset_lod2.json``, 49 buildings) the
+defaults give 45 footprints (4 buildings are sheds or kiosks under 20 m^2) with 4 to 20
+vertices, areas within 2.4 % of the area of their ground polygons, eave heights of 5.1 to
+28.7 m and ridge heights of 5.6 to 31.4 m.
 Ignoring the GroundSurfaces and chaining wall bottoms instead gives the same polygons for
 44 of them; the 45th stands on stepped terrain and has no closed ring of wall bottoms.
 """

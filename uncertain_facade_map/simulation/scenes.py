@@ -21,8 +21,9 @@ FACADE_LINE = 9.0
 #: Distance from the centreline to the kerb where cars park, metres.
 KERB = 5.6
 
-#: Default CityJSON file of the ``zurich`` scene (the shared data folder beside the repo).
-DEFAULT_CITYJSON = Path(__file__).resolve().parents[3] / 'shared' / 'data' / 'cityjson' / 'zurich_subset_lod2.json'
+#: Default CityJSON file of the ``zurich`` scene: the Zurich LoD2 subset shipped with the
+#: package (cjio project's test data, MIT; see ``data/README.md`` and ``data/LICENSE-cjio-MIT.txt``).
+DEFAULT_CITYJSON = Path(__file__).resolve().parent / 'data' / 'zurich_subset_lod2.json'
 
 
 def _rng(seed: int, *keys: int) -> np.random.Generator:
@@ -166,7 +167,7 @@ def zurich_scene(seed: int = 0, path: str | Path | None = None, count: int = 8) 
 
     Args:
         seed: chooses the buildings, their order and their detail.
-        path: CityJSON file; defaults to the shared Zurich subset.
+        path: CityJSON file; defaults to the packaged Zurich subset (``DEFAULT_CITYJSON``).
         count: number of buildings to place.
 
     Raises:
