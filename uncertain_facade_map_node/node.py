@@ -306,9 +306,9 @@ class FacadeMapperNode(Node):
                     self.pub_mesh.publish(mm.triangle_marker_array(mesh.vertices, mesh.triangles, mesh.std,
                                                                    mesh.facade, self.frame_id, stamp, self.types))
                 self.pub_grids.publish(mm.facade_grid_array(facades, self.frame_id, stamp, self.types))
+                band = snap.params.extraction
                 vox = mp.voxel_occupancy(facades, cfg.voxel_resolution, cfg.voxel_shell,
-                                         band_back=self.params.extraction.band_back,
-                                         band_front=self.params.extraction.band_front)
+                                         band_back=band.band_back, band_front=band.band_front)
                 vt = np.zeros(len(vox.centres), dtype=[('x', 'f4'), ('y', 'f4'), ('z', 'f4'),
                                                        ('p_occupied', 'f4')])
                 vt['x'], vt['y'], vt['z'] = vox.centres.T
@@ -330,7 +330,7 @@ class FacadeMapperNode(Node):
         if self._grid is not None and self._grid[0] == snap.version:
             return self._grid[1]
         cfg = self.config.publish
-        params = self.params.extraction
+        params = snap.params.extraction  # the map's own bands (a loaded map keeps its own)
         if snap.facades:
             g = mp.height_band_grid(list(snap.facades), cfg.grid_resolution, cfg.grid_z_min, cfg.grid_z_max,
                                     band_back=params.band_back, band_front=params.band_front)
@@ -374,7 +374,7 @@ class FacadeMapperNode(Node):
             if not np.isfinite(resolution) or resolution <= 0:
                 raise InputError(f'resolution must be a positive number of metres, got {request.resolution}')
             snap = self.worker.snapshot
-            params = self.params.extraction
+            params = snap.params.extraction  # the map's own bands (a loaded map keeps its own)
             answers = query_points(list(snap.facades), xyz, resolution, params.band_back, params.band_front)
             mm.fill_query_response(response, answers, f'{len(xyz)} points, map version {snap.version}',
                                    msg_types=self.types)

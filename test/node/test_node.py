@@ -28,7 +28,7 @@ rclpy = pytest.importorskip('rclpy')
 pytest.importorskip('uncertain_facade_map.srv')
 
 import msg_adapters as ma  # noqa: E402
-from uncertain_facade_map.io.map_file import load_map  # noqa: E402
+from uncertain_facade_map.io.map_file import load_map, save_map  # noqa: E402
 from uncertain_facade_map.io.parameter_file import dump_config
 from uncertain_facade_map.mapping.facade_map import FacadeMap  # noqa: E402
 from uncertain_facade_map.mapping.worker import map_scans  # noqa: E402
@@ -505,6 +505,34 @@ def test_clouds_in_a_sensor_frame_are_moved_by_its_pose(client, mapped, scans):
     answer = answers_of(client.call(QueryPoints, 'query_points', query_request(probe)))
     on = answer['facade'] >= 0
     assert on.mean() > 0.8 and np.median(np.abs(answer['signed_distance'][on])) < 0.05
+
+
+def test_a_loaded_map_answers_with_its_own_bands(client, mapped, scans, workdir):
+    """A map built with other façade bands, loaded into the node, answers as the command line does."""
+    from uncertain_facade_map.srv import LoadMap, QueryPoints, SaveMap
+    from uncertain_facade_map_apps import cli
+
+    saved = client.call(SaveMap, 'save_map', SaveMap.Request(path=str(workdir / 'before_bands.npz')))
+    assert saved.success, saved.message
+    narrow = {'extraction.band_back': 0.3, 'extraction.band_front': 0.6}
+    other = FacadeMap(map_params(scenario_config(**narrow)), np.zeros(3))
+    map_scans(other, (ma.structured_from_pointcloud2(msg) for msg in scans), InputConfig())
+    save_map(other, workdir / 'narrow.npz')
+    xyz = probe_points(other, 2000)
+    rng = np.random.default_rng(1)
+    xyz += rng.normal(0.0, 0.6, xyz.shape)  # reach beyond the narrow bands
+    np.save(workdir / 'probe.npy', xyz)
+    assert cli.main(['query', str(workdir / 'narrow.npz'), '--points', str(workdir / 'probe.npy'),
+                     '--out', str(workdir / 'narrow_answers.npz')]) == 0
+    expected = dict(np.load(workdir / 'narrow_answers.npz'))
+    # The node's own parameter file has the default bands, which answer otherwise.
+    node_bands = query_points(other.facades, xyz, 0.1, 1.0, 2.0).as_dict()
+    assert (node_bands['facade'] != expected['facade']).sum() > 20
+    loaded = client.call(LoadMap, 'load_map', LoadMap.Request(path=str(workdir / 'narrow.npz')))
+    assert loaded.success, loaded.message
+    assert_answers_equal(answers_of(client.call(QueryPoints, 'query_points', query_request(xyz))), expected)
+    restored = client.call(LoadMap, 'load_map', LoadMap.Request(path=str(workdir / 'before_bands.npz')))
+    assert restored.success, restored.message
 
 
 def test_save_reset_load_and_restart_answer_the_same(client, mapped, env, workdir, scans):

@@ -26,6 +26,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ..datatypes import FacadeModel
+from ..params import MapParams
 from .facade_map import FacadeMap
 
 
@@ -40,6 +41,8 @@ class MapSnapshot:
         buildings: number of buildings.
         points: number of building points in the map.
         stamp_ns: stamp of the newest cloud in the map, nanoseconds (0 if unknown).
+        params: the map's own modelling parameters (a loaded map keeps those it was built
+            with): its façade bands answer its queries.
     """
 
     version: int
@@ -48,6 +51,7 @@ class MapSnapshot:
     buildings: int
     points: int
     stamp_ns: int = 0
+    params: MapParams = field(default_factory=MapParams)
 
 
 @dataclass
@@ -200,7 +204,7 @@ class MapWorker:
     def _snapshot(self, version: int) -> MapSnapshot:
         fmap = self._fmap
         return MapSnapshot(version, tuple(fmap.facades), np.asarray(fmap.map_origin, dtype=np.float64).copy(),
-                           len(fmap.points), fmap.n_points, self._stamp)
+                           len(fmap.points), fmap.n_points, self._stamp, fmap.params)
 
     def _publish(self) -> None:
         self.snapshot = self._snapshot(self.snapshot.version + 1)
@@ -336,7 +340,7 @@ def map_scans(fmap: FacadeMap, scans: Any, config: Any,
         scans: iterable of structured arrays (one per scan, fields as a PointCloud2
             gives them: x, y, z and optionally the class, building id and sensor origin
             fields of ``config``), in the map frame.
-        config: an :class:`~uncertain_facade_map.config.InputConfig`.
+        config: an :class:`~uncertain_facade_map.params.InputConfig`.
         progress: called with the number of scans done after each one.
 
     Returns:
