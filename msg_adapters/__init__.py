@@ -7,7 +7,7 @@ import the ROS 2 message packages when called); the core package ``uncertain_fac
 imports neither.
 """
 
-from .bag_io import BagClouds, list_topics, read_bag, read_bag_cloud, write_bag
+from .bag_io import BagClouds, list_topics, load_inputs, read_bag, read_bag_cloud, write_bag
 from .map_messages import (
     diagnostic_array,
     facade_grid_array,
@@ -38,6 +38,7 @@ __all__ = [
     'facade_msg',
     'fill_query_response',
     'list_topics',
+    'load_inputs',
     'occupancy_grid_msg',
     'pointcloud2_fields',
     'pointcloud2_from_structured',

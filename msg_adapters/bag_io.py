@@ -24,6 +24,7 @@ import numpy as np
 
 from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.io.cloud import Cloud
+from uncertain_facade_map.io.inputs import load_inputs as core_load_inputs
 
 from .pointcloud2 import pointcloud2_from_structured, rosbags_types, structured_from_pointcloud2
 
@@ -397,3 +398,13 @@ def read_bag_cloud(paths: str | Path | Sequence[str | Path], topic: str | None =
                          + '; '.join(str(d) for d in dtypes))
     points = np.concatenate([pts for _stamp, pts in bag.scans])
     return Cloud(points, bag.map_origin)
+
+
+def load_inputs(paths: str | Path | Sequence[str | Path], topic: str | None = None) -> Cloud:
+    """Point cloud files and ROS bags joined into one cloud: the core's
+    :func:`~uncertain_facade_map.io.inputs.load_inputs` with bags read by :func:`read_bag_cloud`.
+
+    Raises:
+        InputError: as the core's ``load_inputs`` and :func:`read_bag_cloud`.
+    """
+    return core_load_inputs(paths, topic=topic, read_bag=lambda path, t: read_bag_cloud([path], topic=t))

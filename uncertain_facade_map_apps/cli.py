@@ -153,7 +153,8 @@ def cmd_build(args: argparse.Namespace) -> int:
     """Build a map from inputs and save it (see ``build --help``)."""
     import numpy as np
 
-    from uncertain_facade_map.io.inputs import load_inputs, select_building_points
+    from msg_adapters.bag_io import load_inputs
+    from uncertain_facade_map.io.inputs import select_building_points
     from uncertain_facade_map.io.map_file import save_map
     from uncertain_facade_map.io.parameter_file import load_config
     from uncertain_facade_map.mapping.facade_map import FacadeMap
@@ -346,10 +347,10 @@ def _float_list(text: str) -> tuple[float, ...]:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     """Evaluate every method's occupancy against a reference scan (see ``evaluate --help``)."""
+    from msg_adapters.bag_io import load_inputs
     from uncertain_facade_map.evaluation.baselines import METHODS, make_method
     from uncertain_facade_map.evaluation.occupancy import distance_to_points, evaluate, subset_auc
     from uncertain_facade_map.evaluation.report import OURS, accurate_label, write_report
-    from uncertain_facade_map.io.inputs import load_inputs
     from uncertain_facade_map.io.parameter_file import load_config
 
     config = load_config(args.config)

@@ -10,6 +10,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from msg_adapters.bag_io import load_inputs as load_with_bags
 from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.io.cloud import Cloud
 from uncertain_facade_map.io.clouds import LAS_SCALE, write_cloud, write_npz, write_pcd, write_ply
@@ -221,7 +222,7 @@ def test_every_format_gives_the_same_points(tmp_path: Path) -> None:
     cloud = Cloud(scene_points(), ORIGIN)
     reference = select_building_points(cloud, InputConfig())
     for kind, path in write_every_format(tmp_path, cloud).items():
-        loaded = load_inputs([path])
+        loaded = load_with_bags([path])
         assert loaded.map_origin.tolist() == ORIGIN.tolist(), kind
         tolerance = LAS_SCALE / 2 + 1e-9 if kind in ('las', 'laz') else 0.0
         assert np.all(np.abs(loaded.xyz - cloud.xyz) <= tolerance), kind
@@ -241,8 +242,10 @@ def test_bag_topic_is_passed_on(tmp_path: Path) -> None:
 
     pts = scene_points(6)
     bag = write_bag(tmp_path / 'b', [(STAMP_NS, pts)], storage='mcap', topic='/lidar/points')
-    assert load_inputs([bag], topic='/lidar/points').same_as(Cloud(pts))
-    assert "no sensor_msgs/msg/PointCloud2 topic '/other'" in one_line_error(load_inputs, [bag], topic='/other')
+    assert load_with_bags([bag], topic='/lidar/points').same_as(Cloud(pts))
+    assert "no sensor_msgs/msg/PointCloud2 topic '/other'" in one_line_error(load_with_bags, [bag], topic='/other')
+    # The core alone reads no bag, and says where to read it.
+    assert 'bags are read through msg_adapters' in one_line_error(load_inputs, [bag])
 
 
 def test_joining_inputs_with_different_map_origins(tmp_path: Path) -> None:
@@ -357,5 +360,5 @@ def test_corrupt_file_and_bag(tmp_path: Path) -> None:
     assert one_line_error(load_inputs, [tmp_path / 'bad.laz']).startswith(
         f'cannot read LAS file {tmp_path / "bad.laz"}: ')
     (tmp_path / 'bad.bag').write_bytes(b'#ROSBAG V2.0\n' + bytes(50))
-    assert one_line_error(load_inputs, [tmp_path / 'bad.bag']).startswith(
+    assert one_line_error(load_with_bags, [tmp_path / 'bad.bag']).startswith(
         f'cannot read {tmp_path / "bad.bag"} as a ROS 1 or ROS 2 bag: ')

@@ -1,9 +1,11 @@
 """The inputs of ``uncertain-facade-map build``: files and bags, joined, reduced to building points.
 
 :func:`load_inputs` reads point cloud files (PLY, LAS/LAZ, PCD, NPZ through
-:mod:`~uncertain_facade_map.io.clouds`) and ROS bags (through ``msg_adapters.bag_io``, which
-needs rosbags and is imported only when a bag is given) and joins them into one
-:class:`~uncertain_facade_map.io.cloud.Cloud` in the map frame of the first input.
+:mod:`~uncertain_facade_map.io.clouds`) and ROS bags and joins them into one
+:class:`~uncertain_facade_map.io.cloud.Cloud` in the map frame of the first input. ROS
+bags are read by the caller's ``read_bag`` (``msg_adapters.bag_io.load_inputs`` passes its
+rosbags reader): the core imports no ROS package, so without a reader a bag is refused with
+a message saying how to read it.
 :func:`select_building_points` then keeps the points the configuration calls building and
 returns them as plain arrays (:class:`BuildingPoints`).
 
@@ -17,7 +19,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -39,17 +41,19 @@ def _describe_supported() -> str:
             f'({", ".join(BAG_SUFFIXES)} or a bag folder with metadata.yaml)')
 
 
-def _read_bag(path: Path, topic: str | None) -> Cloud:
-    """Read one bag through msg_adapters (imported here: it is outside the core)."""
-    try:
-        from msg_adapters.bag_io import read_bag_cloud
-    except ImportError as exc:
-        raise InputError(f'cannot read {path}: ROS bags need the msg_adapters package and rosbags '
-                         f'({" ".join(str(exc).split())})') from exc
-    return read_bag_cloud([path], topic=topic)
+#: Reads one bag: (path, PointCloud2 topic or None) -> Cloud.
+BagReader = Callable[[Path, 'str | None'], Cloud]
 
 
-def read_input(path: str | os.PathLike[str], *, topic: str | None = None) -> Cloud:
+def _read_bag(path: Path, topic: str | None, read_bag: BagReader | None) -> Cloud:
+    if read_bag is None:
+        raise InputError(f'{path} is a ROS bag: bags are read through msg_adapters '
+                         '(msg_adapters.bag_io.load_inputs, or the uncertain-facade-map command line)')
+    return read_bag(path, topic)
+
+
+def read_input(path: str | os.PathLike[str], *, topic: str | None = None,
+               read_bag: BagReader | None = None) -> Cloud:
     """Read one input: a point cloud file or a ROS bag.
 
     Args:
@@ -58,6 +62,7 @@ def read_input(path: str | os.PathLike[str], *, topic: str | None = None) -> Clo
             ``metadata.yaml``; suffixes are matched case-insensitively.
         topic: PointCloud2 topic of a bag; None for the bag's only PointCloud2 topic.
             Ignored for files.
+        read_bag: reader of ROS bags (see :data:`BagReader`); None refuses bags.
 
     Returns:
         The cloud (map frame, metres) with the input's map origin.
@@ -74,22 +79,22 @@ def read_input(path: str | os.PathLike[str], *, topic: str | None = None) -> Clo
     if p.is_dir():
         if not (p / 'metadata.yaml').is_file():
             raise InputError(f'{os.fspath(path)} is a directory but no ROS 2 bag (no metadata.yaml)')
-        return _read_bag(p, topic)
+        return _read_bag(p, topic, read_bag)
     suffix = p.suffix.lower()
     if suffix in BAG_SUFFIXES:
-        return _read_bag(p, topic)
+        return _read_bag(p, topic, read_bag)
     if suffix not in SUPPORTED_SUFFIXES:
         raise InputError(f'unsupported input {os.fspath(path)} (suffix {suffix or "none"}); '
                          f'{_describe_supported()}')
     return read_cloud(p)
 
 
-def load_inputs(paths: Sequence[str | os.PathLike[str]], *, topic: str | None = None) -> Cloud:
+def load_inputs(paths: Sequence[str | os.PathLike[str]], *, topic: str | None = None,
+                read_bag: BagReader | None = None) -> Cloud:
     """Read PLY, LAS/LAZ, PCD, NPZ files and ROS bags and join them into one cloud.
 
-    Each path is read by :func:`read_input` (bags through
-    ``msg_adapters.bag_io.read_bag_cloud``, imported only if a bag is given). The clouds
-    are joined in the order given:
+    Each path is read by :func:`read_input` (bags through ``read_bag``). The clouds are
+    joined in the order given:
 
     * Frame: the result is in the map frame of the first input and has its map origin.
       Every other cloud is re-expressed in it, ``x += origin_i[0] - origin_0[0]`` (and
@@ -107,6 +112,7 @@ def load_inputs(paths: Sequence[str | os.PathLike[str]], *, topic: str | None = 
         paths: files and bags to read, at least one (a single path is accepted too).
         topic: PointCloud2 topic to read from every bag; None to take each bag's only
             PointCloud2 topic. Ignored for files.
+        read_bag: reader of ROS bags (see :data:`BagReader`); None refuses bags.
 
     Returns:
         The joined cloud: points of all inputs in input order, packed native structured
@@ -119,7 +125,7 @@ def load_inputs(paths: Sequence[str | os.PathLike[str]], *, topic: str | None = 
     items = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
     if not items:
         raise InputError('no input files given')
-    clouds = [read_input(p, topic=topic) for p in items]
+    clouds = [read_input(p, topic=topic, read_bag=read_bag) for p in items]
     joined = clouds[0] if len(clouds) == 1 else _join(clouds)
     if len(joined) == 0:
         names = ', '.join(os.fspath(p) for p in items)
