@@ -24,7 +24,7 @@ from pathlib import Path
 
 
 def _simulate(work: Path, scene_name: str) -> dict:
-    from uncertain_facade_map.io.clouds import write_npz
+    from uncertain_facade_map.io.npz import write_npz
     from uncertain_facade_map.simulation.campaign import SCENE_SENSORS, simulate_campaign
     from uncertain_facade_map.simulation.scenes import build_scene
 
@@ -39,9 +39,9 @@ def _simulate(work: Path, scene_name: str) -> dict:
 
 
 def _build(work: Path, scene_name: str) -> dict:
-    from uncertain_facade_map.io.clouds import read_npz
     from uncertain_facade_map.io.inputs import select_building_points
     from uncertain_facade_map.io.map_file import save_map
+    from uncertain_facade_map.io.npz import read_npz
     from uncertain_facade_map.mapping.facade_map import FacadeMap
     from uncertain_facade_map.params import Config, MapParams
 
@@ -59,8 +59,8 @@ def _build(work: Path, scene_name: str) -> dict:
 def _query(work: Path, scene_name: str) -> dict:
     import numpy as np
 
-    from uncertain_facade_map.io.clouds import read_npz
     from uncertain_facade_map.io.map_file import load_map
+    from uncertain_facade_map.io.npz import read_npz
     from uncertain_facade_map.pipeline.step7_queries import query_points
 
     fmap = load_map(work / 'map.npz')

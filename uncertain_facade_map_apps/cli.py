@@ -91,7 +91,8 @@ def _output_path(out: Path, name: str, force: bool) -> Path:
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     """Simulate campaigns of a scene and write them (see ``simulate --help``)."""
-    from uncertain_facade_map.io.clouds import write_npz, write_ply
+    from uncertain_facade_map.io.npz import write_npz
+    from uncertain_facade_map.io.ply import write_ply
     from uncertain_facade_map.simulation.campaign import (
         SCENE_SENSORS,
         SensorConfig,

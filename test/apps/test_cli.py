@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from msg_adapters.bag_io import read_bag, read_bag_cloud
-from uncertain_facade_map.io.clouds import read_npz, read_ply
+from uncertain_facade_map.io.npz import read_npz
+from uncertain_facade_map.io.ply import read_ply
 from uncertain_facade_map_apps.cli import main
 
 
@@ -120,7 +121,7 @@ def test_query_contract(simulated, built, tmp_path):
 
 def test_cloud_without_class_is_all_building(tmp_path, simulated):
     from uncertain_facade_map.io.cloud import Cloud
-    from uncertain_facade_map.io.clouds import write_npz
+    from uncertain_facade_map.io.npz import write_npz
 
     cloud = read_npz(simulated / 'campaign0.npz')
     pts = cloud.points[cloud.points['class'] == 1][['x', 'y', 'z']]
@@ -132,7 +133,7 @@ def test_cloud_without_class_is_all_building(tmp_path, simulated):
                                   'missing config', 'bad config'])
 def test_build_and_query_bad_input_one_line_exit_2(tmp_path, built, simulated, capsys, case):
     from uncertain_facade_map.io.cloud import Cloud
-    from uncertain_facade_map.io.clouds import write_npz
+    from uncertain_facade_map.io.npz import write_npz
 
     good_points = tmp_path / 'p.npy'
     np.save(good_points, np.zeros((3, 3)))

@@ -8,7 +8,7 @@ import re
 import numpy as np
 import pytest
 
-from uncertain_facade_map.io.clouds import read_npz, write_npz
+from uncertain_facade_map.io.npz import read_npz, write_npz
 from uncertain_facade_map_apps.cli import main
 
 

@@ -13,8 +13,12 @@ from hypothesis import strategies as st
 from msg_adapters.bag_io import load_inputs as load_with_bags
 from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.io.cloud import Cloud
-from uncertain_facade_map.io.clouds import LAS_SCALE, write_cloud, write_npz, write_pcd, write_ply
+from uncertain_facade_map.io.clouds import write_cloud
 from uncertain_facade_map.io.inputs import BuildingPoints, load_inputs, read_input, select_building_points
+from uncertain_facade_map.io.las import LAS_SCALE
+from uncertain_facade_map.io.npz import write_npz
+from uncertain_facade_map.io.pcd import write_pcd
+from uncertain_facade_map.io.ply import write_ply
 from uncertain_facade_map.params import InputConfig
 
 SETTINGS = settings(max_examples=60, deadline=None,
