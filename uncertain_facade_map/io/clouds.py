@@ -5,8 +5,7 @@ Five suffixes are supported, chosen (case-insensitively) by :func:`read_cloud` a
 its own module, whose docstring says what the format keeps and what it loses:
 :mod:`~uncertain_facade_map.io.npz`, :mod:`~uncertain_facade_map.io.ply`,
 :mod:`~uncertain_facade_map.io.las` (``.las`` and ``.laz``) and
-:mod:`~uncertain_facade_map.io.pcd`. Their functions and constants can also be imported
-from here, as before they had modules of their own.
+:mod:`~uncertain_facade_map.io.pcd`.
 
 Every failure a user can cause (missing file, unknown suffix, corrupt or truncated file,
 unsupported field type) raises :class:`InputError` with a one-line message. laspy and
@@ -21,19 +20,12 @@ from pathlib import Path
 from ..errors import InputError
 from ._files import PathLike
 from .cloud import Cloud
-from .las import LAS_EXTRA_TYPES, LAS_POINT_FORMAT, LAS_RENAMES, LAS_SCALE, LAS_VERSION, read_las, write_las
-from .npz import NPZ_FORMAT, read_npz, write_npz
-from .pcd import PCD_ENCODINGS, PCD_TYPES, read_pcd, write_pcd
-from .ply import PLY_TYPES, read_ply, write_ply
+from .las import read_las, write_las
+from .npz import read_npz, write_npz
+from .pcd import read_pcd, write_pcd
+from .ply import read_ply, write_ply
 
-__all__ = [
-    'SUPPORTED_SUFFIXES', 'read_cloud', 'write_cloud',
-    # each format's names, importable from here as before the split into modules
-    'NPZ_FORMAT', 'read_npz', 'write_npz',
-    'PLY_TYPES', 'read_ply', 'write_ply',
-    'LAS_EXTRA_TYPES', 'LAS_POINT_FORMAT', 'LAS_RENAMES', 'LAS_SCALE', 'LAS_VERSION', 'read_las', 'write_las',
-    'PCD_ENCODINGS', 'PCD_TYPES', 'read_pcd', 'write_pcd',
-]
+__all__ = ['SUPPORTED_SUFFIXES', 'read_cloud', 'write_cloud']
 
 #: Suffixes understood by :func:`read_cloud` and :func:`write_cloud`.
 SUPPORTED_SUFFIXES = ('.npz', '.ply', '.las', '.laz', '.pcd')
