@@ -21,6 +21,21 @@ from .errors import InputError
 _UP = np.array([0.0, 0.0, 1.0])
 
 
+def _read_only(obj: object, *names: str) -> None:
+    """Replace the array attributes ``names`` of a frozen dataclass by read-only views.
+
+    A model is shared with other threads (the node's query callbacks read the map worker's
+    snapshots): a write into one of its arrays raises instead of changing it under a reader.
+    """
+    for name in names:
+        value = getattr(obj, name)
+        if value is None:
+            continue
+        view = np.asarray(value).view()
+        view.setflags(write=False)
+        object.__setattr__(obj, name, view)
+
+
 @dataclass(frozen=True, eq=False)
 class FacadeFrame:
     """Orthonormal façade frame.
@@ -40,6 +55,7 @@ class FacadeFrame:
             raise InputError('façade axes must be orthonormal')
         object.__setattr__(self, 'origin', origin)
         object.__setattr__(self, 'axes', axes)
+        _read_only(self, 'origin', 'axes')
 
     @classmethod
     def from_normal(cls, origin: np.ndarray, normal: np.ndarray) -> FacadeFrame:
@@ -108,6 +124,9 @@ class DepthLayers:
     sigmas_: np.ndarray
     main_: int
 
+    def __post_init__(self) -> None:
+        _read_only(self, 'weights_', 'means_', 'sigmas_')
+
     @property
     def n_layers(self) -> int:
         """K, the number of layers."""
@@ -138,6 +157,9 @@ class Facets:
     cell: float
     facet: np.ndarray
     layer_of_facet: np.ndarray
+
+    def __post_init__(self) -> None:
+        _read_only(self, 'origin', 'facet', 'layer_of_facet')
 
     @property
     def n_facets(self) -> int:
@@ -210,9 +232,24 @@ class ExtractedFacade:
 SOURCE_GLOBAL, SOURCE_FACET_PRIOR, SOURCE_GP = 0, 1, 2
 
 
+def cell_centres(origin: np.ndarray, cell: float, shape: tuple[int, int]) -> np.ndarray:
+    """(H*W, 2) centres (u, v) of the cells of a raster, metres, row-major.
+
+    Args:
+        origin: (2,) (u, v) of the raster's lower-left corner, metres.
+        cell: cell side, metres.
+        shape: (H, W), rows along v and columns along u.
+    """
+    h, w = shape
+    cu = origin[0] + (np.arange(w) + 0.5) * cell
+    cv = origin[1] + (np.arange(h) + 0.5) * cell
+    uu, vv = np.meshgrid(cu, cv)
+    return np.stack([uu.ravel(), vv.ravel()], axis=1)
+
+
 @dataclass(frozen=True, eq=False)
 class SurfaceRaster:
-    """A façade's surface predicted on a regular raster of its plane.
+    """A façade's surface predicted on a regular raster of its plane (its arrays read-only).
 
     Attributes:
         origin: (2,) (u, v) of the lower-left corner, metres, façade frame.
@@ -230,18 +267,17 @@ class SurfaceRaster:
     facet: np.ndarray
     source: np.ndarray
 
+    def __post_init__(self) -> None:
+        _read_only(self, 'origin', 'mean', 'var', 'facet', 'source')
+
     def centres(self) -> np.ndarray:
         """(H*W, 2) cell centres (u, v), metres, row-major."""
-        h, w = self.mean.shape
-        cu = self.origin[0] + (np.arange(w) + 0.5) * self.cell
-        cv = self.origin[1] + (np.arange(h) + 0.5) * self.cell
-        uu, vv = np.meshgrid(cu, cv)
-        return np.stack([uu.ravel(), vv.ravel()], axis=1)
+        return cell_centres(self.origin, self.cell, self.mean.shape)
 
 
 @dataclass(frozen=True, eq=False)
 class FacadeModel:
-    """The uncertain surface model of one façade.
+    """The uncertain surface model of one façade: immutable, its arrays read-only views.
 
     Attributes:
         facade_id: index in the map.
@@ -293,3 +329,4 @@ class FacadeModel:
             object.__setattr__(self, 'anchor', np.asarray(self.surface.origin, dtype=np.float64).copy())
         if not self.fitted_points:
             object.__setattr__(self, 'fitted_points', int(len(self.point_index)))
+        _read_only(self, 'lengthscale2_', 'point_index', 'outlier_index', 'anchor')

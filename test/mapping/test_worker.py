@@ -80,3 +80,23 @@ def test_commands_run_after_queued_clouds_and_may_replace_the_map():
     worker.stop()
     with pytest.raises(RuntimeError):
         worker.call(lambda m: None)
+
+
+def test_snapshots_are_read_only():
+    """The node's query callbacks read the worker's snapshots while it maps: a write into one
+    of their arrays raises instead of changing the map under a reader."""
+    worker = MapWorker(FacadeMap(MapParams(update=UpdateParams(batch_points=1000))), queue_size=10, idle_flush=0)
+    worker.put(Cloud(wall(3000), None, None, 1))
+    assert worker.wait_idle(60)
+    snap = worker.snapshot
+    worker.stop()
+    assert snap.facades
+    f = snap.facades[0]
+    arrays = {'map_origin': snap.map_origin, 'surface.mean': f.surface.mean, 'surface.var': f.surface.var,
+              'surface.facet': f.surface.facet, 'surface.source': f.surface.source, 'surface.origin': f.surface.origin,
+              'facets.facet': f.facets.facet, 'layers.means_': f.layers.means_, 'frame.axes': f.frame.axes,
+              'lengthscale2_': f.lengthscale2_, 'point_index': f.point_index, 'anchor': f.anchor}
+    for name, array in arrays.items():
+        with pytest.raises(ValueError, match='read-only'):
+            array.flat[0] = array.flat[0]
+        assert not array.flags.writeable, name

@@ -166,19 +166,21 @@ def _from_records(meta: dict, arrays: dict[str, np.ndarray]) -> FacadeMap:
     for info in meta['facades']:
         p = f'facade/{info["facade_id"]}/'
         lay = arrays[p + 'layers']
-        layers = DepthLayers(lay[0], lay[1], lay[2], int(info['main_layer']))
-        facets = Facets(arrays[p + 'facets_origin'], float(info['facet_cell']), arrays[p + 'facets'],
-                        arrays[p + 'layer_of_facet'])
-        surface = SurfaceRaster(arrays[p + 'surface_origin'], float(info['surface_cell']), arrays[p + 'surface_mean'],
-                                arrays[p + 'surface_var'], arrays[p + 'surface_facet'], arrays[p + 'surface_source'])
-        extent = tuple(float(x) for x in arrays[p + 'extent'])
-        facades.append(FacadeModel(int(info['facade_id']), int(info['building']),
-                                   FacadeFrame.from_array(arrays[p + 'frame']), extent, layers, facets,
-                                   arrays[p + 'lengthscale2'], float(info['global_mean']), float(info['global_var']),
-                                   float(info['noise_var']), surface, arrays[p + 'point_index'],
-                                   arrays[p + 'outlier_index'], info.get('stats', {}),
-                                   tuple(float(x) for x in arrays[p + 'plane_extent']), arrays[p + 'anchor'],
-                                   int(info['fitted_points'])))
+        layers = DepthLayers(weights_=lay[0], means_=lay[1], sigmas_=lay[2], main_=int(info['main_layer']))
+        facets = Facets(origin=arrays[p + 'facets_origin'], cell=float(info['facet_cell']), facet=arrays[p + 'facets'],
+                        layer_of_facet=arrays[p + 'layer_of_facet'])
+        surface = SurfaceRaster(origin=arrays[p + 'surface_origin'], cell=float(info['surface_cell']),
+                                mean=arrays[p + 'surface_mean'], var=arrays[p + 'surface_var'],
+                                facet=arrays[p + 'surface_facet'], source=arrays[p + 'surface_source'])
+        facades.append(FacadeModel(
+            facade_id=int(info['facade_id']), building=int(info['building']),
+            frame=FacadeFrame.from_array(arrays[p + 'frame']), extent=tuple(float(x) for x in arrays[p + 'extent']),
+            layers=layers, facets=facets, lengthscale2_=arrays[p + 'lengthscale2'],
+            global_mean_=float(info['global_mean']), global_var_=float(info['global_var']),
+            noise_var=float(info['noise_var']), surface=surface, point_index=arrays[p + 'point_index'],
+            outlier_index=arrays[p + 'outlier_index'], stats=info.get('stats', {}),
+            plane_extent=tuple(float(x) for x in arrays[p + 'plane_extent']), anchor=arrays[p + 'anchor'],
+            fitted_points=int(info['fitted_points'])))
     points = {int(b): arrays[f'building/{b}/points'] for b in meta['buildings']}
     origins = {int(b): arrays.get(f'building/{b}/sensor_origins') for b in meta['buildings']}
     normals = {int(b): arrays[f'building/{b}/normals'] for b in meta['buildings']}

@@ -32,7 +32,7 @@ from .facade_map import FacadeMap
 
 @dataclass(frozen=True)
 class MapSnapshot:
-    """The map as it stood after one update.
+    """The map as it stood after one update, shared read-only with other threads.
 
     Attributes:
         version: number of changes the worker has made (0: the initial map).
@@ -203,8 +203,10 @@ class MapWorker:
     # -- the worker ---------------------------------------------------------------------
     def _snapshot(self, version: int) -> MapSnapshot:
         fmap = self._fmap
-        return MapSnapshot(version, tuple(fmap.facades), np.asarray(fmap.map_origin, dtype=np.float64).copy(),
-                           len(fmap.points), fmap.n_points, self._stamp, fmap.params)
+        origin = np.asarray(fmap.map_origin, dtype=np.float64).copy()
+        origin.setflags(write=False)  # the façade models' arrays are read-only already
+        return MapSnapshot(version, tuple(fmap.facades), origin, len(fmap.points), fmap.n_points, self._stamp,
+                           fmap.params)
 
     def _publish(self) -> None:
         self.snapshot = self._snapshot(self.snapshot.version + 1)

@@ -12,6 +12,7 @@ façade and recomputes only the blocks the new points touch. The caller
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
@@ -20,9 +21,12 @@ from ..datatypes import (
     SOURCE_FACET_PRIOR,
     SOURCE_GLOBAL,
     SOURCE_GP,
+    DepthLayers,
     ExtractedFacade,
     FacadeModel,
+    Facets,
     SurfaceRaster,
+    cell_centres,
 )
 from ..errors import InputError
 from ..params import MapParams
@@ -57,6 +61,140 @@ def _extent(uv: np.ndarray) -> tuple[float, float, float, float]:
     return (float(uv[:, 0].min()), float(uv[:, 0].max()), float(uv[:, 1].min()), float(uv[:, 1].max()))
 
 
+def _raster_shape(raster_extent: tuple[float, float, float, float], cell: float) -> tuple[int, int]:
+    """(rows, columns) of the raster over a snapped extent (its ends lie on the cell grid)."""
+    width = max(1, int(round((raster_extent[1] - raster_extent[0]) / cell)))
+    height = max(1, int(round((raster_extent[3] - raster_extent[2]) / cell)))
+    return height, width
+
+
+def _global_prior(depth: np.ndarray, layers: DepthLayers) -> tuple[float, float]:
+    """Mean and variance of the global GP prior, metres and m^2 (paper, Section III.C).
+
+    The prior is centred on the main layer, so its variance is the spread of all depths
+    about that layer (not about their own mean).
+    """
+    mean = float(layers.means_[layers.main_])
+    return mean, float(np.mean((depth - mean) ** 2))
+
+
+@dataclass(frozen=True, eq=False)
+class _LayeredPoints:
+    """A façade's points read through its depth layers and facets (steps 2 and 3).
+
+    Attributes:
+        uv: (N, 2) locations on the plane, metres, façade frame.
+        depth: (N,) depths, metres.
+        facets: the facets of the layers on the raster.
+        point_facet: (N,) facet of each point, -1 outside every facet.
+        point_layer: (N,) layer of each point's facet (the main layer outside facets).
+        training: (N,) bool, GP training points (eqs. 7 and 8), inside a facet.
+        centred: (N,) depth minus the mean of the point's layer, metres.
+    """
+
+    uv: np.ndarray
+    depth: np.ndarray
+    facets: Facets
+    point_facet: np.ndarray
+    point_layer: np.ndarray
+    training: np.ndarray
+    centred: np.ndarray
+
+
+def _layered_points(extracted: ExtractedFacade, layers: DepthLayers, raster_extent: tuple[float, float, float, float],
+                    params: MapParams) -> _LayeredPoints:
+    """Facets of the layers on the raster, and the GP training points (eqs. 7 and 8)."""
+    uv, depth = extracted.uvd[:, :2], extracted.uvd[:, 2]
+    facets = find_facets(uv, layers.predict(depth), layers.n_layers, raster_extent, params.layers)
+    point_facet = facets.facet_at(uv)
+    has_facet = point_facet >= 0
+    point_layer = np.where(has_facet, facets.layer_of_facet[np.maximum(point_facet, 0)], layers.main_)
+    training = select_training(depth, extracted.normal_cos, point_layer, layers, params.gp) & has_facet
+    return _LayeredPoints(uv, depth, facets, point_facet, point_layer, training, depth - layers.means_[point_layer])
+
+
+def _fit_lengthscales(pts: _LayeredPoints, layers: DepthLayers, params: MapParams, rng: np.random.Generator
+                      ) -> np.ndarray:
+    """(K, 2) 1/b_1, 1/b_2 per layer, m^2: maximum marginal likelihood on a few patches of
+    the layer's training points (pooled over its facets)."""
+    sigma_point = layers.sigmas_[pts.point_layer]
+    l2_layer = np.empty((layers.n_layers, 2))
+    for k in range(layers.n_layers):
+        sel = pts.training & (pts.point_layer == k)
+        patches = (optimisation_patches(pts.uv[sel], pts.centred[sel], sigma_point[sel], params.gp, rng)
+                   if sel.sum() >= 10 else [])
+        l2_layer[k] = optimise_lengthscales(patches, params.gp)
+    return l2_layer
+
+
+@dataclass(frozen=True, eq=False)
+class _GPSetup:
+    """The local GPs' data: per facet its prior and length scales, the block sizes, and the
+    points that train them.
+
+    Attributes:
+        facet_sigma: (F,) sigma_p of each facet = sigma_k of its layer (paper, Section III.C), metres.
+        facet_l2: (F, 2) 1/b_1, 1/b_2 of each facet (its layer's), m^2.
+        sizes: (F, 2) block sides per facet, metres.
+        planar: (N,) bool, planar points added to the training points (``gp.planar_per_block``).
+        used: (N,) bool, the points that train the GPs.
+    """
+
+    facet_sigma: np.ndarray
+    facet_l2: np.ndarray
+    sizes: np.ndarray
+    planar: np.ndarray
+    used: np.ndarray
+
+
+def _gp_setup(pts: _LayeredPoints, layers: DepthLayers, l2_layer: np.ndarray, anchor: np.ndarray, params: MapParams,
+              rng: np.random.Generator) -> _GPSetup:
+    """Priors, length scales and block sizes per facet (Section III.D), and the training points."""
+    facets, gp = pts.facets, params.gp
+    facet_sigma = layers.sigmas_[facets.layer_of_facet]
+    facet_l2 = l2_layer[facets.layer_of_facet] if facets.n_facets else np.empty((0, 2))
+    sizes = block_size(facet_l2, gp.c_min) if facets.n_facets else np.ones((1, 2))
+    has_facet = pts.point_facet >= 0
+    planar = _thin_planar(pts.uv, np.maximum(pts.point_facet, 0), has_facet & ~pts.training, anchor, sizes,
+                          gp.planar_per_block, rng)
+    return _GPSetup(facet_sigma, facet_l2, sizes, planar, pts.training | planar)
+
+
+def _block_data(pts: _LayeredPoints, setup: _GPSetup, take: np.ndarray, anchor: np.ndarray) -> BlockData:
+    return BlockData(pts.uv[take], pts.centred[take], pts.point_facet[take], setup.facet_sigma, setup.facet_l2, anchor)
+
+
+def _predict_cells(data: BlockData, centres: np.ndarray, cell_facet: np.ndarray, cells: np.ndarray,
+                   layers: DepthLayers, facets: Facets, params: MapParams, rng: np.random.Generator,
+                   mean: np.ndarray, var: np.ndarray, source: np.ndarray) -> np.ndarray:
+    """Test the training points for outliers and predict the local GPs at the raster cells
+    ``cells`` (steps 4 and 5), writing mean, variance and source there.
+
+    Args:
+        data: the training points of the blocks of those cells.
+        centres: (C, 2) all cell centres, metres, façade frame.
+        cell_facet: (C,) facet of every cell.
+        cells: (C,) bool, the cells to predict (inside a facet).
+        mean, var, source: (C,) the raster's values, written at ``cells``.
+
+    Returns:
+        (T,) bool over ``data``'s points: removed as outliers.
+    """
+    f = cell_facet[cells]
+    dev, v, seen, outlier = fit_surface(data, centres[cells], f, params.gp, rng, params.outliers.alpha,
+                                        params.outliers.iterations)
+    mean[cells] = layers.means_[facets.layer_of_facet[f]] + dev  # d(x) = g(x) + f(x), eq. 2
+    var[cells] = v
+    source[cells] = np.where(seen, SOURCE_GP, SOURCE_FACET_PRIOR)
+    return outlier
+
+
+def _raster(origin: np.ndarray, cell: float, shape: tuple[int, int], mean: np.ndarray, var: np.ndarray,
+            cell_facet: np.ndarray, source: np.ndarray) -> SurfaceRaster:
+    return SurfaceRaster(origin=origin, cell=cell, mean=mean.reshape(shape), var=var.reshape(shape),
+                         facet=cell_facet.reshape(shape), source=source.reshape(shape))
+
+
 def fit_facade(extracted: ExtractedFacade, params: MapParams, rng: np.random.Generator, facade_id: int = 0,
                building: int = 0, raster_margin: float = 1.0, anchor: np.ndarray | None = None) -> FacadeModel:
     """Fit the uncertain surface of one façade whole.
@@ -78,80 +216,52 @@ def fit_facade(extracted: ExtractedFacade, params: MapParams, rng: np.random.Gen
         InputError: too few points.
     """
     t0 = time.perf_counter()
-    uvd = extracted.uvd
-    uv, depth = uvd[:, :2], uvd[:, 2]
+    uv, depth = extracted.uvd[:, :2], extracted.uvd[:, 2]
     if len(depth) < 10:
         raise InputError(f'façade {facade_id} has {len(depth)} points, at least 10 are needed')
-    gp = params.gp
+    cell = params.gp.grid_resolution
+    # Step 2: the GMM of depth layers (eq. 3); the raster and its block grid's anchor.
     layers = fit_layers(depth, params.layers, rng)
     extent = _extent(uv)
     if anchor is None:
         anchor = np.array([extent[0] - raster_margin, extent[2] - raster_margin])
     anchor = np.asarray(anchor, dtype=np.float64)
-    raster_extent = _raster_extent(extent, raster_margin, anchor, gp.grid_resolution)
-    facets = find_facets(uv, layers.predict(depth), layers.n_layers, raster_extent, params.layers)
-    point_facet = facets.facet_at(uv)
-    has_facet = point_facet >= 0
-    point_layer = np.where(has_facet, facets.layer_of_facet[np.maximum(point_facet, 0)], layers.main_)
-    training = select_training(depth, extracted.normal_cos, point_layer, layers, gp) & has_facet
+    raster_extent = _raster_extent(extent, raster_margin, anchor, cell)
+    # Steps 2-3: facets of the layers, training points (eqs. 7, 8).
+    pts = _layered_points(extracted, layers, raster_extent, params)
     t1 = time.perf_counter()
-
-    # Length scales per layer, by maximum marginal likelihood on a few patches of its training points.
-    centred = depth - layers.means_[point_layer]
-    sigma_point = layers.sigmas_[point_layer]
-    l2_layer = np.empty((layers.n_layers, 2))
-    for k in range(layers.n_layers):
-        sel = training & (point_layer == k)
-        patches = optimisation_patches(uv[sel], centred[sel], sigma_point[sel], gp, rng) if sel.sum() >= 10 else []
-        l2_layer[k] = optimise_lengthscales(patches, gp)
-    facet_sigma = layers.sigmas_[facets.layer_of_facet]  # sigma_p = sigma_k (paper, Section III.C)
-    facet_l2 = l2_layer[facets.layer_of_facet] if facets.n_facets else np.empty((0, 2))
+    # Step 4: length scales per layer by maximum marginal likelihood; blocks per facet.
+    l2_layer = _fit_lengthscales(pts, layers, params, rng)
     t2 = time.perf_counter()
-
+    setup = _gp_setup(pts, layers, l2_layer, anchor, params, rng)
+    data = _block_data(pts, setup, setup.used, anchor)
+    # The raster: the global prior everywhere, the facets' GPs where a facet is.
     origin = np.array([raster_extent[0], raster_extent[2]])
-    sizes = block_size(facet_l2, gp.c_min) if facets.n_facets else np.ones((1, 2))
-    planar = _thin_planar(uv, np.maximum(point_facet, 0), has_facet & ~training, anchor, sizes,
-                          gp.planar_per_block, rng)
-    used = training | planar
-    data = BlockData(uv[used], centred[used], point_facet[used], facet_sigma, facet_l2, anchor)
-
-    cell = gp.grid_resolution
-    width = max(1, int(np.ceil((raster_extent[1] - raster_extent[0]) / cell)))
-    height = max(1, int(np.ceil((raster_extent[3] - raster_extent[2]) / cell)))
-    raster = SurfaceRaster(origin, cell, np.empty((height, width)), np.empty((height, width)),
-                           np.empty((height, width), np.int32), np.empty((height, width), np.int8))
-    centres = raster.centres()
-    cell_facet = facets.facet_at(centres)
-    mean = np.full(len(centres), layers.means_[layers.main_])
-    # The global prior is centred on the main layer, so its variance is the spread of all
-    # depths about that layer (not about their own mean): paper, Section III.C.
-    global_var = float(np.mean((depth - layers.means_[layers.main_]) ** 2))
+    shape = _raster_shape(raster_extent, cell)
+    centres = cell_centres(origin, cell, shape)
+    cell_facet = pts.facets.facet_at(centres)
+    global_mean, global_var = _global_prior(depth, layers)
+    mean = np.full(len(centres), global_mean)
     var = np.full(len(centres), global_var)
     source = np.full(len(centres), SOURCE_GLOBAL, np.int8)
     inside = cell_facet >= 0
-    removed = 0
-    outlier_index = np.empty(0, np.int64)
+    outlier = np.zeros(int(setup.used.sum()), dtype=bool)
     t3 = time.perf_counter()
+    # Steps 4-5: outliers by the chi-squared test, then the GPs' posterior on the cells.
     if inside.any():
-        dev, v, seen, outlier = fit_surface(data, centres[inside], cell_facet[inside], gp, rng,
-                                            params.outliers.alpha, params.outliers.iterations)
-        removed = int(outlier.sum())
-        outlier_index = np.asarray(extracted.index, dtype=np.int64)[np.flatnonzero(used)[outlier]]
-        mean[inside] = layers.means_[facets.layer_of_facet[cell_facet[inside]]] + dev
-        var[inside] = v
-        source[inside] = np.where(seen, SOURCE_GP, SOURCE_FACET_PRIOR)
-    raster.mean[...] = mean.reshape(height, width)
-    raster.var[...] = var.reshape(height, width)
-    raster.facet[...] = cell_facet.reshape(height, width)
-    raster.source[...] = source.reshape(height, width)
+        outlier = _predict_cells(data, centres, cell_facet, inside, layers, pts.facets, params, rng, mean, var, source)
     t4 = time.perf_counter()
-    stats = {'points': len(depth), 'training': int(training.sum()), 'planar_in_gp': int(planar.sum()),
-             'outliers_removed': removed, 'layers': layers.n_layers, 'facets': facets.n_facets,
+    index = np.asarray(extracted.index, dtype=np.int64)
+    stats = {'points': len(depth), 'training': int(pts.training.sum()), 'planar_in_gp': int(setup.planar.sum()),
+             'outliers_removed': int(outlier.sum()), 'layers': layers.n_layers, 'facets': pts.facets.n_facets,
              'seconds': {'layers': t1 - t0, 'hyper': t2 - t1, 'setup': t3 - t2, 'gp': t4 - t3}}
-    return FacadeModel(facade_id, building, extracted.frame, extent, layers, facets, l2_layer,
-                       float(layers.means_[layers.main_]), global_var, gp.noise_sigma**2, raster,
-                       np.asarray(extracted.index, dtype=np.int64), outlier_index, stats,
-                       tuple(extracted.plane_extent), anchor, len(depth))
+    return FacadeModel(
+        facade_id=facade_id, building=building, frame=extracted.frame, extent=extent, layers=layers,
+        facets=pts.facets, lengthscale2_=l2_layer, global_mean_=global_mean, global_var_=global_var,
+        noise_var=params.gp.noise_sigma**2,
+        surface=_raster(origin, cell, shape, mean, var, cell_facet, source),
+        point_index=index, outlier_index=index[np.flatnonzero(setup.used)[outlier]], stats=stats,
+        plane_extent=tuple(extracted.plane_extent), anchor=anchor, fitted_points=len(depth))
 
 
 def _changed_cells(old: FacadeModel, offset: tuple[int, int], facet: np.ndarray, layer_of_facet: np.ndarray
@@ -205,46 +315,36 @@ def update_facade(model: FacadeModel, extracted: ExtractedFacade, new: np.ndarra
     """
     n = len(extracted.index)
     t0 = time.perf_counter()
-    gp = params.gp
-    uv, depth = extracted.uvd[:, :2], extracted.uvd[:, 2]
     layers, anchor, old = model.layers, model.anchor, model.surface
     cell = old.cell
+    uv = extracted.uvd[:, :2]
     extent = _extent(uv)
+    # The raster grows to cover the new points, on the same cell grid.
     h0, w0 = old.mean.shape
     old_extent = (old.origin[0], old.origin[0] + w0 * cell, old.origin[1], old.origin[1] + h0 * cell)
     raster_extent = _raster_extent(extent, raster_margin, anchor, cell, cover=old_extent)
-    facets = find_facets(uv, layers.predict(depth), layers.n_layers, raster_extent, params.layers)
-    point_facet = facets.facet_at(uv)
-    has_facet = point_facet >= 0
-    point_layer = np.where(has_facet, facets.layer_of_facet[np.maximum(point_facet, 0)], layers.main_)
-    training = select_training(depth, extracted.normal_cos, point_layer, layers, gp) & has_facet
-    centred = depth - layers.means_[point_layer]
-    facet_sigma = layers.sigmas_[facets.layer_of_facet]
-    facet_l2 = model.lengthscale2_[facets.layer_of_facet] if facets.n_facets else np.empty((0, 2))
-    sizes = block_size(facet_l2, gp.c_min) if facets.n_facets else np.ones((1, 2))
-    planar = _thin_planar(uv, np.maximum(point_facet, 0), has_facet & ~training, anchor, sizes,
-                          gp.planar_per_block, rng)
-    used = training | planar
-
+    # Steps 2-3 with the layers kept: facets found again, training points (eqs. 7, 8).
+    pts = _layered_points(extracted, layers, raster_extent, params)
+    # Step 4 with the length scales kept.
+    setup = _gp_setup(pts, layers, model.lengthscale2_, anchor, params, rng)
+    facets, used = pts.facets, setup.used
     origin = np.array([raster_extent[0], raster_extent[2]])
-    width = int(round((raster_extent[1] - raster_extent[0]) / cell))
-    height = int(round((raster_extent[3] - raster_extent[2]) / cell))
+    shape = _raster_shape(raster_extent, cell)
     offset = (int(round((old.origin[1] - origin[1]) / cell)), int(round((old.origin[0] - origin[0]) / cell)))
-    raster = SurfaceRaster(origin, cell, np.empty((height, width)), np.empty((height, width)),
-                           np.empty((height, width), np.int32), np.empty((height, width), np.int8))
-    centres = raster.centres()
-    cell_facet = facets.facet_at(centres).reshape(height, width)
+    centres = cell_centres(origin, cell, shape)
+    cell_facet = facets.facet_at(centres).reshape(shape)
+    # What must be computed again: the blocks near new training points, and the cells
+    # whose facet changed with one block's reach around them (their points may have moved
+    # between facets, which changes the extended blocks of their neighbours).
     changed = _changed_cells(model, offset, cell_facet, facets.layer_of_facet)
-    # One block's reach around changed cells: their points may have moved between facets,
-    # which changes the extended blocks of their neighbours.
-    reach = int(np.ceil(sizes.max() / cell)) if facets.n_facets else 0
+    reach = int(np.ceil(setup.sizes.max() / cell)) if facets.n_facets else 0
     if reach and changed.any():
         changed = ndimage.maximum_filter(changed, size=2 * reach + 1)
     inside = cell_facet.ravel() >= 0
     cell_codes = np.full(len(centres), -1, dtype=np.int64)
-    cell_codes[inside] = block_codes(centres[inside], cell_facet.ravel()[inside], anchor, sizes)
+    cell_codes[inside] = block_codes(centres[inside], cell_facet.ravel()[inside], anchor, setup.sizes)
     train_codes = np.full(n, -1, dtype=np.int64)
-    train_codes[used] = block_codes(uv[used], point_facet[used], anchor, sizes)
+    train_codes[used] = block_codes(pts.uv[used], pts.point_facet[used], anchor, setup.sizes)
     fresh = used & new
     dirty = np.union1d((train_codes[fresh][:, None] + _NEIGHBOURS[None, :]).ravel(),
                        cell_codes[changed.ravel() & inside])
@@ -257,40 +357,33 @@ def update_facade(model: FacadeModel, extracted: ExtractedFacade, new: np.ndarra
     take = ring & ~(removed_before & ~own)
     t1 = time.perf_counter()
 
-    # Start from the old raster; the global prior holds where no facet is.
-    global_mean = float(layers.means_[layers.main_])
-    global_var = float(np.mean((depth - global_mean) ** 2))
-    mean = np.full((height, width), global_mean)
-    var = np.full((height, width), global_var)
-    source = np.full((height, width), SOURCE_GLOBAL, np.int8)
+    # The raster: the old one where it was, the global prior where no facet is.
+    global_mean, global_var = _global_prior(pts.depth, layers)
+    mean = np.full(shape, global_mean)
+    var = np.full(shape, global_var)
+    source = np.full(shape, SOURCE_GLOBAL, np.int8)
     r0, c0 = offset
     mean[r0:r0 + h0, c0:c0 + w0] = old.mean
     var[r0:r0 + h0, c0:c0 + w0] = old.var
     source[r0:r0 + h0, c0:c0 + w0] = old.source
     mean, var, source = mean.ravel(), var.ravel(), source.ravel()
     mean[~inside], var[~inside], source[~inside] = global_mean, global_var, SOURCE_GLOBAL
+    # Steps 4-5 on the cells to compute again.
     flagged = np.zeros(n, dtype=bool)
     if test.any():
-        data = BlockData(uv[take], centred[take], point_facet[take], facet_sigma, facet_l2, anchor)
-        f = cell_facet.ravel()[test]
-        dev, v, seen, outlier = fit_surface(data, centres[test], f, gp, rng, params.outliers.alpha,
-                                            params.outliers.iterations)
+        outlier = _predict_cells(_block_data(pts, setup, take, anchor), centres, cell_facet.ravel(), test, layers,
+                                 facets, params, rng, mean, var, source)
         flagged[np.flatnonzero(take)[outlier]] = True
-        mean[test] = layers.means_[facets.layer_of_facet[f]] + dev
-        var[test] = v
-        source[test] = np.where(seen, SOURCE_GP, SOURCE_FACET_PRIOR)
     outliers = (removed_before & ~own & used) | flagged
-    raster.mean[...] = mean.reshape(height, width)
-    raster.var[...] = var.reshape(height, width)
-    raster.facet[...] = cell_facet
-    raster.source[...] = source.reshape(height, width)
     t2 = time.perf_counter()
-    stats = {'points': n, 'training': int(training.sum()), 'planar_in_gp': int(planar.sum()),
+    index = np.asarray(extracted.index, dtype=np.int64)
+    stats = {'points': n, 'training': int(pts.training.sum()), 'planar_in_gp': int(setup.planar.sum()),
              'outliers_removed': int(outliers.sum()), 'layers': layers.n_layers, 'facets': facets.n_facets,
              'updated_cells': int(test.sum()), 'updated_training': int(take.sum()),
              'seconds': {'setup': t1 - t0, 'gp': t2 - t1}}
-    return FacadeModel(model.facade_id, model.building, model.frame, extent, layers, facets, model.lengthscale2_,
-                       global_mean, global_var, model.noise_var, raster,
-                       np.asarray(extracted.index, dtype=np.int64),
-                       np.asarray(extracted.index, dtype=np.int64)[outliers], stats,
-                       tuple(extracted.plane_extent), anchor, model.fitted_points)
+    return FacadeModel(
+        facade_id=model.facade_id, building=model.building, frame=model.frame, extent=extent, layers=layers,
+        facets=facets, lengthscale2_=model.lengthscale2_, global_mean_=global_mean, global_var_=global_var,
+        noise_var=model.noise_var, surface=_raster(origin, cell, shape, mean, var, cell_facet, source),
+        point_index=index, outlier_index=index[outliers], stats=stats, plane_extent=tuple(extracted.plane_extent),
+        anchor=anchor, fitted_points=model.fitted_points)
