@@ -113,5 +113,5 @@ def assignments(name: str, value: object, partners: tuple[str, ...]) -> list[dic
     relation partners at the same value."""
     out = [{name: value}]
     if partners:
-        out.append({n: value for n in partners})
+        out.append(dict.fromkeys(partners, value))
     return out

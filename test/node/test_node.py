@@ -29,10 +29,10 @@ pytest.importorskip('uncertain_facade_map.srv')
 
 import msg_adapters as ma  # noqa: E402
 from uncertain_facade_map.io.map_file import load_map, save_map  # noqa: E402
-from uncertain_facade_map.io.parameter_file import dump_config
+from uncertain_facade_map.io.parameter_file import dump_config  # noqa: E402
 from uncertain_facade_map.mapping.facade_map import FacadeMap  # noqa: E402
 from uncertain_facade_map.mapping.worker import map_scans  # noqa: E402
-from uncertain_facade_map.params import (
+from uncertain_facade_map.params import (  # noqa: E402
     Config,
     InputConfig,
     map_params,  # noqa: E402  # FIXME
