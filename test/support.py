@@ -115,3 +115,28 @@ def assignments(name: str, value: object, partners: tuple[str, ...]) -> list[dic
     if partners:
         out.append(dict.fromkeys(partners, value))
     return out
+
+
+def assert_edge_taken(read, name: str, value: object, accepted: bool, partners: tuple[str, ...]) -> None:
+    """``read(params)`` (a configuration from ``{name: value}`` overrides) takes an advertised
+    value (alone, or with its relation partners at the same value) and keeps it, or refuses
+    a value beyond the range with an InputError naming the parameter."""
+    import pytest
+
+    from uncertain_facade_map.errors import InputError
+
+    if not accepted:
+        with pytest.raises(InputError, match=f'parameter {name}'):
+            read({name: value})
+        return
+    errors = []
+    for params in assignments(name, value, partners):
+        try:
+            config = read(params)
+            break
+        except InputError as exc:
+            errors.append(str(exc))
+    else:
+        pytest.fail(f'{name}={value!r} advertised but refused: {errors}')
+    section, key = name.split('.')
+    assert getattr(getattr(config, section), key) == value

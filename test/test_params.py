@@ -13,7 +13,7 @@ import math
 
 import pytest
 import yaml
-from support import assignments, edge_cases
+from support import assert_edge_taken, assignments, edge_cases
 
 from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.params import (
@@ -52,21 +52,7 @@ def test_the_edge_cases_cover_every_interval():
 @pytest.mark.parametrize('name, value, accepted, partners', CASES,
                          ids=[f'{c[0]}={c[1]!r}' for c in CASES])
 def test_advertised_edges_are_accepted_and_beyond_refused(name, value, accepted, partners):
-    if accepted:
-        errors = []
-        for params in assignments(name, value, partners):
-            try:
-                config = config_from_parameters(params)
-                break
-            except InputError as exc:
-                errors.append(str(exc))
-        else:
-            pytest.fail(f'{name}={value!r} advertised but refused: {errors}')
-        section, key = name.split('.')
-        assert getattr(getattr(config, section), key) == value
-    else:
-        with pytest.raises(InputError, match=f'parameter {name}'):
-            config_from_parameters({name: value})
+    assert_edge_taken(config_from_parameters, name, value, accepted, partners)
 
 
 def _write_params(path, params: dict) -> None:

@@ -513,8 +513,7 @@ class Config:
 
 def map_params(config: Config) -> MapParams:
     """The modelling parameters of a configuration."""
-    return MapParams(extraction=config.extraction, layers=config.layers, gp=config.gp, outliers=config.outliers,
-                     update=config.update, seed=config.model.seed)
+    return MapParams(seed=config.model.seed, **{name: getattr(config, name) for name in _map_sections()})
 
 
 # ----------------------------------------------------------------------------------------
@@ -608,14 +607,15 @@ def config_from_parameters(params: dict[str, Any]) -> Config:
 # ----------------------------------------------------------------------------------------
 # The map file's parameter record
 # ----------------------------------------------------------------------------------------
-_MAP_SECTIONS = {'extraction': ExtractionParams, 'layers': LayerParams, 'gp': GPParams, 'outliers': OutlierParams,
-                 'update': UpdateParams}
+def _map_sections() -> dict[str, type]:
+    """The sections of :class:`MapParams` (all its fields but the seed), by name."""
+    return {name: cls for name, cls in _sections(MapParams) if name != 'seed'}
 
 
 def map_params_record(params: MapParams) -> dict[str, Any]:
     """The modelling parameters as a JSON-ready record: ``{section: {name: value}, 'seed': seed}``."""
     record: dict[str, Any] = {}
-    for section, cls in _MAP_SECTIONS.items():
+    for section, cls in _map_sections().items():
         sub = getattr(params, section)
         record[section] = {f.name: (list(v) if isinstance(v := getattr(sub, f.name), tuple) else v)
                            for f in dataclasses.fields(cls)}
@@ -634,11 +634,12 @@ def map_params_from_record(record: dict[str, Any]) -> MapParams:
     """
     if not isinstance(record, dict):
         raise InputError(f'parameters: expected a record, got {type(record).__name__}')
-    unknown = sorted(set(record) - set(_MAP_SECTIONS) - {'seed'})
+    sections_of = _map_sections()
+    unknown = sorted(set(record) - set(sections_of) - {'seed'})
     if unknown:
         raise InputError(f'unknown parameter section {unknown[0]}')
     sections = {}
-    for section, cls in _MAP_SECTIONS.items():
+    for section, cls in sections_of.items():
         values = record.get(section, {})
         if not isinstance(values, dict):
             raise InputError(f'parameters: section {section} is not a record')
