@@ -68,7 +68,9 @@ class _Localisation:
             executor.spin_once(timeout_sec=0.05)
 
     def _diagnostics_callback(self, msg) -> None:
-        if msg.status and msg.status[0].hardware_id == 'facade_mapper':
+        from uncertain_facade_map.params import NODE_NAME
+
+        if msg.status and msg.status[0].hardware_id == NODE_NAME:
             self.values = {kv.key: kv.value for kv in msg.status[0].values}
 
     def call(self, srv_type, name: str, request, timeout: float = 300.0):

@@ -54,6 +54,7 @@ from uncertain_facade_map.mapping.facade_map import FacadeMap
 from uncertain_facade_map.mapping.worker import Cloud, MapSnapshot, MapWorker, ReplaceMap
 from uncertain_facade_map.msg import FacadeGridArray
 from uncertain_facade_map.params import (
+    NODE_NAME,
     Config,
     config_from_parameters,
     map_params,
@@ -62,7 +63,6 @@ from uncertain_facade_map.params import (
 from uncertain_facade_map.pipeline.step7_queries import query_points
 from uncertain_facade_map.srv import GetFacades, LoadMap, QueryPoints, SaveMap
 
-NODE_NAME = 'facade_mapper'
 #: Seconds a service waits for the map worker (save, load, reset) before answering "busy".
 COMMAND_TIMEOUT = 120.0
 
