@@ -50,7 +50,7 @@ def parameter_descriptor(info: ParameterInfo, types: Any, read_only: bool = True
     spec = info.spec
     extra = spec.constraint_text()
     constraints = [str(spec.allowed)] if spec.allowed is not None else []
-    constraints += [f'need {text}' for text in info.relations]
+    constraints += [f'need {rel.text}' for rel in info.relations]
     d = types.ParameterDescriptor(name=info.name, description=spec.description + (f' ({extra})' if extra else ''),
                                   additional_constraints='; '.join(constraints), read_only=read_only)
     bounds = info.closed_range()

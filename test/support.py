@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from uncertain_facade_map.params import Config, parameters
+from uncertain_facade_map.params import parameters
 
 #: The repository's root folder.
 REPO = Path(__file__).resolve().parents[1]
@@ -90,7 +90,8 @@ def edge_cases() -> list[tuple[str, object, bool, tuple[str, ...]]]:
         bounds = info.closed_range()
         if bounds is None:
             continue
-        partners = tuple(n for rel in info.relations for n in _relation_names(info.name, rel))
+        section = info.name.split('.')[0]
+        partners = tuple(f'{section}.{n}' for rel in info.relations for n in rel.names)
         for end, up in ((bounds[0], False), (bounds[1], True)):
             value = info.type(end)
             cases.append((info.name, value, True, partners))
@@ -98,14 +99,6 @@ def edge_cases() -> list[tuple[str, object, bool, tuple[str, ...]]]:
             if abs(beyond) < 1e308:
                 cases.append((info.name, beyond, False, partners))
     return cases
-
-
-def _relation_names(name: str, text: str) -> list[str]:
-    section = name.split('.')[0]
-    for rel in type(getattr(Config(), section)).relations:
-        if rel.text == text:
-            return [f'{section}.{n}' for n in rel.names]
-    return []
 
 
 def assignments(name: str, value: object, partners: tuple[str, ...]) -> list[dict]:

@@ -23,6 +23,7 @@ complete :class:`Config`, the whole file.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import sys
 from dataclasses import dataclass, field
@@ -133,11 +134,8 @@ def param(default: Any, description: str, *, unit: str = '', allowed: Interval |
 
     For a tuple-typed parameter, ``allowed`` applies to every item.
     """
-    spec = Param(description, unit, allowed)
-    if isinstance(default, (list, tuple)):
-        value = tuple(default)
-        return field(default=value, metadata={'param': spec})
-    return field(default=default, metadata={'param': spec})
+    value = tuple(default) if isinstance(default, (list, tuple)) else default
+    return field(default=value, metadata={'param': Param(description, unit, allowed)})
 
 
 @dataclass(frozen=True)
@@ -183,8 +181,6 @@ class Section:
     def __post_init__(self) -> None:
         hints = _hints(type(self))
         for f in dataclasses.fields(self):
-            if 'param' not in f.metadata:
-                continue
             name = f'{self.section}.{f.name}'
             value = _checked(name, getattr(self, f.name), hints[f.name], f.metadata['param'].allowed)
             object.__setattr__(self, f.name, value)
@@ -194,13 +190,9 @@ class Section:
                 raise InputError(f'parameter {self.section}.{rel.names[0]}: need {rel.text} (got {values})')
 
 
-_HINTS: dict[type, dict[str, Any]] = {}
-
-
+@functools.cache
 def _hints(cls: type) -> dict[str, Any]:
-    if cls not in _HINTS:
-        _HINTS[cls] = get_type_hints(cls)
-    return _HINTS[cls]
+    return get_type_hints(cls)
 
 
 def _type_name(typ: Any) -> str:
@@ -528,14 +520,14 @@ class ParameterInfo:
         value: its value (tuples for lists).
         type: its Python type (for a tuple, the items' type).
         spec: its declaration.
-        relations: the conditions it takes part in (their text).
+        relations: the conditions of its section it takes part in.
     """
 
     name: str
     value: Any
     type: Any
     spec: Param
-    relations: tuple[str, ...] = ()
+    relations: tuple[Relation, ...] = ()
 
     @property
     def is_list(self) -> bool:
@@ -550,7 +542,7 @@ class ParameterInfo:
 
 
 def _sections(cls: type = Config) -> Iterator[tuple[str, type]]:
-    hints = get_type_hints(cls)
+    hints = _hints(cls)
     for f in dataclasses.fields(cls):
         yield f.name, hints[f.name]
 
@@ -570,7 +562,7 @@ def parameters(config: Config | None = None) -> Iterator[ParameterInfo]:
         sub = getattr(config, section)
         hints = _hints(cls)
         for f in dataclasses.fields(cls):
-            related = tuple(r.text for r in cls.relations if f.name in r.names)
+            related = tuple(r for r in cls.relations if f.name in r.names)
             yield ParameterInfo(f'{section}.{f.name}', getattr(sub, f.name), _item_type(hints[f.name]),
                                 f.metadata['param'], related)
 
@@ -644,6 +636,4 @@ def map_params_from_record(record: dict[str, Any]) -> MapParams:
         if not isinstance(values, dict):
             raise InputError(f'parameters: section {section} is not a record')
         sections[section] = _section_from(cls, values, ' in the map file')
-    seed = _checked('model.seed', record.get('seed', 0), int, ModelConfig.__dataclass_fields__['seed'].metadata[
-        'param'].allowed)
-    return MapParams(seed=seed, **sections)
+    return MapParams(seed=ModelConfig(seed=record.get('seed', 0)).seed, **sections)

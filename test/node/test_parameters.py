@@ -55,7 +55,7 @@ def test_defaults_and_descriptors(context):
             else:
                 assert (ranges[0].from_value, ranges[0].to_value) == bounds, info.name
             if info.relations:
-                assert info.relations[0] in d.additional_constraints
+                assert info.relations[0].text in d.additional_constraints
     finally:
         node.destroy_node()
 

@@ -119,7 +119,7 @@ def dump_config(config: Config | None = None, node_name: str = NODE_NAME, commen
             extra = p.spec.constraint_text()
             text = p.spec.description + (f' ({extra})' if extra else '')
             if p.relations:
-                text += f' (need {"; ".join(p.relations)})'
+                text += f' (need {"; ".join(r.text for r in p.relations)})'
             line = f'{line:46s} # {text}'
         lines.append(line)
     return '\n'.join(lines) + '\n'
