@@ -28,6 +28,10 @@ from ..pipeline.step7_queries import assign_facades, surface_at
 from ..simulation.scene import Scene
 
 Z95 = 1.959963984540054
+#: A cell is at a depth step when the truth this far (m) to its left, right, below or above ...
+STEP_RADIUS = 0.2
+#: ... differs from its own by more than this (m) (also the benchmark's test on simulated scenes).
+STEP_HEIGHT = 0.03
 
 
 @dataclass
@@ -109,7 +113,7 @@ def _matching_facade(scene: Scene, model) -> int:
 
 
 def evaluate_surface(fmap: FacadeMap, scene: Scene, observed_radius: float = 0.1, occluded_radius: float = 0.3,
-                     step_radius: float = 0.2, step_height: float = 0.03, max_cells: int = 40_000,
+                     step_radius: float = STEP_RADIUS, step_height: float = STEP_HEIGHT, max_cells: int = 40_000,
                      seed: int = 0) -> SurfaceEvaluation:
     """Compare a map's surfaces with the scene's truth.
 
