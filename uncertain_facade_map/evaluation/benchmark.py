@@ -14,9 +14,10 @@ The protocol (``uncertain-facade-map benchmark INPUT...``; :func:`run_benchmark`
    every point in the rectangular *occlusion patches*: on every façade at least two patch
    sides wide and 1.5 tall (robust extent: 0.5 % to 99.5 % quantiles), one
    ``patch_size`` x ``patch_size`` (2 m) patch per ``patch_spacing`` (10 m) of width,
-   evenly along the wall, centred at 40 % of its height (as ``real_check.py`` places
-   its one patch per wall longer than 8 m). Patch points are *occluded*, the others
-   *observed*.
+   centred evenly along the wall and, in height, at the median height of the façade's
+   points in its strip (inside the extent), so that a patch covers data where the wall
+   was scanned (``real_check.py`` cuts one patch per wall longer than 8 m, at mid-width
+   and 40 % of the height). Patch points are *occluded*, the others *observed*.
 3. **Maps** of the remaining points: this package's (:func:`~uncertain_facade_map.mapping.facade_map.build_map`,
    asked by :func:`~uncertain_facade_map.pipeline.step7_queries.query_points`) and two
    references built from the same points (:mod:`.references`): a local plane through the
@@ -306,11 +307,14 @@ def hold_out(xyz: np.ndarray, facade: np.ndarray, frames: Sequence[FacadeFrame],
             small += 1
             continue
         count = max(1, int(round(width / patch_spacing)))
-        vc = v0 + 0.4 * height
         half = patch_size / 2
         for i in range(count):
             uc = u0 + (i + 0.5) * width / count
-            inside = (np.abs(uv[:, 0] - uc) < half) & (np.abs(uv[:, 1] - vc) < half)
+            strip = np.abs(uv[:, 0] - uc) < half
+            if not strip.any():
+                continue
+            vc = float(np.clip(np.median(uv[strip, 1]), v0 + half, v1 - half))
+            inside = strip & (np.abs(uv[:, 1] - vc) < half)
             occluded[index[inside]] = True
             patches.append((j, float(uc - half), float(uc + half), float(vc - half), float(vc + half)))
     held = occluded | (rng.random(n) < share)
