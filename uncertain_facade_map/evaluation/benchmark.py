@@ -33,7 +33,9 @@ The protocol (``uncertain-facade-map benchmark INPUT...``; :func:`run_benchmark`
    (average precision) of each map's occupancy probability ``p_occupied`` at
    ``resolution`` (0.1 m): positives are the voxels holding held-out points, negatives
    the voxels 2 voxels to ``front_max`` (1 m) in front of them along their façade's
-   normal (towards the sensor) that hold no building point (as ``real_check.py``).
+   normal (towards the sensor) that hold no building point (as ``real_check.py``). Our
+   ``p_occupied`` is the query's, the solid reading Phi((r/2 - s) / sd); the references'
+   is the probability that their surface crosses the voxel (:mod:`.references`).
 5. **Exact truth** (simulated scenes, ``scene`` given): the same table once more, every
    scored point replaced by the true surface point at its place on its true façade
    (:meth:`~uncertain_facade_map.simulation.scene.Scene.true_depth` of its ``gt_facade``
