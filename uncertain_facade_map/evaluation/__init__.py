@@ -6,5 +6,7 @@
   second drive, PR and ROC AUC, accurate-inference curves;
 - ``baselines``: occupancy methods behind one interface: our map and the paper's five
   baselines (OctoMap, BGKOctoMap, GPOM, LARD Hilbert maps, GPIS maps);
-- ``report``: ``report.md`` with its tables and figures.
+- ``report``: ``report.md`` with its tables and figures;
+- ``realism``: how hard a cloud is (wall density, residual spread of planar patches), for
+  checking the simulator's sensor presets against real samples.
 """

@@ -234,8 +234,9 @@ def simulate_campaign(scene: Scene, index: int = 0, sensor: SensorConfig | None 
     n_lines = int(duration * sensor.scan_rate_hz)
     first_line, end_line = 0, n_lines
     if window is not None:
-        first_line = max(0, int(np.ceil(window[0] * sensor.scan_rate_hz)))
-        end_line = min(n_lines, max(first_line, int(np.ceil(window[1] * sensor.scan_rate_hz))))
+        # Lines starting in [start, end); a nanosecond of slack keeps rounding from adding a line.
+        first_line = max(0, int(np.ceil(window[0] * sensor.scan_rate_hz - 1e-9)))
+        end_line = min(n_lines, max(first_line, int(np.ceil(window[1] * sensor.scan_rate_hz - 1e-9))))
     # Profile scanners count the shots not fired too, as they always have (chunks fix the random draws).
     shots_per_line = per_line * len(scanners) if sensor.pattern == 'profile' else sum(len(sc.slot) for sc in scanners)
     lines_per_chunk = max(1, chunk_rays // shots_per_line)
