@@ -14,7 +14,7 @@ def test_simulate_a_hard_scene_with_another_sensor(tmp_path, capsys):
                  '--formats', 'npz', '--out', str(out), '--quiet']) == 0
     desc = json.loads((out / 'scene.json').read_text())
     assert desc['scene'] == 'small_hard'
-    assert desc['walls']['glass_share'] == 0.5 and len(desc['reliefs']) == 8
+    assert desc['walls']['glass_share'] == 0.25 and len(desc['reliefs']) == 8
     assert desc['sensor']['beam_divergence_mrad'] == 0.35 and desc['sensor']['registration_sigma'][0] == 0.03
     codes = np.bincount(read_npz(out / 'campaign0.npz').points['gt_outlier'], minlength=4)
     assert (codes[1:] > 50).all(), 'clutter, glass and mixed returns are all there'

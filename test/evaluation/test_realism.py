@@ -18,10 +18,11 @@ def synthetic_street(rng, spacing=0.1, sigma=0.01):
     Gaussian noise across it, a ground plane and a scatter of clutter."""
     u, z = np.meshgrid(np.arange(0, 12, spacing), np.arange(0.05, 6, spacing))
     wall = np.stack([u.ravel() - 6, np.full(u.size, 10.0) + rng.normal(0, sigma, u.size), z.ravel()], axis=1)
-    gx, gy = np.meshgrid(np.arange(-15, 15, 0.3), np.arange(-5, 12, 0.3))
+    gx, gy = np.meshgrid(np.arange(-15, 15, 0.3), np.arange(-5, 9.9, 0.3))  # hidden behind the wall
     ground = np.stack([gx.ravel(), gy.ravel(), rng.normal(0, 0.01, gx.size)], axis=1)
     clutter = rng.uniform([-15, -5, 0], [15, 9, 4], size=(2000, 3))
-    return np.vstack([wall, ground, clutter]), len(wall)
+    rooms = rng.uniform([-4, 10.5, 1.0], [4, 14, 4.0], size=(300, 3))  # seen through windows
+    return np.vstack([wall, ground, clutter, rooms]), len(wall)
 
 
 def test_a_known_wall_gives_its_density_and_noise():
@@ -40,6 +41,7 @@ def test_a_known_wall_gives_its_density_and_noise():
     assert f.density_between(9.0, 20.0) == pytest.approx(100.0)  # full cells hold 100 points
     assert np.isnan(f.density_between(30.0, 40.0))
     assert f.median_patch_std == pytest.approx(0.01, rel=0.1)
+    assert f.behind[0] == 300 and f.behind_share == pytest.approx(300 / len(wall.members))
 
 
 def test_no_walls_no_figures_and_bad_input_refused():
@@ -65,3 +67,4 @@ def test_av2_preset_is_within_a_factor_of_the_real_av2_sweep():
         assert 0.5 < sim.density_between(near, far) / real.density_between(near, far) < 2.0
     assert 0.5 < sim.median_density / real.median_density < 2.0
     assert 0.67 < sim.median_patch_std / real.median_patch_std < 1.5
+    assert 0.5 < sim.behind_share / real.behind_share < 2.0  # returns through windows

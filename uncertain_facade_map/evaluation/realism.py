@@ -22,12 +22,17 @@ walls are found the way one would in an unclassified real sweep.
    it per m^2) and its range (from the sensor to the mean of its points); and for every
    cell with at least ``min_patch_points`` (15) points the residual spread of a plane
    fitted by PCA: the square root of the smallest eigenvalue of the cell's covariance
-   (metres).
+   (metres); and the points seen *through* it: 0.3 to 5 m behind its plane (away from
+   the sensor) whose ray crosses the plane in one of the wall's occupied cells and that
+   are on none of the walls found, i.e. returns from inside rooms through windows (or from
+   behind anything else in the wall's plane: a parked truck taken for a wall leaves out
+   the façade behind it, which is a wall found, but not the car or tree behind a fence).
 
 The figures reported are the median over walls of the density (with its range), the
 median cell density in range bands (5-10, 10-15 and 15-25 m: the density falls with range,
 so clouds whose walls stand at other distances are compared band by band), and the median
-over all patches of the residual spread. Walls keep their detail (windows, sills, pipes):
+over all patches of the residual spread, and the points seen through the walls as a share
+of the points on them. Walls keep their detail (windows, sills, pipes):
 the residual spread of a real wall is sensor noise plus everything that is not flat within
 a metre, which is why the simulated walls carry their detail too.
 
@@ -82,6 +87,7 @@ class CloudFigures:
         patch_std: (P,) residual spread of every 1 m patch with enough points, metres.
         cell_density: (C,) points/m^2 of every occupied 1 m cell of the walls.
         cell_range: (C,) range of each of those cells from the sensor, metres.
+        behind: (W,) points seen through each wall (see the module docstring).
     """
 
     name: str
@@ -91,6 +97,7 @@ class CloudFigures:
     patch_std: np.ndarray
     cell_density: np.ndarray
     cell_range: np.ndarray
+    behind: np.ndarray
 
     @property
     def wall_points(self) -> int:
@@ -111,6 +118,11 @@ class CloudFigures:
     def distances(self) -> np.ndarray:
         """(W,) distance of the sensor from each wall, metres."""
         return np.array([w.distance for w in self.walls])
+
+    @property
+    def behind_share(self) -> float:
+        """Points seen through the walls over points on them (NaN without walls)."""
+        return float(self.behind.sum() / self.wall_points) if self.walls else float('nan')
 
     def density_between(self, near: float, far: float) -> float:
         """Median density of the wall cells at ``near`` to ``far`` metres from the sensor,
@@ -236,6 +248,36 @@ def cell_densities(xyz: np.ndarray, wall: Wall, sensor: np.ndarray, cell: float 
     return count / (cell * cell), np.linalg.norm(centre - sensor, axis=1)
 
 
+def points_behind(xyz: np.ndarray, wall: Wall, sensor: np.ndarray, near: float = 0.3, far: float = 5.0,
+                  cell: float = 1.0, exclude: np.ndarray | None = None) -> int:
+    """Points seen through a wall: ``near`` to ``far`` metres behind its plane, whose ray
+    from the sensor crosses the plane in one of the wall's occupied ``cell`` cells (so
+    through the wall, not through a gap beside it), leaving out the points flagged in
+    ``exclude`` ((N,) bool; the points of the walls found)."""
+    u_axis = np.array([-wall.normal[1], wall.normal[0], 0.0])
+    d = (xyz - wall.point) @ wall.normal
+    mask = (d <= -near) & (d >= -far)
+    if exclude is not None:
+        mask &= ~exclude
+    back = np.flatnonzero(mask)
+    if not len(back):
+        return 0
+    ray = xyz[back] - sensor
+    s = ((wall.point - sensor) @ wall.normal) / (ray @ wall.normal)
+    cross = sensor + s[:, None] * ray
+    own = xyz[wall.members]
+    key = lambda p: np.stack([np.floor(((p - wall.point) @ u_axis) / cell),  # noqa: E731
+                              np.floor(p[:, 2] / cell)], axis=1).astype(np.int64)
+    occupied = np.unique(key(own), axis=0)
+    crossed = key(cross)
+    # Rows of ``crossed`` that are occupied cells: a sorted search over the packed keys.
+    base = np.int64(1 << 32)
+    packed_own = np.sort(occupied[:, 0] * base + occupied[:, 1])
+    packed = crossed[:, 0] * base + crossed[:, 1]
+    at = np.clip(np.searchsorted(packed_own, packed), 0, len(packed_own) - 1)
+    return int(((packed_own[at] == packed) & (s > 0) & (s < 1)).sum())
+
+
 def patch_spread(xyz: np.ndarray, wall: Wall, cell: float = 1.0, min_points: int = 15) -> np.ndarray:
     """Residual spread of a plane fitted by PCA to each cell of a wall with enough points.
 
@@ -273,8 +315,12 @@ def measure(xyz: np.ndarray, sensor: np.ndarray, name: str = 'cloud', seed: int 
     density = np.array([wall_density(xyz, w) for w in walls])
     spread = [patch_spread(xyz, w) for w in walls]
     cells = [cell_densities(xyz, w, sensor) for w in walls]
+    on_walls = np.zeros(len(xyz), dtype=bool)
+    for w in walls:
+        on_walls[w.members] = True
+    behind = np.array([points_behind(xyz, w, sensor, exclude=on_walls) for w in walls], dtype=np.int64)
     return CloudFigures(name, len(xyz), tuple(walls), density, _joined(spread),
-                        _joined([c[0] for c in cells]), _joined([c[1] for c in cells]))
+                        _joined([c[0] for c in cells]), _joined([c[1] for c in cells]), behind)
 
 
 def _joined(arrays: Sequence[np.ndarray]) -> np.ndarray:
@@ -286,7 +332,8 @@ def pooled(name: str, figures: Sequence[CloudFigures]) -> CloudFigures:
     return CloudFigures(name, int(sum(f.n_points for f in figures)) // max(len(figures), 1),
                         tuple(w for f in figures for w in f.walls), _joined([f.density for f in figures]),
                         _joined([f.patch_std for f in figures]), _joined([f.cell_density for f in figures]),
-                        _joined([f.cell_range for f in figures]))
+                        _joined([f.cell_range for f in figures]),
+                        _joined([f.behind for f in figures]).astype(np.int64))
 
 
 def measure_file(path: str | Path, seed: int = 0) -> CloudFigures:
@@ -350,7 +397,7 @@ def _row(label: str, f: CloudFigures) -> str:
     dist = f.distances
     ranges = f'{dist.min():.0f}-{dist.max():.0f}' if len(dist) else '-'
     return (f'| {label} | {f.n_points:,} | {len(f.walls)} | {f.wall_points:,} | {ranges} | {dens} | {bands} | '
-            f'{1000 * f.median_patch_std:.1f} ({len(f.patch_std)}) |')
+            f'{1000 * f.median_patch_std:.1f} ({len(f.patch_std)}) | {100 * f.behind_share:.1f} % |')
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -368,14 +415,14 @@ def main(argv: list[str] | None = None) -> int:
 
     print('| cloud | points per sweep | walls | wall points | wall distance, m | density, pts/m² per sweep: '
           'median (range) over walls | cell density at ' + ' / '.join(f'{a:.0f}-{b:.0f}' for a, b in BANDS)
-          + ' m: median | patch residual std, mm: median (patches) |')
-    print('|---|---:|---:|---:|---:|---:|---:|---:|')
+          + ' m: median | patch residual std, mm: median (patches) | points seen through the walls |')
+    print('|---|---:|---:|---:|---:|---:|---:|---:|---:|')
     for name, label in REAL_FILES.items():
         path = args.real / name
         if path.exists():
             print(_row(label, measure_file(path, seed=args.seed)), flush=True)
         else:
-            print(f'| {label} | absent: {path} | | | | | | |')
+            print(f'| {label} | absent: {path} | | | | | | | |')
     for preset in [p for p in args.presets.split(',') if p]:
         sweeps = simulated_sweeps(preset, args.scene, args.seed, args.sweeps)
         sensor = SENSOR_PRESETS[preset]

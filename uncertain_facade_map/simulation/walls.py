@@ -66,7 +66,7 @@ class WallRealism:
     waves: int = 2
     plaster: float = 0.002
     plaster_cell: float = 0.02
-    glass_share: float = 0.5
+    glass_share: float = 0.25
     room_depth: tuple[float, float] = (0.5, 5.0)
     frame: float = 0.06
 
