@@ -7,7 +7,7 @@ Sensors (:data:`SENSOR_PRESETS`, :class:`~.sensor.SensorConfig`):
   degrees per scanner (a third of the real rate), Gaussian range noise of 2 cm, 1 %
   clutter outliers. ``mms-small``: the same, coarser (``small``).
 - ``vmx250``: the RIEGL VMX-250 at its real rate, from the published RIEGL VQ-250 / VMX-250
-  data sheets: two VQ-250 scanners, 300 kHz each (2 x 300 000 measurements/s), 100 scan
+  data sheets (as recalled, no copy at hand to quote): two VQ-250 scanners, 300 kHz each (2 x 300 000 measurements/s), 100 scan
   lines/s each (so 3000 shots per 360-degree line, 0.12 degrees), range precision 5 mm
   (1 sigma at 50 m) and accuracy 10 mm, beam divergence 0.35 mrad, minimum range 1.5 m.
   Here: sigma = 4 mm + 0.06 mm/m in quadrature (5 mm at 50 m), a constant offset per
