@@ -104,13 +104,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         with_overrides,
     )
     from uncertain_facade_map.simulation.export import scene_description, split_scans, write_scene_json
-    from uncertain_facade_map.simulation.scenes import build_scene, zurich_scene
+    from uncertain_facade_map.simulation.presets import SENSOR_PRESETS
+    from uncertain_facade_map.simulation.scenes import build_scene
 
-    if args.scene == 'zurich' and args.cityjson:
-        scene = zurich_scene(args.seed, args.cityjson)
-    else:
-        scene = build_scene(args.scene, args.seed)
-    sensor = with_overrides(SCENE_SENSORS.get(scene.name, SensorConfig()), range_noise=args.range_noise,
+    scene = build_scene(args.scene, args.seed, args.cityjson if args.scene.startswith('zurich') else None)
+    preset = SENSOR_PRESETS[args.sensor] if args.sensor else SCENE_SENSORS.get(scene.name, SensorConfig())
+    sensor = with_overrides(preset, range_noise=args.range_noise,
                             outlier_share=args.outlier_share, range_max=args.range_max,
                             angular_step_deg=args.angular_step, scan_rate_hz=args.scan_rate, speed=args.speed)
     out = Path(args.out)
@@ -500,6 +499,8 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of all sub-commands."""
     from uncertain_facade_map.evaluation.baselines import METHODS
+    from uncertain_facade_map.simulation.presets import SENSOR_PRESETS
+    from uncertain_facade_map.simulation.scenes import SCENES
 
     parser = argparse.ArgumentParser(prog=PROG, description='Façade maps with calibrated uncertainty.')
     sub = parser.add_subparsers(dest='command', required=True, metavar='COMMAND')
@@ -507,9 +508,12 @@ def build_parser() -> argparse.ArgumentParser:
     sim = sub.add_parser('simulate', help='scan a built-in scene with a simulated mobile-mapping system',
                          description='Scan a built-in scene (deterministic by seed) in one or more campaigns. '
                                      'Campaign 0 is the mapped one, the others are the reference.')
-    sim.add_argument('--scene', default='street', choices=('street', 'small', 'zurich'),
+    sim.add_argument('--scene', default='street', choices=tuple(SCENES),
                      help='street: ~1.7 M points, 7 buildings (default); small: < 50 000 points; '
-                          'zurich: real CityJSON footprints')
+                          'zurich: real CityJSON footprints; NAME_hard: the same with walls as built and '
+                          'a real error model (see README, "Hard simulator")')
+    sim.add_argument('--sensor', choices=tuple(SENSOR_PRESETS),
+                     help="sensor preset (default: the scene's; see README, \"Hard simulator\")")
     sim.add_argument('--seed', type=int, default=0, help='scene seed (default 0)')
     sim.add_argument('--campaigns', type=int, default=1, help='number of drives, 1 mapped + references (default 1)')
     sim.add_argument('--out', default='output/simulation', help='output folder (default output/simulation)')
@@ -529,7 +533,8 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument('--scan-rate', type=float, help='profiles per second per scanner')
     sim.add_argument('--speed', type=float, help='driving speed, m/s (default 5)')
     sim.add_argument('--cityjson',
-                     help='CityJSON file for --scene zurich (default: the Zurich subset shipped with the package)')
+                     help='CityJSON file for --scene zurich or zurich_hard (default: the Zurich subset shipped '
+                          'with the package)')
     sim.add_argument('--force', action='store_true', help='replace existing output files')
     sim.add_argument('--quiet', action='store_true', help='no progress bar')
     sim.set_defaults(func=cmd_simulate)
@@ -595,7 +600,7 @@ def build_parser() -> argparse.ArgumentParser:
                                     'and ROC AUC and training/testing times per method and resolution, and the '
                                     'accurate-inference AUC of our map; --report writes report.md with figures.')
     ev.add_argument('clouds', nargs='*', metavar='CLOUD', help='MAPPED and REFERENCE clouds (with origin_x/y/z)')
-    ev.add_argument('--scene', choices=('street', 'small', 'zurich'),
+    ev.add_argument('--scene', choices=tuple(SCENES),
                     help='simulate this scene instead: campaign 0 mapped, campaign 1 as reference')
     ev.add_argument('--seed', type=int, default=0, help='scene seed and seed of the voxel subsets (default 0)')
     ev.add_argument('--methods', default=','.join(METHODS),

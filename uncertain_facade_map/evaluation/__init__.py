@@ -11,5 +11,7 @@
   the held-out points (and, on simulated scenes, the exact truth) beside reference maps;
 - ``references``: the benchmark's reference maps (local plane of the 12 nearest points,
   one plane per façade);
-- ``wall_points``: the wall points of an unclassified sweep (the benchmark's default pick).
+- ``wall_points``: the wall points of an unclassified sweep (the benchmark's default pick);
+- ``realism``: how hard a cloud is (wall density, residual spread of planar patches), for
+  checking the simulator's sensor presets against real samples.
 """
