@@ -507,7 +507,7 @@ def test_clouds_in_a_sensor_frame_are_moved_by_its_pose(client, mapped, scans):
     assert on.mean() > 0.8 and np.median(np.abs(answer['signed_distance'][on])) < 0.05
 
 
-def test_a_cloud_without_classes_is_mapped_as_its_selected_points(client, mapped):
+def test_a_cloud_without_classes_is_mapped_as_its_selected_points(client, mapped, workdir):
     """A sweep without the class field, in its sensor's frame: the node maps the points the
     selection keeps (walls), selected in that frame with the sensor at its origin."""
     from geometry_msgs.msg import TransformStamped
@@ -515,8 +515,10 @@ def test_a_cloud_without_classes_is_mapped_as_its_selected_points(client, mapped
 
     from uncertain_facade_map.io.inputs import select_scan_points
     from uncertain_facade_map.params import SelectionConfig
-    from uncertain_facade_map.srv import QueryPoints
+    from uncertain_facade_map.srv import LoadMap, QueryPoints, SaveMap
 
+    before = workdir / 'before_unclassified.npz'
+    assert client.call(SaveMap, 'save_map', SaveMap.Request(path=str(before))).success
     start = diagnostics(client)
     xyz, labels, sensor = unclassified_street(seed=3)
     points = np.zeros(len(xyz), dtype=[('x', 'f4'), ('y', 'f4'), ('z', 'f4')])
@@ -543,6 +545,8 @@ def test_a_cloud_without_classes_is_mapped_as_its_selected_points(client, mapped
     answer = answers_of(client.call(QueryPoints, 'query_points', query_request(probe)))
     on = answer['facade'] >= 0
     assert on.mean() > 0.9 and np.median(np.abs(answer['signed_distance'][on])) < 0.05
+    # The later tests compare the node's map with the street drive's alone.
+    assert client.call(LoadMap, 'load_map', LoadMap.Request(path=str(before))).success
 
 
 def test_a_loaded_map_answers_with_its_own_bands(client, mapped, scans, workdir):
