@@ -6,7 +6,9 @@ cloud (numpy, scipy and, imported inside the function that needs it, ``pypatchwo
 
 - ``building_points``: :func:`select_building_points`, (N, 3) points in, an (N,) mask of
   building points out, with :class:`Selection` saying what was found; parameters in
-  :class:`~uncertain_facade_map.params.SelectionConfig`.
+  :class:`~uncertain_facade_map.params.SelectionConfig`;
+- ``evaluation``: an independent wall picker and the selection's figures against it on
+  real sweeps (``python -m uncertain_facade_map.selection.evaluation``).
 
 :mod:`uncertain_facade_map.io.inputs` applies it to clouds without the class field
 (``selection.mode``), for the command line and the node alike.

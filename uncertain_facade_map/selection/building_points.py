@@ -38,10 +38,10 @@ but building points cut already (a wall picker's output, a segmented file): it i
 whole (:attr:`Selection.applied` is False), so the selection never thins a cloud that
 needs none.
 
-On the Argoverse sweeps of ``../shared/data/real/`` it keeps 93-99 % of the wall points an
-independent RANSAC wall picker finds, and 83-85 % of what it keeps lies within 0.4 m of
-them (most of the rest are walls that picker does not look for); see the README section
-"Clouds without classes" for the figures and the command that prints them.
+On the Argoverse sweeps of ``../shared/data/real/`` it keeps 96-99.5 % of the wall points
+an independent RANSAC wall picker finds, and 81-82 % of what it keeps lies within 0.4 m of
+them (85-94 % within the picker's 40 m); see the README section "Clouds without classes"
+for the figures and the command that prints them (:mod:`.evaluation`).
 """
 
 from __future__ import annotations
