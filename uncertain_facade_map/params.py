@@ -16,7 +16,7 @@ else derives from that one declaration:
 
 Sections, in the order of the parameter file: the modelling stages (``extraction``,
 ``layers``, ``gp``, ``outliers``, ``update``) make :class:`MapParams`, the rest
-(``input``, ``query``, ``model``, ``node``, ``publish``, ``service``, ``persistence``)
+(``input``, ``selection``, ``query``, ``model``, ``node``, ``publish``, ``service``, ``persistence``)
 complete :class:`Config`, the whole file.
 """
 
@@ -34,7 +34,7 @@ from .errors import InputError
 __all__ = [
     'Config', 'ExtractionParams', 'GPParams', 'InputConfig', 'Interval', 'LayerParams', 'MapParams', 'ModelConfig',
     'NodeConfig', 'Options', 'OutlierParams', 'Param', 'PersistenceConfig', 'PublishConfig', 'QueryConfig',
-    'Relation', 'Section', 'ServiceConfig', 'UpdateParams', 'config_from_parameters', 'map_params',
+    'Relation', 'Section', 'SelectionConfig', 'ServiceConfig', 'UpdateParams', 'config_from_parameters', 'map_params',
     'map_params_from_record', 'map_params_record', 'parameters', 'NODE_NAME',
 ]
 
@@ -390,11 +390,68 @@ class InputConfig(Section):
 
     class_field: str = param('class', 'point field holding the semantic class')
     building_classes: tuple[int, ...] = param(
-        (1,), 'class values that mean "building"; a cloud without the class field is all building')
+        (1,), 'class values that mean "building"; a cloud without the class field is selected (see selection)')
     building_id_field: str = param('building_id', 'point field with a building id, used when present')
     frame_id: str = param('map', 'frame of the map; clouds must be in it')
     map_origin: tuple[float, float, float] = param(
         (0.0, 0.0, 0.0), 'georeference of the map frame (georeferenced = map + origin)', unit='m')
+
+
+@dataclass(frozen=True)
+class SelectionConfig(Section):
+    """Building points of clouds without a class field (:mod:`~.selection.building_points`).
+
+    Ground removal by Patchwork++, then the points on tall vertical planes: windows of
+    ``(2 window_radius + 1)^2`` cells, each fitted with a vertical plane; a window is a wall
+    if its band points are many, thin, long and tall enough; walls are windows linked into
+    straight segments of at least ``min_segment_length``.
+    """
+
+    section: ClassVar[str] = 'selection'
+    relations: ClassVar[tuple[Relation, ...]] = (
+        Relation(('max_thickness', 'band'), lambda thick, band: thick <= band, 'max_thickness <= band'),
+    )
+
+    mode: str = param('auto', 'auto: select the building points of clouds without the class field '
+                              '(input.class_field) and use the class of the others; on: select in every cloud, the '
+                              'class field ignored; off: a cloud without the class field is all building',
+                      allowed=Options(('auto', 'on', 'off')))
+    min_ground_share: float = param(0.05, 'a cloud in which Patchwork++ finds less ground than this share is no raw '
+                                          'scan but building points cut already: all of it is kept (0: select '
+                                          'always)', allowed=_closed(0.0, 1.0))
+    sensor_height: float = param(1.73, "Patchwork++'s sensor height: each scan is centred on its sensor (or the "
+                                       "cloud's median) this high above the ground found around it", unit='m',
+                                 allowed=_positive(100.0))
+    max_range: float = param(80.0, 'Patchwork++ looks for ground this far from the scan centre; clouds without '
+                                   'sensor origins wider than twice this are cut into tiles of this side', unit='m',
+                             allowed=_closed(5.0, 10_000.0))
+    scan_cell: float = param(20.0, 'points whose sensor origins lie in one square cell of this side are one scan for '
+                                   'ground removal', unit='m', allowed=_positive(1e6))
+    ground_cell: float = param(2.0, 'cell of the ground height map built from the ground points', unit='m',
+                               allowed=_closed(0.1, 100.0))
+    cell: float = param(0.5, 'cell of the plane windows', unit='m', allowed=_closed(0.05, 10.0))
+    window_radius: int = param(1, 'a window is its centre cell and this many cells around it each way',
+                               allowed=_closed(0, 10))
+    band: float = param(0.4, "half-width of a window's vertical plane band: its points in the band are building "
+                             'points if the window is a wall', unit='m', allowed=_positive(10.0))
+    max_thickness: float = param(0.15, "RMS distance of a wall window's band points from its plane at most (tree "
+                                       'crowns are thicker)', unit='m', allowed=_positive(10.0))
+    min_share: float = param(0.5, "share of a wall window's points in its band at least",
+                             allowed=_closed(0.0, 1.0))
+    min_window_points: int = param(10, 'band points of a wall window at least', allowed=_closed(3, 1_000_000))
+    min_window_length: float = param(1.0, "extent of a wall window's band points along its plane at least "
+                                          '(sqrt(12) standard deviations; poles are narrower)', unit='m',
+                                     allowed=_closed(0.0, 100.0))
+    min_structure_height: float = param(3.0, "top of a wall window's band points above the ground at least (cars "
+                                             'and hedges are lower)', unit='m', allowed=_closed(0.0, 1000.0))
+    min_extent: float = param(1.0, "vertical extent of a wall window's band points at least (cables, eaves)",
+                              unit='m', allowed=_closed(0.0, 1000.0))
+    segment_angle: float = param(25.0, 'wall windows whose planes differ by less than this angle ...',
+                                 unit='degrees', allowed=_closed(0.0, 90.0))
+    link_distance: float = param(2.5, '... whose centre cells are at most this far apart and whose centroids lie in '
+                                      "each other's band are one wall segment", unit='m', allowed=_closed(0.0, 100.0))
+    min_segment_length: float = param(2.5, 'a wall segment shorter than this along its plane is no wall (tree '
+                                           'crowns, signs, poles)', unit='m', allowed=_closed(0.0, 1000.0))
 
 
 @dataclass(frozen=True)
@@ -490,6 +547,7 @@ class Config:
     """All parameters of the parameter file, by section (the modelling stages, then the rest)."""
 
     input: InputConfig = field(default_factory=InputConfig)
+    selection: SelectionConfig = field(default_factory=SelectionConfig)
     extraction: ExtractionParams = field(default_factory=ExtractionParams)
     layers: LayerParams = field(default_factory=LayerParams)
     gp: GPParams = field(default_factory=GPParams)

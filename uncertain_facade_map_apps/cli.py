@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import math
 import shutil
 import sys
@@ -168,7 +169,8 @@ def cmd_build(args: argparse.Namespace) -> int:
         raise CliError(f'output folder {out.parent} does not exist')
     started = time.perf_counter()
     cloud = load_inputs(args.inputs, topic=args.topic)
-    points = select_building_points(cloud, config.input)
+    selection = config.selection if args.select is None else dataclasses.replace(config.selection, mode=args.select)
+    points = select_building_points(cloud, config.input, selection)
     read_s = time.perf_counter() - started
     fmap = FacadeMap(map_params(config), points.map_origin)
     with _counter('buildings', 'building', args.quiet) as update:
@@ -178,6 +180,11 @@ def cmd_build(args: argparse.Namespace) -> int:
     total_s = time.perf_counter() - started
     stats = [f.stats for f in fmap.facades]
     print(f'read     {len(cloud):,} points ({len(points):,} building) from {len(args.inputs)} input(s) in {read_s:.1f} s')
+    if points.selection is not None:
+        found = points.selection
+        print(f'selected {len(points):,} points on {found.walls} wall segments, {found.ground.sum():,} ground'
+              if found.applied else
+              f'selected all: no class field, but {found.ground_share:.1%} ground, so building points cut already')
     print(f'mapped   {len(fmap.buildings)} buildings, {len(fmap.facades)} façades in {build_s:.1f} s '
           f'({len(cloud) / max(build_s, 1e-9):,.0f} points/s)')
     print(f'gp       {sum(s["training"] for s in stats):,} training points, '
@@ -273,7 +280,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         scans = select_window(scans, args.start, args.duration)
     fmap = FacadeMap(map_params(config), origin)
     with _counter('mapped', 'scan', args.quiet, len(scans)) as update:
-        summary = map_scans(fmap, (points for _, points in scans), config.input, update)
+        summary = map_scans(fmap, (points for _, points in scans), config.input, update, config.selection)
     print(f'replayed {summary.scans:,} scans of {topic}: {summary.points:,} points, {summary.building_points:,} '
           f'building, {summary.nonfinite:,} skipped (NaN/Inf)')
     print(f'mapped   {summary.buildings} buildings, {summary.facades} façades in {summary.seconds:.1f} s '
@@ -541,12 +548,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     build = sub.add_parser('build', help='build a façade map from classified point clouds or bags',
                            description='Build the uncertain façade map from PLY, LAS/LAZ, PCD, NPZ files or ROS bags '
-                                       '(ROS 1 .bag, ROS 2 folders, .db3, .mcap) of PointCloud2. A cloud without the '
-                                       'class field is taken as all building points.')
+                                       '(ROS 1 .bag, ROS 2 folders, .db3, .mcap) of PointCloud2. In a cloud without the '
+                                       'class field the building points are selected: ground removed (Patchwork++), '
+                                       'points on tall vertical planes kept (--select).')
     build.add_argument('inputs', nargs='+', metavar='INPUT', help='point clouds or bags')
     build.add_argument('--out', required=True, metavar='MAP', help='map file to write (.npz)')
     build.add_argument('--config', metavar='YAML', help='ROS 2 parameter file (default: config/facade_mapper.yaml)')
     build.add_argument('--topic', help='PointCloud2 topic of bag inputs (default: the only one)')
+    build.add_argument('--select', choices=('auto', 'on', 'off'),
+                       help='building points of clouds without classes (selection.mode; default from the config: '
+                            'auto, i.e. for clouds without the class field)')
     build.add_argument('--quiet', action='store_true', help='no progress bar')
     build.set_defaults(func=cmd_build)
 
