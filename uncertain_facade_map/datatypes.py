@@ -143,6 +143,50 @@ class DepthLayers:
 
 
 @dataclass(frozen=True, eq=False)
+class Relief:
+    """The smooth reference surface of a wall: how far it bows and leans from its plane.
+
+    The depth layers are offsets from this surface, not from the plane (a departure from
+    the paper, which takes every layer as a constant depth; see
+    :func:`~uncertain_facade_map.pipeline.step2_layers.fit_relief`). A relief of one node
+    with value 0 is the paper's flat wall.
+
+    Attributes:
+        origin: (2,) (u, v) of node [0, 0], metres, façade frame.
+        spacing: distance between nodes, metres.
+        values: (H, W) depth of the surface at the nodes (row = v, column = u), metres.
+    """
+
+    origin: np.ndarray
+    spacing: float
+    values: np.ndarray
+
+    def __post_init__(self) -> None:
+        _read_only(self, 'origin', 'values')
+
+    @classmethod
+    def flat(cls) -> Relief:
+        """The paper's flat wall: depth 0 everywhere."""
+        return cls(np.zeros(2), 1.0, np.zeros((1, 1)))
+
+    def at(self, uv: np.ndarray) -> np.ndarray:
+        """(N,) depth of the surface at (N, 2) locations (u, v), metres: bilinear between
+        the nodes, the nearest edge value beyond them."""
+        uv = np.asarray(uv, dtype=np.float64)
+        h, w = self.values.shape
+        g = (uv - self.origin) / self.spacing
+        gx = np.clip(g[:, 0], 0.0, w - 1.0)
+        gy = np.clip(g[:, 1], 0.0, h - 1.0)
+        c0 = np.minimum(gx.astype(np.int64), max(w - 2, 0))
+        r0 = np.minimum(gy.astype(np.int64), max(h - 2, 0))
+        c1, r1 = np.minimum(c0 + 1, w - 1), np.minimum(r0 + 1, h - 1)
+        tx, ty = gx - c0, gy - r0
+        z = self.values
+        return ((1 - ty) * ((1 - tx) * z[r0, c0] + tx * z[r0, c1])
+                + ty * ((1 - tx) * z[r1, c0] + tx * z[r1, c1]))
+
+
+@dataclass(frozen=True, eq=False)
 class Facets:
     """Facets of a façade on a raster.
 
@@ -302,6 +346,7 @@ class FacadeModel:
             first fit so that blocks and cells keep their identity as the map grows
             (None: the surface raster's origin).
         fitted_points: number of points at the last whole fit (0: ``len(point_index)``).
+        relief: the wall's smooth surface the layers are offsets from (None: flat, the paper).
     """
 
     facade_id: int
@@ -321,8 +366,11 @@ class FacadeModel:
     plane_extent: tuple[float, float, float, float] | None = None
     anchor: np.ndarray | None = None
     fitted_points: int = 0
+    relief: Relief | None = None
 
     def __post_init__(self) -> None:
+        if self.relief is None:
+            object.__setattr__(self, 'relief', Relief.flat())
         if self.plane_extent is None:
             object.__setattr__(self, 'plane_extent', tuple(self.extent))
         if self.anchor is None:
