@@ -172,18 +172,34 @@ class Relief:
     def at(self, uv: np.ndarray) -> np.ndarray:
         """(N,) depth of the surface at (N, 2) locations (u, v), metres: bilinear between
         the nodes, the nearest edge value beyond them."""
-        uv = np.asarray(uv, dtype=np.float64)
-        h, w = self.values.shape
-        g = (uv - self.origin) / self.spacing
-        gx = np.clip(g[:, 0], 0.0, w - 1.0)
-        gy = np.clip(g[:, 1], 0.0, h - 1.0)
-        c0 = np.minimum(gx.astype(np.int64), max(w - 2, 0))
-        r0 = np.minimum(gy.astype(np.int64), max(h - 2, 0))
-        c1, r1 = np.minimum(c0 + 1, w - 1), np.minimum(r0 + 1, h - 1)
-        tx, ty = gx - c0, gy - r0
-        z = self.values
-        return ((1 - ty) * ((1 - tx) * z[r0, c0] + tx * z[r0, c1])
-                + ty * ((1 - tx) * z[r1, c0] + tx * z[r1, c1]))
+        nodes, weights = bilinear_weights(np.asarray(uv, dtype=np.float64), self.origin, self.spacing,
+                                          self.values.shape)
+        return (self.values.ravel()[nodes] * weights).sum(axis=1)
+
+
+def bilinear_weights(uv: np.ndarray, origin: np.ndarray, spacing: float, shape: tuple[int, int]
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Bilinear interpolation on a node grid, clamped to its edges.
+
+    Args:
+        uv: (N, 2) locations, metres.
+        origin: (2,) location of node [0, 0], metres.
+        spacing: node spacing, metres.
+        shape: (H, W) nodes (row = v, column = u).
+
+    Returns:
+        ``(nodes, weights)``: (N, 4) flat node indices and their (N, 4) weights (sum 1).
+    """
+    h, w = shape
+    g = (uv - origin) / spacing
+    gx, gy = np.clip(g[:, 0], 0.0, w - 1.0), np.clip(g[:, 1], 0.0, h - 1.0)
+    c0 = np.minimum(gx.astype(np.int64), max(w - 2, 0))
+    r0 = np.minimum(gy.astype(np.int64), max(h - 2, 0))
+    c1, r1 = np.minimum(c0 + 1, w - 1), np.minimum(r0 + 1, h - 1)
+    tx, ty = gx - c0, gy - r0
+    nodes = np.stack([r0 * w + c0, r0 * w + c1, r1 * w + c0, r1 * w + c1], axis=1)
+    weights = np.stack([(1 - ty) * (1 - tx), (1 - ty) * tx, ty * (1 - tx), ty * tx], axis=1)
+    return nodes, weights
 
 
 @dataclass(frozen=True, eq=False)

@@ -28,7 +28,7 @@ from scipy.signal import find_peaks
 from scipy.sparse.linalg import spsolve
 from sklearn.mixture import GaussianMixture
 
-from ..datatypes import DepthLayers, Facets, Relief
+from ..datatypes import DepthLayers, Facets, Relief, bilinear_weights
 from ..errors import InputError
 from ..params import LayerParams
 
@@ -63,18 +63,11 @@ RELIEF_SAMPLE = 50_000
 
 
 def _bilinear_design(uv: np.ndarray, origin: np.ndarray, spacing: float, shape: tuple[int, int]) -> sparse.csr_matrix:
-    """(N, H*W) bilinear interpolation weights of (N, 2) locations on a node grid."""
-    h, w = shape
-    g = (uv - origin) / spacing
-    gx, gy = np.clip(g[:, 0], 0.0, w - 1.0), np.clip(g[:, 1], 0.0, h - 1.0)
-    c0 = np.minimum(gx.astype(np.int64), max(w - 2, 0))
-    r0 = np.minimum(gy.astype(np.int64), max(h - 2, 0))
-    c1, r1 = np.minimum(c0 + 1, w - 1), np.minimum(r0 + 1, h - 1)
-    tx, ty = gx - c0, gy - r0
+    """(N, H*W) bilinear interpolation weights of (N, 2) locations on a node grid
+    (:func:`~uncertain_facade_map.datatypes.bilinear_weights` as a sparse matrix)."""
+    nodes, weights = bilinear_weights(uv, origin, spacing, shape)
     rows = np.repeat(np.arange(len(uv)), 4)
-    cols = np.stack([r0 * w + c0, r0 * w + c1, r1 * w + c0, r1 * w + c1], axis=1).ravel()
-    vals = np.stack([(1 - ty) * (1 - tx), (1 - ty) * tx, ty * (1 - tx), ty * tx], axis=1).ravel()
-    return sparse.csr_matrix((vals, (rows, cols)), shape=(len(uv), h * w))
+    return sparse.csr_matrix((weights.ravel(), (rows, nodes.ravel())), shape=(len(uv), shape[0] * shape[1]))
 
 
 def _second_differences(shape: tuple[int, int]) -> sparse.csr_matrix:
