@@ -284,6 +284,13 @@ class LayerParams(Section):
     facet_cell: float = param(0.1, 'raster cell of the facets', unit='m', allowed=_closed(1e-3, 100.0))
     fill_distance: float = param(0.3, 'empty cells this close to a voted cell join its facet', unit='m',
                                  allowed=_closed(0.0, 100.0))
+    relief_spacing: float = param(2.0, 'node spacing of the smooth wall surface the layers are offsets from (walls '
+                                       'bow and lean); 0: flat walls, constant layers as in the paper', unit='m',
+                                  allowed=_closed(0.0, 1000.0))
+    relief_smoothing: float = param(1.0, 'weight of the wall surface\'s curvature penalty, per unit of data weight '
+                                         'of a node', allowed=_closed(0.0, 1e9))
+    relief_scale: float = param(4.0, 'points further from the wall surface than this many noise sigmas do not '
+                                     'shape it (Tukey biweight scale)', allowed=_closed(0.5, 1000.0))
     min_facet_cells: int = param(2, 'a connected region with fewer voted cells than this is no facet (a lone '
                                     'outlier or a stray vote); its cells join the nearest real facet within '
                                     'fill_distance', allowed=_closed(1, 1_000_000))
@@ -300,8 +307,15 @@ class GPParams(Section):
                  'lengthscale2_min <= initial_lengthscale2 <= lengthscale2_max'),
     )
 
-    noise_sigma: float = param(0.02, 'sigma_eta, the noise of the points (paper: 0.02)', unit='m',
+    estimate_noise: bool = param(True, 'estimate sigma_eta per façade from the data (the nugget of its depths at '
+                                       'lags up to noise_lag); else take noise_sigma')
+    noise_sigma: float = param(0.02, 'sigma_eta, the noise of the points, when not estimated or too few points are '
+                                     'close enough to estimate it (paper: 0.02)', unit='m',
                                allowed=_closed(1e-6, 100.0))
+    noise_lag: float = param(0.05, 'pairs of points closer than this on the plane estimate the noise', unit='m',
+                             allowed=_closed(1e-4, 10.0))
+    min_noise_sigma: float = param(0.002, 'the estimated noise is at least this (a floor for perfectly smooth data)',
+                                   unit='m', allowed=_closed(0.0, 100.0))
     initial_lengthscale2: float = param(0.0025, 'initial 1/b_1 = 1/b_2 (paper: 0.0025)', unit='m^2',
                                         allowed=_closed(1e-8, 1e4))
     lengthscale2_min: float = param(0.0025, 'lower bound of 1/b_m in the optimisation', unit='m^2',
@@ -325,9 +339,9 @@ class GPParams(Section):
                              allowed=_closed(1e-3, 1e4))
     max_block_points: int = param(64, 'at most this many training points per extended block (a random subset '
                                       'beyond); bounds the cost of a block', allowed=_closed(1, 100_000))
-    planar_per_block: int = param(0, 'planar points (not selected by eqs. 7 and 8) added to the training points per '
-                                     'block, so that the variance shrinks where the plane was observed; 0 '
-                                     'reproduces the paper', allowed=_closed(0, 100_000))
+    planar_per_block: int = param(4, 'planar points (not selected by eqs. 7 and 8) added to the training points per '
+                                     'block, so that the GP follows a wall that is not flat and the variance shrinks where it was '
+                                     'observed; 0 reproduces the paper', allowed=_closed(0, 100_000))
     grid_resolution: float = param(0.1, 'cell of the raster the surface is predicted on', unit='m',
                                    allowed=_closed(1e-3, 100.0))
 

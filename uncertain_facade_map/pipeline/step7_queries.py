@@ -18,12 +18,14 @@ from typing import Sequence
 
 import numpy as np
 
-from ..datatypes import FacadeModel, SurfaceRaster
+from ..datatypes import SOURCE_GLOBAL, FacadeModel, SurfaceRaster
 from ..errors import InputError
 from .step8_occupancy import occupancy_probability
 
 #: Points handled at once (bounds memory of the (N, F) façade test).
 CHUNK = 262_144
+#: Depth-step faces further than this within the plane are not searched (metres).
+STEP_REACH = 0.3
 
 
 def surface_at(raster: SurfaceRaster, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -53,6 +55,70 @@ def surface_at(raster: SurfaceRaster, uv: np.ndarray) -> tuple[np.ndarray, np.nd
         cn = np.where(tu < 0.5, c0, c1)
         out.append(np.where(same, bilinear, grid[rn, cn]))
     return out[0], out[1]
+
+
+def nearer_step_faces(raster: SurfaceRaster, uvd: np.ndarray, distance: np.ndarray, var: np.ndarray,
+                      reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """Distances to the faces of depth steps where they are nearer than the surface along the normal.
+
+    The raster is a height field: where the mean depth jumps between two adjacent cells
+    (a window's reveal, the side of a pillar or a balcony), the surface between them is
+    the face across the cell boundary, perpendicular to the plane. A point on that face
+    lies at some depth between the two cells' depths, often far from either along the
+    normal, yet on the surface. Its distance is the distance, within the plane, to the
+    nearest such face whose depth range holds the point's depth (at most ``reach`` away).
+    Faces next to a cell of the global prior are not faces of the observed surface and
+    are skipped. The variance there is the larger of the two cells' plus the uniform
+    uncertainty of the step's position within a cell, ``cell^2 / 12``.
+
+    Args:
+        raster: the façade's raster.
+        uvd: (N, 3) points in the façade frame, metres.
+        distance: (N,) signed distances along the normal, metres.
+        var: (N,) surface variance there, m^2.
+        reach: faces further than this within the plane are not searched, metres.
+
+    Returns:
+        ``(distance, var)``: (N,) signed distances (the sign of the distance along the
+        normal: outside or inside) and variances, changed where a face is nearer.
+    """
+    distance, var = distance.copy(), var.copy()
+    cell = raster.cell
+    todo = np.flatnonzero(np.abs(distance) > 0.25 * cell)
+    if not len(todo) or reach <= 0:
+        return distance, var
+    h, w = raster.mean.shape
+    mean, cell_var = raster.mean, raster.var
+    observed = raster.source != SOURCE_GLOBAL
+    u = (uvd[todo, 0] - raster.origin[0]) / cell
+    v = (uvd[todo, 1] - raster.origin[1]) / cell
+    d = uvd[todo, 2]
+    row, col = np.floor(v).astype(np.int64), np.floor(u).astype(np.int64)
+    best = np.abs(distance[todo]) / cell
+    best_var = var[todo]
+    k = int(np.ceil(reach / cell))
+    for dr in range(-k - 1, k + 1):
+        for dc in range(-k - 1, k + 1):
+            r, c = row + dr, col + dc
+            for across_u in (True, False):
+                r2, c2 = (r, c + 1) if across_u else (r + 1, c)
+                ok = (r >= 0) & (c >= 0) & (r2 < h) & (c2 < w)
+                ra, ca = np.where(ok, r, 0), np.where(ok, c, 0)
+                rb, cb = np.where(ok, r2, 0), np.where(ok, c2, 0)
+                ma, mb = mean[ra, ca], mean[rb, cb]
+                ok &= observed[ra, ca] & observed[rb, cb] & (np.minimum(ma, mb) <= d) & (d <= np.maximum(ma, mb))
+                if not ok.any():
+                    continue
+                if across_u:  # the face at u = c + 1 (cell units), v from r to r + 1
+                    gap = np.hypot(u - (c + 1), v - np.clip(v, r, r + 1))
+                else:  # the face at v = r + 1, u from c to c + 1
+                    gap = np.hypot(v - (r + 1), u - np.clip(u, c, c + 1))
+                nearer = ok & (gap < best) & (gap * cell <= reach)
+                best = np.where(nearer, gap, best)
+                best_var = np.where(nearer, np.maximum(cell_var[ra, ca], cell_var[rb, cb]) + cell**2 / 12, best_var)
+    distance[todo] = np.where(distance[todo] < 0, -1.0, 1.0) * best * cell
+    var[todo] = best_var
+    return distance, var
 
 
 @dataclass(frozen=True, eq=False)
@@ -171,6 +237,7 @@ def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: fl
             m, v = surface_at(facades[i].surface, uvd[sel - start, :2])
             mean[sel], var[sel] = m, v
             noise[sel] = facades[i].noise_var
-            dist[sel] = uvd[sel - start, 2] - m
+            dist[sel], var[sel] = nearer_step_faces(facades[i].surface, uvd[sel - start], uvd[sel - start, 2] - m, v,
+                                                    STEP_REACH)
     p = occupancy_probability(dist, var, np.where(np.isfinite(noise), noise, 0.0), resolution)
     return PointQuery(facade, mean, var, noise, dist, p)
