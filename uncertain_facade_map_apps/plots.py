@@ -209,19 +209,21 @@ def training_points(model: FacadeModel, uvd: np.ndarray, normal_cos: np.ndarray,
 
     Args:
         model: the façade.
-        uvd: (M, 3) its points (u, v, d), metres, façade frame.
+        uvd: (M, 3) its points (u, v, d), metres, façade frame (d from the plane).
         normal_cos: (M,) |cos| between point normals and the façade normal.
         gp: the map's GP parameters (thresholds of eqs. 7 and 8).
 
     Returns:
-        (M,) bool: on a facet and not explained by the facet's layer (paper eqs. 7, 8).
+        (M,) bool: on a facet and not explained by the facet's layer (paper eqs. 7, 8),
+        with depths taken from the wall's relief as in the fit.
     """
     facet = model.facets.facet_at(uvd[:, :2])
     has_facet = facet >= 0
     if not model.facets.n_facets:
         return np.zeros(len(uvd), dtype=bool)
     layer = np.where(has_facet, model.facets.layer_of_facet[np.maximum(facet, 0)], model.layers.main_)
-    return select_training(uvd[:, 2], normal_cos, layer, model.layers, gp) & has_facet
+    depth = uvd[:, 2] - model.relief.at(uvd[:, :2])
+    return select_training(depth, normal_cos, layer, model.layers, gp) & has_facet
 
 
 def block_layout(model: FacadeModel, c_min: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -116,8 +116,10 @@ def test_surface_grid_steps(corner):
         mine = odd.facade == f.facade_id
         local = f.frame.to_local(odd.xyz[mine])
         mean, var = surface_at(f.surface, local[:, :2])
-        # (u, v) back from the map frame differ by rounding, which moves a bilinear blend a little.
-        np.testing.assert_allclose(local[:, 2], mean, atol=1e-6)
+        # (u, v) back from the map frame differ by rounding, which moves a bilinear blend a
+        # little; nodes halfway between cells across a facet edge may take either cell, whose
+        # means differ by the wall relief's slope over one cell (microns here).
+        np.testing.assert_allclose(local[:, 2], mean, atol=5e-5)
         np.testing.assert_allclose(odd.std[mine], np.sqrt(var), atol=1e-6)
     for bad in (0.0, -0.1, np.nan, np.inf):
         with pytest.raises(InputError, match='step'):

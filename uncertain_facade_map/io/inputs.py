@@ -21,16 +21,17 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 
 from ..errors import InputError
 from ..params import InputConfig, SelectionConfig
-from ..selection import Selection
-from ..selection import select_building_points as select_unclassified
 from .cloud import COORDINATE_FIELDS, Cloud
 from .clouds import SUPPORTED_SUFFIXES, read_cloud
+
+if TYPE_CHECKING:  # the selection (scipy, Patchwork++) loads only when a cloud needs it
+    from ..selection import Selection
 
 #: File suffixes read as ROS bags (besides directories, which are ROS 2 bag folders).
 BAG_SUFFIXES = ('.bag', '.db3', '.mcap')
@@ -278,7 +279,9 @@ def select_building_points(cloud: Cloud, config: InputConfig,
 
     found = None
     if _selects(cloud.fields, config, selection):
-        found = select_unclassified(cloud.xyz, cloud.sensor_origins, selection)
+        from ..selection import select_building_points
+
+        found = select_building_points(cloud.xyz, cloud.sensor_origins, selection)
         if not found.mask.any():
             raise InputError(f'no building points: the selection (selection.mode: {selection.mode}) found no wall '
                              f'in {n} points of a cloud without classes ({found.ground.sum()} ground)')
@@ -382,8 +385,10 @@ def select_scan_points(points: np.ndarray, config: InputConfig, selection: Selec
         if origin_fields:
             origins = np.stack([points[c][keep].astype(np.float64) for c in ('origin_x', 'origin_y', 'origin_z')], 1)
             origins = origins if np.isfinite(origins).all() else sensor_origin
+        from ..selection import select_building_points
+
         selected = np.zeros(len(keep), dtype=bool)
-        selected[keep] = select_unclassified(xyz[keep], origins, selection).mask
+        selected[keep] = select_building_points(xyz[keep], origins, selection).mask
         not_building = int((keep & ~selected).sum())
         keep = selected
     elif config.class_field in names:

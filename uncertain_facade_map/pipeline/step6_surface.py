@@ -297,8 +297,11 @@ def _changed_cells(old: FacadeModel, offset: tuple[int, int], facet: np.ndarray,
     """(H, W) bool: cells of the new raster whose facet changed since ``old``'s.
 
     A cell changed if it is new, if its layer changed, or if its facet was split, merged
-    or joined (facet ids are renumbered at every update; a facet is the same if it pairs
-    with exactly one facet of the other raster).
+    or joined (facet ids are renumbered at every update; a facet is the same if, over the
+    cells that kept their layer, it pairs with exactly one facet of the other raster: a
+    facet that only lost cells to another layer, such as a new balcony on a wall, is the
+    same facet, and the cells around the lost ones are computed again by the caller's
+    block reach).
     """
     h0, w0 = old.surface.facet.shape
     r0, c0 = offset
@@ -307,7 +310,7 @@ def _changed_cells(old: FacadeModel, offset: tuple[int, int], facet: np.ndarray,
     old_layer = np.where(old_facet >= 0, old.facets.layer_of_facet[np.maximum(old_facet, 0)], old_facet)
     new_layer = np.where(facet >= 0, layer_of_facet[np.maximum(facet, 0)], -1)
     changed = (old_layer != new_layer) & ~((old_facet == -2) & (facet < 0))
-    both = (old_facet >= 0) & (facet >= 0)
+    both = (old_facet >= 0) & (facet >= 0) & ~changed
     pairs = np.unique(old_facet[both] * (1 << 31) + facet[both])
     old_ids, new_ids = pairs >> 31, pairs & ((1 << 31) - 1)
     o, oc = np.unique(old_ids, return_counts=True)
