@@ -170,7 +170,7 @@ def cmd_build(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     cloud = load_inputs(args.inputs, topic=args.topic)
     selection = config.selection if args.select is None else dataclasses.replace(config.selection, mode=args.select)
-    points = select_building_points(cloud, config.input, selection)
+    points = select_building_points(cloud, config.input, selection, sensor=args.sensor)
     read_s = time.perf_counter() - started
     fmap = FacadeMap(map_params(config), points.map_origin)
     with _counter('buildings', 'building', args.quiet) as update:
@@ -558,6 +558,10 @@ def build_parser() -> argparse.ArgumentParser:
     build.add_argument('--select', choices=('auto', 'on', 'off'),
                        help='building points of clouds without classes (selection.mode; default from the config: '
                             'auto, i.e. for clouds without the class field)')
+    build.add_argument('--sensor', type=_sensor, metavar='X,Y,Z',
+                       help='sensor position (map frame, metres) for clouds without per-point sensor origins, such '
+                            'as one sweep in its vehicle frame (0,0,1.8); turns the façades towards it (default: '
+                            'from the buildings\' shapes)')
     build.add_argument('--quiet', action='store_true', help='no progress bar')
     build.set_defaults(func=cmd_build)
 

@@ -152,6 +152,35 @@ def test_build_selects_the_walls_of_a_cloud_without_classes(tmp_path, capsys):
     assert 'read     41,000 points (41,000 building)' in out and 'selected' not in out
 
 
+def test_build_turns_the_facades_to_a_given_sensor(tmp_path, capsys):
+    """Two walls across a street in one cloud without origins or building ids, as one real
+    sweep in its vehicle frame: from the shape alone each looks like the back of the other;
+    with --sensor both face the street."""
+    from uncertain_facade_map.io.cloud import Cloud
+    from uncertain_facade_map.io.map_file import load_map
+    from uncertain_facade_map.io.ply import write_ply
+
+    rng = np.random.default_rng(2)
+    walls = []
+    for y in (-9.0, 11.0):
+        u, z = rng.uniform(-15, 15, 6000), rng.uniform(0, 9, 6000)
+        walls.append(np.c_[u, y + rng.normal(0, 0.01, 6000), z])
+    xyz = np.vstack(walls)
+    pts = np.zeros(len(xyz), dtype=[('x', 'f8'), ('y', 'f8'), ('z', 'f8')])
+    pts['x'], pts['y'], pts['z'] = xyz.T
+    write_ply(tmp_path / 'sweep.ply', Cloud(pts))
+    assert main(['build', str(tmp_path / 'sweep.ply'), '--out', str(tmp_path / 'm.npz'), '--quiet',
+                 '--select', 'off', '--sensor', '0,0,1.8']) == 0
+    capsys.readouterr()
+    facades = load_map(tmp_path / 'm.npz').facades
+    assert len(facades) == 2
+    for f in facades:
+        assert f.frame.normal @ (np.array([0.0, 0.0, 1.8]) - f.frame.origin) > 0
+    with pytest.raises(SystemExit) as exit_:
+        main(['build', str(tmp_path / 'sweep.ply'), '--out', str(tmp_path / 'm.npz'), '--sensor', '0,0'])
+    assert exit_.value.code == 2 and 'expected X,Y,Z' in capsys.readouterr().err
+
+
 @pytest.mark.parametrize('case', ['missing input', 'nan points', 'float32 points', 'bad map', 'empty cloud',
                                   'missing config', 'bad config'])
 def test_build_and_query_bad_input_one_line_exit_2(tmp_path, built, simulated, capsys, case):

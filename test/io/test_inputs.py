@@ -150,6 +150,21 @@ def test_default_config_on_a_scene() -> None:
     assert np.array_equal(selected.time, pts['time'][keep])
 
 
+def test_a_sensor_position_is_every_origin_of_a_cloud_without_origins() -> None:
+    pts = scene_points()
+    bare = pts[['x', 'y', 'z', 'class']]
+    selected = select_building_points(Cloud(bare), InputConfig(), sensor=(1.0, -2.0, 1.8))
+    assert selected.sensor_origins.shape == (len(selected.index), 3)
+    assert (selected.sensor_origins == [1.0, -2.0, 1.8]).all()
+    assert select_building_points(Cloud(bare), InputConfig()).sensor_origins is None
+    # The cloud's own origins win.
+    own = select_building_points(Cloud(pts), InputConfig(), sensor=(1.0, -2.0, 1.8))
+    assert np.array_equal(own.sensor_origins[:, 0], pts['origin_x'][own.index])
+    for bad in ((1.0, 2.0), (0.0, np.nan, 1.0)):
+        assert 'sensor position must be three finite numbers' in one_line_error(
+            select_building_points, Cloud(bare), InputConfig(), sensor=bad)
+
+
 def test_float_class_with_integral_values_is_accepted() -> None:
     pts = np.zeros(4, dtype=[('x', 'f8'), ('y', 'f8'), ('z', 'f8'), ('class', 'f4')])
     pts['class'] = [6.0, 1.0, -0.0, 6.0]

@@ -239,8 +239,8 @@ def _selects(names: Sequence[str], config: InputConfig, selection: SelectionConf
     return selection.mode == 'on' or config.class_field not in names
 
 
-def select_building_points(cloud: Cloud, config: InputConfig,
-                           selection: SelectionConfig | None = None) -> BuildingPoints:
+def select_building_points(cloud: Cloud, config: InputConfig, selection: SelectionConfig | None = None,
+                           sensor: Sequence[float] | np.ndarray | None = None) -> BuildingPoints:
     """Keep the points whose class is one of ``config.building_classes``, or the selected ones.
 
     A cloud without the field ``config.class_field`` (or any cloud, with
@@ -255,22 +255,33 @@ def select_building_points(cloud: Cloud, config: InputConfig,
         cloud: the input cloud (map frame, metres).
         config: ``class_field``, ``building_classes`` and ``building_id_field`` are used.
         selection: the selection's parameters; None for none.
+        sensor: (3,) the sensor's position (map frame, metres) for a cloud without sensor
+            origins (one sweep, or a map scanned from about one place); every point takes
+            it as its origin. Ignored when the cloud has origins. None: without origins
+            the façades are turned outwards from their buildings' shapes.
 
     Returns:
         The building points in input order, with their indices in ``cloud``, the building
         ids (from ``building_id_field``, if the cloud has that field; it must hold
-        integers too), sensor origins and times when the cloud has them.
+        integers too), sensor origins (the cloud's, else ``sensor``'s) and times when the
+        cloud has them.
 
     Raises:
         InputError: an empty cloud; NaN or infinite coordinates (x, y or z) in any point,
             building or not (the message says how many); a class or building id field that
             is not integer-valued; no building point at all (the message lists the class
             values found and the configured ``building_classes``, or says that the
-            selection found no wall).
+            selection found no wall); ``sensor`` not three finite numbers.
     """
     n = len(cloud)
     if n == 0:
         raise InputError('the input cloud has no points')
+    origins = cloud.sensor_origins
+    if origins is None and sensor is not None:
+        position = np.asarray(sensor, dtype=np.float64)
+        if position.shape != (3,) or not np.isfinite(position).all():
+            raise InputError(f'the sensor position must be three finite numbers (x, y, z), got {sensor!r}')
+        origins = np.broadcast_to(position, (n, 3))
     finite = np.ones(n, dtype=bool)
     for c in ('x', 'y', 'z'):
         finite &= np.isfinite(cloud.points[c])
@@ -279,9 +290,9 @@ def select_building_points(cloud: Cloud, config: InputConfig,
 
     found = None
     if _selects(cloud.fields, config, selection):
-        from ..selection import select_building_points
+        from ..selection import select_building_points as select_walls
 
-        found = select_building_points(cloud.xyz, cloud.sensor_origins, selection)
+        found = select_walls(cloud.xyz, origins, selection)
         if not found.mask.any():
             raise InputError(f'no building points: the selection (selection.mode: {selection.mode}) found no wall '
                              f'in {n} points of a cloud without classes ({found.ground.sum()} ground)')
@@ -311,7 +322,7 @@ def select_building_points(cloud: Cloud, config: InputConfig,
     return BuildingPoints(
         xyz=selected.xyz,
         building_id=building_id,
-        sensor_origins=selected.sensor_origins,
+        sensor_origins=None if origins is None else np.array(origins[index], dtype=np.float64),
         time=None if time is None else time.astype(np.float64),
         index=index,
         map_origin=cloud.map_origin.copy(),
@@ -385,10 +396,10 @@ def select_scan_points(points: np.ndarray, config: InputConfig, selection: Selec
         if origin_fields:
             origins = np.stack([points[c][keep].astype(np.float64) for c in ('origin_x', 'origin_y', 'origin_z')], 1)
             origins = origins if np.isfinite(origins).all() else sensor_origin
-        from ..selection import select_building_points
+        from ..selection import select_building_points as select_walls
 
         selected = np.zeros(len(keep), dtype=bool)
-        selected[keep] = select_building_points(xyz[keep], origins, selection).mask
+        selected[keep] = select_walls(xyz[keep], origins, selection).mask
         not_building = int((keep & ~selected).sum())
         keep = selected
     elif config.class_field in names:

@@ -36,9 +36,11 @@ Pipeline of :func:`extract_facades` (one building, all coordinates metres, map f
    closer than ``merge_offset`` to it along its normal and no further than
    ``merge_offset`` from its box in ``u`` joins it: one façade (balcony and oriel fronts
    are depth layers of their wall, as in the paper's GMM). *Choice:* the façade's plane
-   is the group's back-most plane with at least a fifth of the largest one's support,
-   not simply the largest: behind deep balconies a wall can have fewer inliers than the
-   balcony fronts, and the band must reach back from the wall.
+   is the group's back-most plane with at least a fifth of the largest one's support
+   and at least half its width in ``u``, not simply the largest: behind deep balconies a
+   wall can have fewer inliers than the balcony fronts, and the band must reach back
+   from the wall; but a wall spans its façade, so a narrow plane behind it (a recessed
+   entrance, a shop's back wall seen through its window, as on real scans) is not one.
 3. **Allocation** (:func:`assign_to_facades`, also used for incremental mapping): a point
    belongs to a façade if ``-band_back <= d <= band_front`` and (u, v) lies within the
    façade's *plane extent* grown by ``extent_margin``; among several such façades the
@@ -110,6 +112,9 @@ _TRIM = 0.002
 #: Depth (m) beyond which a point in a façade's band is taken for a protrusion or a recess
 #: (window recesses are shallower) when the outward side must be guessed from the shape.
 _PROTRUSION = 0.35
+#: A group's façade plane has at least this share of its largest plane's support and width.
+_MAIN_SUPPORT_SHARE = 0.2
+_MAIN_WIDTH_SHARE = 0.5
 #: A plane within 60 degrees of an earlier one's normal can be that façade's detail.
 _DETAIL_COS = 0.5
 #: Planes narrower than this in u or v (m) are slivers, e.g. the points along a wall's foot.
@@ -598,8 +603,9 @@ def _merge(planes: list[_Plane], params: ExtractionParams) -> list[_Plane]:
     within ``merge_angle_deg`` (same outward side), closer than ``merge_offset`` along
     its normal and no further than ``merge_offset`` from its box in ``u``. A group's
     façade plane is its back-most plane with at least a fifth of the largest one's
-    support: a wall hidden behind deep balconies may have fewer inliers than the balcony
-    fronts, and the band must reach back from the wall, not from the balconies.
+    support and half its width: a wall hidden behind deep balconies may have fewer
+    inliers than the balcony fronts, and the band must reach back from the wall, not
+    from the balconies; a narrow plane behind (a recess) is not the wall.
     """
     cos_max = np.cos(np.deg2rad(params.merge_angle_deg))
     groups: list[list[_Plane]] = []
@@ -619,7 +625,8 @@ def _merge(planes: list[_Plane], params: ExtractionParams) -> list[_Plane]:
     merged = []
     for group in groups:
         big = group[0]
-        able = [p for p in group if p.support >= 0.2 * big.support]
+        width = _MAIN_WIDTH_SHARE * (big.box[1] - big.box[0])
+        able = [p for p in group if p.support >= _MAIN_SUPPORT_SHARE * big.support and p.box[1] - p.box[0] >= width]
         main = min(able, key=lambda p: float(big.frame.to_local(p.frame.origin[None])[0, 2]))
         uv = np.vstack([_box_in(p, main.frame) for p in group])
         box = np.array([uv[:, 0].min(), uv[:, 0].max(), uv[:, 1].min(), uv[:, 1].max()])
