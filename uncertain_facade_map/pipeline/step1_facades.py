@@ -73,7 +73,10 @@ Pipeline of :func:`extract_facades` (one building, all coordinates metres, map f
    scanned from one street lies near its street façade, in front of it if it has deep
    balconies -- but from the building's shape around the plane, within its extent (plus
    margin): the side with fewer of the building's points further than the wider side
-   of the band (the other walls lie behind a wall); if that is undecided (a lone wall),
+   of the band (the other walls lie behind a wall), counting with them the points of
+   the other buildings within 40 m along the wall and of it, on the side opposite
+   (what a sensor saw beyond a wall, such as the houses across the street, lies in
+   front of it: it saw the wall from there); if that is undecided (a lone wall),
    the side with more points between 0.35 m and that distance (balconies and oriels
    stand out, window recesses are shallower); else up (``n_z >= 0``, right for walls
    leaning back).
@@ -115,6 +118,8 @@ _PROTRUSION = 0.35
 #: A group's façade plane has at least this share of its largest plane's support and width.
 _MAIN_SUPPORT_SHARE = 0.2
 _MAIN_WIDTH_SHARE = 0.5
+#: Other buildings' points this far (m) beyond a wall's ends and from its plane vote on its outward side.
+_CONTEXT_REACH = 40.0
 #: A plane within 60 degrees of an earlier one's normal can be that façade's detail.
 _DETAIL_COS = 0.5
 #: Planes narrower than this in u or v (m) are slivers, e.g. the points along a wall's foot.
@@ -372,7 +377,7 @@ def _vertical_ok(normal: np.ndarray, max_tilt_deg: float) -> bool | np.ndarray:
 
 
 def _faces_outwards(frame: FacadeFrame, box: np.ndarray, xyz: np.ndarray, origins: np.ndarray | None,
-                    params: ExtractionParams) -> bool:
+                    params: ExtractionParams, context: np.ndarray | None = None) -> bool:
     """Whether ``frame.normal`` points out of the building (module docstring, item 5).
 
     Args:
@@ -381,6 +386,9 @@ def _faces_outwards(frame: FacadeFrame, box: np.ndarray, xyz: np.ndarray, origin
         xyz: (M, 3) points of the plane (``origins`` given) or of the whole building.
         origins: (M, 3) sensor origins of the plane's points, or None.
         params: gives the band and the margin.
+        context: (C, 3) points of the other buildings, or None. A sensor sees a wall from
+            its front, so what it saw beyond the band (the houses across the street)
+            lies mostly in front; the building's own other walls lie behind.
     """
     if origins is not None:
         score = float(np.mean(np.einsum('ij,j->i', origins - xyz, frame.normal)))
@@ -390,10 +398,19 @@ def _faces_outwards(frame: FacadeFrame, box: np.ndarray, xyz: np.ndarray, origin
     m = params.extent_margin
     d = uvd[(uvd[:, 0] >= box[0] - m) & (uvd[:, 0] <= box[1] + m)
             & (uvd[:, 1] >= box[2] - m) & (uvd[:, 1] <= box[3] + m), 2]
-    # The rest of the building lies behind a wall; then protrusions stand out in front.
-    # (Symmetric limits: the normal may point either way yet.)
+    # The rest of the building lies behind a wall, the other buildings in front of it;
+    # then protrusions stand out in front. (Symmetric limits: the normal may point
+    # either way yet.)
     band = max(params.band_front, params.band_back)
-    for front, back in ((np.count_nonzero(d > band), np.count_nonzero(d < -band)),
+    front, back = np.count_nonzero(d > band), np.count_nonzero(d < -band)
+    if context is not None and len(context):
+        c = _to_local(context, frame)
+        reach = _CONTEXT_REACH
+        near = (c[:, 0] >= box[0] - reach) & (c[:, 0] <= box[1] + reach) & (np.abs(c[:, 2]) <= reach)
+        # Seen beyond the wall in front speaks for outwards, as the building behind does.
+        back += np.count_nonzero(near & (c[:, 2] > band))
+        front += np.count_nonzero(near & (c[:, 2] < -band))
+    for front, back in ((front, back),
                         (np.count_nonzero((d > _PROTRUSION) & (d <= band)),
                          np.count_nonzero((d < -_PROTRUSION) & (d >= -band)))):
         if abs(front - back) > max(10, 0.1 * (front + back)):
@@ -511,8 +528,9 @@ def _refine(points: np.ndarray, normal: np.ndarray, offset: float, threshold: fl
 
 
 def _ransac(xyz: np.ndarray, origins: np.ndarray | None, n_total: int, params: ExtractionParams,
-            rng: np.random.Generator) -> list[_Plane]:
-    """Sequential RANSAC on the subsample ``xyz`` (see module docstring, item 1)."""
+            rng: np.random.Generator, context: np.ndarray | None = None) -> list[_Plane]:
+    """Sequential RANSAC on the subsample ``xyz`` (see module docstring, item 1); ``context``:
+    points of other buildings in the same frame (turns normals without sensor origins)."""
     m = len(xyz)
     min_support = max(3, int(np.ceil(0.5 * params.min_facade_points * m / max(n_total, 1))))
     if m < max(3, min_support):
@@ -565,7 +583,7 @@ def _ransac(xyz: np.ndarray, origins: np.ndarray | None, n_total: int, params: E
         if origins is not None:
             outwards = _faces_outwards(frame, box, inl_xyz, origins[pool[inl]], params)
         else:
-            outwards = _faces_outwards(frame, box, xyz, None, params)
+            outwards = _faces_outwards(frame, box, xyz, None, params, context)
         if not outwards:  # turn round: u and d change sign, v stays
             normal = -normal
             frame = FacadeFrame.from_normal(centroid, normal)
@@ -817,7 +835,8 @@ def _final_frame(points: np.ndarray, normals: np.ndarray, frame: FacadeFrame,
 
 
 def extract_facades(xyz: np.ndarray, params: ExtractionParams, *, sensor_origins: np.ndarray | None = None,
-                    rng: np.random.Generator) -> tuple[list[ExtractedFacade], np.ndarray]:
+                    rng: np.random.Generator, context: np.ndarray | None = None
+                    ) -> tuple[list[ExtractedFacade], np.ndarray]:
     """Extract the façades of ONE building.
 
     Args:
@@ -827,6 +846,9 @@ def extract_facades(xyz: np.ndarray, params: ExtractionParams, *, sensor_origins
             turn the normals outwards (towards the sensor). None: away from the building's
             (x, y) centroid.
         rng: random source of the subsample and the hypotheses.
+        context: (C, 3) points of the other buildings, metres, map frame, or None; without
+            sensor origins they help to turn the normals (what the sensor saw beyond a
+            wall lies mostly in front of it).
 
     Returns:
         ``(facades, unallocated)``: the façades, most points first, and an (N,) bool mask
@@ -855,7 +877,8 @@ def extract_facades(xyz: np.ndarray, params: ExtractionParams, *, sensor_origins
     sub = np.sort(rng.choice(n, params.ransac_sample, replace=False)) if n > params.ransac_sample else np.arange(n)
     sub_xyz = local[sub]
     sub_origins = None if origins is None else origins[sub] - centre
-    planes = _merge(_ransac(sub_xyz, sub_origins, n, params, rng), params)
+    sub_context = None if context is None or origins is not None else np.asarray(context, np.float64) - centre
+    planes = _merge(_ransac(sub_xyz, sub_origins, n, params, rng, sub_context), params)
     if not planes:
         return [], unallocated
     # Final frames from the subsample's allocation (the subsample pins a plane down to
