@@ -287,7 +287,7 @@ class LayerParams(Section):
     relief_spacing: float = param(2.0, 'node spacing of the smooth wall surface the layers are offsets from (walls '
                                        'bow and lean); 0: flat walls, constant layers as in the paper', unit='m',
                                   allowed=_closed(0.0, 1000.0))
-    relief_smoothing: float = param(1.0, 'weight of the wall surface\'s curvature penalty, per unit of data weight '
+    relief_smoothing: float = param(10.0, 'weight of the wall surface\'s curvature penalty, per unit of data weight '
                                          'of a node', allowed=_closed(0.0, 1e9))
     relief_scale: float = param(4.0, 'points further from the wall surface than this many noise sigmas do not '
                                      'shape it (Tukey biweight scale)', allowed=_closed(0.5, 1000.0))

@@ -369,7 +369,9 @@ class FacadeMap:
     def _coplanar(self, b: int, e: ExtractedFacade) -> int | None:
         """Id of the building's façade that a newly extracted one continues (the merge rule
         of the extraction: parallel within ``merge_angle_deg``, closer than ``merge_offset``
-        along the normal and in u), or None."""
+        along the normal and in u), or None. Only a façade whose allocation band holds the
+        new plane (``-band_back <= d <= band_front``) can take it: a recess deeper than
+        that (a set-back entrance) would join and then lose all its points to no façade."""
         ex = self.params.extraction
         cos_max = np.cos(np.deg2rad(ex.merge_angle_deg))
         best = None
@@ -379,7 +381,7 @@ class FacadeMap:
             box = _plane_corners_in(e, f.frame)
             d = float(f.frame.to_local(e.frame.origin[None])[0, 2])
             gap = max(f.plane_extent[0] - box[:, 0].max(), box[:, 0].min() - f.plane_extent[1], 0.0)
-            if abs(d) < ex.merge_offset and gap <= ex.merge_offset:
+            if abs(d) < ex.merge_offset and -ex.band_back <= d <= ex.band_front and gap <= ex.merge_offset:
                 if best is None or len(f.point_index) > len(self.facades[best].point_index):
                     best = f.facade_id
         return best

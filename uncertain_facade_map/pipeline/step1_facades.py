@@ -35,7 +35,9 @@ Pipeline of :func:`extract_facades` (one building, all coordinates metres, map f
 2. **Merging**: a plane within ``merge_angle_deg`` of a larger one (same outward side),
    closer than ``merge_offset`` to it along its normal and no further than
    ``merge_offset`` from its box in ``u`` joins it: one façade (balcony and oriel fronts
-   are depth layers of their wall, as in the paper's GMM). *Choice:* the façade's plane
+   are depth layers of their wall, as in the paper's GMM), unless it lies beyond the
+   allocation band of the group's plane (then it is a façade of its own: its points
+   would otherwise belong to none). *Choice:* the façade's plane
    is the group's back-most plane with at least a fifth of the largest one's support
    and at least half its width in ``u``, not simply the largest: behind deep balconies a
    wall can have fewer inliers than the balcony fronts, and the band must reach back
@@ -410,11 +412,11 @@ def _faces_outwards(frame: FacadeFrame, box: np.ndarray, xyz: np.ndarray, origin
         # Seen beyond the wall in front speaks for outwards, as the building behind does.
         back += np.count_nonzero(near & (c[:, 2] > band))
         front += np.count_nonzero(near & (c[:, 2] < -band))
-    for front, back in ((front, back),
-                        (np.count_nonzero((d > _PROTRUSION) & (d <= band)),
-                         np.count_nonzero((d < -_PROTRUSION) & (d >= -band)))):
-        if abs(front - back) > max(10, 0.1 * (front + back)):
-            return back > front
+    for ahead, behind in ((front, back),
+                          (np.count_nonzero((d > _PROTRUSION) & (d <= band)),
+                           np.count_nonzero((d < -_PROTRUSION) & (d >= -band)))):
+        if abs(ahead - behind) > max(10, 0.1 * (ahead + behind)):
+            return behind > ahead
     return frame.normal[2] >= 0.0
 
 
@@ -646,6 +648,13 @@ def _merge(planes: list[_Plane], params: ExtractionParams) -> list[_Plane]:
         width = _MAIN_WIDTH_SHARE * (big.box[1] - big.box[0])
         able = [p for p in group if p.support >= _MAIN_SUPPORT_SHARE * big.support and p.box[1] - p.box[0] >= width]
         main = min(able, key=lambda p: float(big.frame.to_local(p.frame.origin[None])[0, 2]))
+        # A member beyond the façade plane's allocation band would lose its points to no
+        # façade: it is a façade of its own (a set-back entrance deeper than band_back).
+        depth = [float(main.frame.to_local(p.frame.origin[None])[0, 2]) for p in group]
+        apart = [p for p, d in zip(group, depth) if not -params.band_back <= d <= params.band_front]
+        if apart:
+            merged += _merge(apart, params)
+            group = [p for p in group if all(p is not q for q in apart)]
         uv = np.vstack([_box_in(p, main.frame) for p in group])
         box = np.array([uv[:, 0].min(), uv[:, 0].max(), uv[:, 1].min(), uv[:, 1].max()])
         merged.append(_Plane(main.frame, box, sum(p.support for p in group)))

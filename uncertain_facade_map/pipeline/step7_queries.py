@@ -147,6 +147,11 @@ class PointQuery:
                                               'signed_distance', 'p_occupied')}
 
 
+#: Metres added to a point's ``|d|`` from a façade without a facet at the point when
+#: façades compete for it (:func:`assign_facades`).
+NO_FACET_PENALTY = 1.0
+
+
 def assign_facades(facades: Sequence[FacadeModel], xyz: np.ndarray, band_back: float, band_front: float
                    ) -> tuple[np.ndarray, np.ndarray]:
     """Façade of each 3D point and its façade coordinates.
@@ -161,15 +166,16 @@ def assign_facades(facades: Sequence[FacadeModel], xyz: np.ndarray, band_back: f
         ``(facade, uvd)``: (N,) int32 index into ``facades`` (-1 for none) and (N, 3) the
         point in that façade's frame (NaN for none).
 
-    A point within several façades' slabs goes to the one with the smallest ``|d|`` among
-    those whose raster holds a facet at the point, else among all: near a corner, the air
-    in front of one wall lies in the margin of the other wall's raster, where only that
-    wall's global prior holds, and would otherwise read as that wall's solid.
+    A point within several façades' slabs goes to the one with the smallest ``|d|``, where
+    a façade whose raster holds no facet at the point counts ``NO_FACET_PENALTY`` further:
+    near a corner, the air in front of one wall lies in the margin of the other wall's
+    raster, where only that wall's global prior holds, and would otherwise read as that
+    wall's solid; but a hole in a wall (an occlusion) is still the wall's, not that of a
+    recess more than the penalty behind it.
     """
     n = len(xyz)
     best = np.full(n, -1, dtype=np.int32)
     best_abs = np.full(n, np.inf)
-    no_facet = 1e6  # added to |d| where the façade has no facet at the point
     uvd = np.full((n, 3), np.nan)
     for i, f in enumerate(facades):
         r = f.surface
@@ -188,7 +194,7 @@ def assign_facades(facades: Sequence[FacadeModel], xyz: np.ndarray, band_back: f
                   & (local[:, 2] >= -band_back) & (local[:, 2] <= band_front))
         col = np.clip(((local[:, 0] - u0) / r.cell).astype(np.int64), 0, w - 1)
         row = np.clip(((local[:, 1] - v0) / r.cell).astype(np.int64), 0, h - 1)
-        key = np.abs(local[:, 2]) + np.where(r.facet[row, col] >= 0, 0.0, no_facet)
+        key = np.abs(local[:, 2]) + np.where(r.facet[row, col] >= 0, 0.0, NO_FACET_PENALTY)
         better = inside & (key < best_abs[cand])
         sel = cand[better]
         best[sel] = i
