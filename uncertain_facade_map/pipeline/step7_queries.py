@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
+from scipy import ndimage
 
 from ..datatypes import SOURCE_GLOBAL, FacadeModel, SurfaceRaster
 from ..errors import InputError
@@ -90,13 +91,26 @@ def nearer_step_faces(raster: SurfaceRaster, uvd: np.ndarray, distance: np.ndarr
     h, w = raster.mean.shape
     mean, cell_var = raster.mean, raster.var
     observed = raster.source != SOURCE_GLOBAL
+    k = int(np.ceil(reach / cell))
+    # A face within reach spans depths within the observed cells' range around the point
+    # (the (2k + 3)^2 cells searched below): points outside it, most of them off steps,
+    # need no search. Points off the raster are searched.
+    lo = ndimage.minimum_filter(np.where(observed, mean, np.inf), size=2 * k + 3, mode='constant', cval=np.inf)
+    hi = ndimage.maximum_filter(np.where(observed, mean, -np.inf), size=2 * k + 3, mode='constant', cval=-np.inf)
+    r0 = np.floor((uvd[todo, 1] - raster.origin[1]) / cell).astype(np.int64)
+    c0 = np.floor((uvd[todo, 0] - raster.origin[0]) / cell).astype(np.int64)
+    on = (r0 >= 0) & (r0 < h) & (c0 >= 0) & (c0 < w)
+    rc, cc = np.clip(r0, 0, h - 1), np.clip(c0, 0, w - 1)
+    d_all = uvd[todo, 2]
+    todo = todo[~on | ((lo[rc, cc] <= d_all) & (d_all <= hi[rc, cc]))]
+    if not len(todo):
+        return distance, var
     u = (uvd[todo, 0] - raster.origin[0]) / cell
     v = (uvd[todo, 1] - raster.origin[1]) / cell
     d = uvd[todo, 2]
     row, col = np.floor(v).astype(np.int64), np.floor(u).astype(np.int64)
     best = np.abs(distance[todo]) / cell
     best_var = var[todo]
-    k = int(np.ceil(reach / cell))
     for dr in range(-k - 1, k + 1):
         for dc in range(-k - 1, k + 1):
             r, c = row + dr, col + dc
@@ -116,8 +130,10 @@ def nearer_step_faces(raster: SurfaceRaster, uvd: np.ndarray, distance: np.ndarr
                 nearer = ok & (gap < best) & (gap * cell <= reach)
                 best = np.where(nearer, gap, best)
                 best_var = np.where(nearer, np.maximum(cell_var[ra, ca], cell_var[rb, cb]) + cell**2 / 12, best_var)
-    distance[todo] = np.where(distance[todo] < 0, -1.0, 1.0) * best * cell
-    var[todo] = best_var
+    moved = best < np.abs(distance[todo]) / cell
+    idx = todo[moved]
+    distance[idx] = np.where(distance[idx] < 0, -1.0, 1.0) * best[moved] * cell
+    var[idx] = best_var[moved]
     return distance, var
 
 
