@@ -3,6 +3,7 @@
 #   make test    run every test
 #   make bench   print throughput and peak memory of the hot paths
 #   make evaluate  the occupancy evaluation against the baselines, report in output/evaluation/$(SCENE)
+#   make benchmark-real  the surface benchmark on the real samples in ../shared/data/real (if present)
 PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
@@ -28,7 +29,7 @@ IFC_PTH   := $(VENV)/lib/python3.11/site-packages/uncertain_facade_map_interface
 IFC_STAMP := $(VENV)/.interfaces
 IFC_SRC   := CMakeLists.txt package.xml $(wildcard msg/*.msg) $(wildcard srv/*.srv)
 
-.PHONY: venv demo test bench evaluate lock clean
+.PHONY: venv demo test bench evaluate benchmark-real lock clean
 
 venv: $(STAMP) $(IFC_STAMP)
 
@@ -76,6 +77,17 @@ bench: $(STAMP) $(IFC_STAMP)
 evaluate: $(STAMP) $(IFC_STAMP)
 	mkdir -p output/evaluation
 	$(PY) -m uncertain_facade_map_apps.cli evaluate --scene $(SCENE) --report output/evaluation/$(SCENE)
+
+# The surface benchmark (uncertain-facade-map benchmark) on the real lidar samples beside the
+# repository (CC BY-NC-SA: read from there, never copied); tables on stdout, JSON and PNG in
+# output/benchmark/. Skipped, with a note, when the folder is absent.
+REAL_DATA ?= ../shared/data/real
+REAL_FILES := av2_7fab_sweep0.ply av2_7fab_sweep1.ply av1_sweep.ply
+benchmark-real: $(STAMP) $(IFC_STAMP)
+	@if [ -d $(REAL_DATA) ]; then \
+	  mkdir -p output && \
+	  $(PY) -m uncertain_facade_map_apps.cli benchmark $(addprefix $(REAL_DATA)/,$(REAL_FILES)) --out output/benchmark; \
+	else echo "benchmark-real: no $(REAL_DATA) beside the repository; nothing to do"; fi
 
 # Re-resolve requirements.in and rewrite requirements.lock (needs the registries).
 lock:

@@ -133,3 +133,51 @@ def assert_edge_taken(read, name: str, value: object, accepted: bool, partners: 
         pytest.fail(f'{name}={value!r} advertised but refused: {errors}')
     section, key = name.split('.')
     assert getattr(getattr(config, section), key) == value
+
+
+#: Labels of :func:`unclassified_street`.
+GROUND, WALL, CAR, POLE, TREE = 0, 1, 2, 3, 4
+
+
+def unclassified_street(seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A seeded lidar-like sweep of a street without classes, for the building point selection.
+
+    The sensor stands at (0, 0, 1.8) m; the ground is z = 0 within 40 m (denser near the
+    sensor), walls 9 m tall along y = 10 (x in [-25, 25]) and y = -12 (x in [-20, 20]) and
+    a side wall along x = 20 (y in [-12, -4]); a car (a 4.5 x 1.8 x 1.2 m box, 0.3 m above
+    the ground) at (5, 4), a pole (0.1 m radius, 6 m) at (-6, 5), a tree (trunk, and a
+    crown: a ball of 2.5 m radius at 5 m height) at (-12, -5). Range noise 2 cm.
+
+    Returns:
+        (N, 3) float64 points, (N,) int labels (``GROUND``, ``WALL``, ``CAR``, ``POLE``,
+        ``TREE``), and the (3,) sensor position.
+    """
+    rng = np.random.default_rng(seed)
+    parts: list[tuple[np.ndarray, int]] = []
+    n = 20000
+    r = 3.0 + 37.0 * rng.random(n) ** 2
+    a = rng.uniform(0, 2 * np.pi, n)
+    parts.append((np.stack([r * np.cos(a), r * np.sin(a), np.zeros(n)], 1), GROUND))
+    for (x0, y0), (x1, y1), count in (((-25, 10), (25, 10), 8000), ((-20, -12), (20, -12), 7000),
+                                      ((20, -12), (20, -4), 1500)):
+        t = rng.random(count)
+        parts.append((np.stack([x0 + t * (x1 - x0), y0 + t * (y1 - y0), rng.uniform(0, 9, count)], 1), WALL))
+    box = rng.uniform([-2.25, -0.9, 0.3], [2.25, 0.9, 1.5], (1500, 3))
+    side = rng.integers(0, 3, len(box))  # project onto the nearest face: a side, an end or the roof
+    box[side == 0, 1] = np.sign(box[side == 0, 1]) * 0.9
+    box[side == 1, 0] = np.sign(box[side == 1, 0]) * 2.25
+    box[side == 2, 2] = 1.5
+    parts.append((box + [5.0, 4.0, 0.0], CAR))
+    a = rng.uniform(0, 2 * np.pi, 300)
+    parts.append((np.stack([-6 + 0.1 * np.cos(a), 5 + 0.1 * np.sin(a), rng.uniform(0, 6, 300)], 1), POLE))
+    a = rng.uniform(0, 2 * np.pi, 200)
+    trunk = np.stack([-12 + 0.2 * np.cos(a), -5 + 0.2 * np.sin(a), rng.uniform(0, 2.5, 200)], 1)
+    ball = rng.normal(size=(2500, 3))
+    ball *= (2.5 * rng.random(2500) ** (1 / 3) / np.linalg.norm(ball, axis=1))[:, None]
+    parts += [(trunk, TREE), (ball + [-12.0, -5.0, 5.0], TREE)]
+    xyz = np.concatenate([p for p, _ in parts])
+    labels = np.concatenate([np.full(len(p), k) for p, k in parts])
+    sensor = np.array([0.0, 0.0, 1.8])
+    ray = xyz - sensor
+    xyz = xyz + ray / np.linalg.norm(ray, axis=1, keepdims=True) * rng.normal(0, 0.02, (len(xyz), 1))
+    return xyz, labels, sensor

@@ -143,6 +143,66 @@ class DepthLayers:
 
 
 @dataclass(frozen=True, eq=False)
+class Relief:
+    """The smooth reference surface of a wall: how far it bows and leans from its plane.
+
+    The depth layers are offsets from this surface, not from the plane (a departure from
+    the paper, which takes every layer as a constant depth; see
+    :func:`~uncertain_facade_map.pipeline.step2_layers.fit_relief`). A relief of one node
+    with value 0 is the paper's flat wall.
+
+    Attributes:
+        origin: (2,) (u, v) of node [0, 0], metres, façade frame.
+        spacing: distance between nodes, metres.
+        values: (H, W) depth of the surface at the nodes (row = v, column = u), metres.
+    """
+
+    origin: np.ndarray
+    spacing: float
+    values: np.ndarray
+
+    def __post_init__(self) -> None:
+        _read_only(self, 'origin', 'values')
+
+    @classmethod
+    def flat(cls) -> Relief:
+        """The paper's flat wall: depth 0 everywhere."""
+        return cls(np.zeros(2), 1.0, np.zeros((1, 1)))
+
+    def at(self, uv: np.ndarray) -> np.ndarray:
+        """(N,) depth of the surface at (N, 2) locations (u, v), metres: bilinear between
+        the nodes, the nearest edge value beyond them."""
+        nodes, weights = bilinear_weights(np.asarray(uv, dtype=np.float64), self.origin, self.spacing,
+                                          self.values.shape)
+        return (self.values.ravel()[nodes] * weights).sum(axis=1)
+
+
+def bilinear_weights(uv: np.ndarray, origin: np.ndarray, spacing: float, shape: tuple[int, int]
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Bilinear interpolation on a node grid, clamped to its edges.
+
+    Args:
+        uv: (N, 2) locations, metres.
+        origin: (2,) location of node [0, 0], metres.
+        spacing: node spacing, metres.
+        shape: (H, W) nodes (row = v, column = u).
+
+    Returns:
+        ``(nodes, weights)``: (N, 4) flat node indices and their (N, 4) weights (sum 1).
+    """
+    h, w = shape
+    g = (uv - origin) / spacing
+    gx, gy = np.clip(g[:, 0], 0.0, w - 1.0), np.clip(g[:, 1], 0.0, h - 1.0)
+    c0 = np.minimum(gx.astype(np.int64), max(w - 2, 0))
+    r0 = np.minimum(gy.astype(np.int64), max(h - 2, 0))
+    c1, r1 = np.minimum(c0 + 1, w - 1), np.minimum(r0 + 1, h - 1)
+    tx, ty = gx - c0, gy - r0
+    nodes = np.stack([r0 * w + c0, r0 * w + c1, r1 * w + c0, r1 * w + c1], axis=1)
+    weights = np.stack([(1 - ty) * (1 - tx), (1 - ty) * tx, ty * (1 - tx), ty * tx], axis=1)
+    return nodes, weights
+
+
+@dataclass(frozen=True, eq=False)
 class Facets:
     """Facets of a façade on a raster.
 
@@ -302,6 +362,7 @@ class FacadeModel:
             first fit so that blocks and cells keep their identity as the map grows
             (None: the surface raster's origin).
         fitted_points: number of points at the last whole fit (0: ``len(point_index)``).
+        relief: the wall's smooth surface the layers are offsets from (None: flat, the paper).
     """
 
     facade_id: int
@@ -321,8 +382,11 @@ class FacadeModel:
     plane_extent: tuple[float, float, float, float] | None = None
     anchor: np.ndarray | None = None
     fitted_points: int = 0
+    relief: Relief | None = None
 
     def __post_init__(self) -> None:
+        if self.relief is None:
+            object.__setattr__(self, 'relief', Relief.flat())
         if self.plane_extent is None:
             object.__setattr__(self, 'plane_extent', tuple(self.extent))
         if self.anchor is None:

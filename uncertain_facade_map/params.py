@@ -16,7 +16,7 @@ else derives from that one declaration:
 
 Sections, in the order of the parameter file: the modelling stages (``extraction``,
 ``layers``, ``gp``, ``outliers``, ``update``) make :class:`MapParams`, the rest
-(``input``, ``query``, ``model``, ``node``, ``publish``, ``service``, ``persistence``)
+(``input``, ``selection``, ``query``, ``model``, ``node``, ``publish``, ``service``, ``persistence``)
 complete :class:`Config`, the whole file.
 """
 
@@ -34,7 +34,7 @@ from .errors import InputError
 __all__ = [
     'Config', 'ExtractionParams', 'GPParams', 'InputConfig', 'Interval', 'LayerParams', 'MapParams', 'ModelConfig',
     'NodeConfig', 'Options', 'OutlierParams', 'Param', 'PersistenceConfig', 'PublishConfig', 'QueryConfig',
-    'Relation', 'Section', 'ServiceConfig', 'UpdateParams', 'config_from_parameters', 'map_params',
+    'Relation', 'Section', 'SelectionConfig', 'ServiceConfig', 'UpdateParams', 'config_from_parameters', 'map_params',
     'map_params_from_record', 'map_params_record', 'parameters', 'NODE_NAME',
 ]
 
@@ -284,6 +284,13 @@ class LayerParams(Section):
     facet_cell: float = param(0.1, 'raster cell of the facets', unit='m', allowed=_closed(1e-3, 100.0))
     fill_distance: float = param(0.3, 'empty cells this close to a voted cell join its facet', unit='m',
                                  allowed=_closed(0.0, 100.0))
+    relief_spacing: float = param(2.0, 'node spacing of the smooth wall surface the layers are offsets from (walls '
+                                       'bow and lean); 0: flat walls, constant layers as in the paper', unit='m',
+                                  allowed=_closed(0.0, 1000.0))
+    relief_smoothing: float = param(10.0, 'weight of the wall surface\'s curvature penalty, per unit of data weight '
+                                         'of a node', allowed=_closed(0.0, 1e9))
+    relief_scale: float = param(4.0, 'points further from the wall surface than this many noise sigmas do not '
+                                     'shape it (Tukey biweight scale)', allowed=_closed(0.5, 1000.0))
     min_facet_cells: int = param(2, 'a connected region with fewer voted cells than this is no facet (a lone '
                                     'outlier or a stray vote); its cells join the nearest real facet within '
                                     'fill_distance', allowed=_closed(1, 1_000_000))
@@ -300,8 +307,15 @@ class GPParams(Section):
                  'lengthscale2_min <= initial_lengthscale2 <= lengthscale2_max'),
     )
 
-    noise_sigma: float = param(0.02, 'sigma_eta, the noise of the points (paper: 0.02)', unit='m',
+    estimate_noise: bool = param(True, 'estimate sigma_eta per façade from the data (the nugget of its depths at '
+                                       'lags up to noise_lag); else take noise_sigma')
+    noise_sigma: float = param(0.02, 'sigma_eta, the noise of the points, when not estimated or too few points are '
+                                     'close enough to estimate it (paper: 0.02)', unit='m',
                                allowed=_closed(1e-6, 100.0))
+    noise_lag: float = param(0.05, 'pairs of points closer than this on the plane estimate the noise', unit='m',
+                             allowed=_closed(1e-4, 10.0))
+    min_noise_sigma: float = param(0.002, 'the estimated noise is at least this (a floor for perfectly smooth data)',
+                                   unit='m', allowed=_closed(0.0, 100.0))
     initial_lengthscale2: float = param(0.0025, 'initial 1/b_1 = 1/b_2 (paper: 0.0025)', unit='m^2',
                                         allowed=_closed(1e-8, 1e4))
     lengthscale2_min: float = param(0.0025, 'lower bound of 1/b_m in the optimisation', unit='m^2',
@@ -325,9 +339,9 @@ class GPParams(Section):
                              allowed=_closed(1e-3, 1e4))
     max_block_points: int = param(64, 'at most this many training points per extended block (a random subset '
                                       'beyond); bounds the cost of a block', allowed=_closed(1, 100_000))
-    planar_per_block: int = param(0, 'planar points (not selected by eqs. 7 and 8) added to the training points per '
-                                     'block, so that the variance shrinks where the plane was observed; 0 '
-                                     'reproduces the paper', allowed=_closed(0, 100_000))
+    planar_per_block: int = param(4, 'planar points (not selected by eqs. 7 and 8) added to the training points per '
+                                     'block, so that the GP follows a wall that is not flat and the variance shrinks where it was '
+                                     'observed; 0 reproduces the paper', allowed=_closed(0, 100_000))
     grid_resolution: float = param(0.1, 'cell of the raster the surface is predicted on', unit='m',
                                    allowed=_closed(1e-3, 100.0))
 
@@ -390,11 +404,68 @@ class InputConfig(Section):
 
     class_field: str = param('class', 'point field holding the semantic class')
     building_classes: tuple[int, ...] = param(
-        (1,), 'class values that mean "building"; a cloud without the class field is all building')
+        (1,), 'class values that mean "building"; a cloud without the class field is selected (see selection)')
     building_id_field: str = param('building_id', 'point field with a building id, used when present')
     frame_id: str = param('map', 'frame of the map; clouds must be in it')
     map_origin: tuple[float, float, float] = param(
         (0.0, 0.0, 0.0), 'georeference of the map frame (georeferenced = map + origin)', unit='m')
+
+
+@dataclass(frozen=True)
+class SelectionConfig(Section):
+    """Building points of clouds without a class field (:mod:`~.selection.building_points`).
+
+    Ground removal by Patchwork++, then the points on tall vertical planes: windows of
+    ``(2 window_radius + 1)^2`` cells, each fitted with a vertical plane; a window is a wall
+    if its band points are many, thin, long and tall enough; walls are windows linked into
+    straight segments of at least ``min_segment_length``.
+    """
+
+    section: ClassVar[str] = 'selection'
+    relations: ClassVar[tuple[Relation, ...]] = (
+        Relation(('max_thickness', 'band'), lambda thick, band: thick <= band, 'max_thickness <= band'),
+    )
+
+    mode: str = param('auto', 'auto: select the building points of clouds without the class field '
+                              '(input.class_field) and use the class of the others; on: select in every cloud, the '
+                              'class field ignored; off: a cloud without the class field is all building',
+                      allowed=Options(('auto', 'on', 'off')))
+    min_ground_share: float = param(0.05, 'a cloud in which Patchwork++ finds less ground than this share is no raw '
+                                          'scan but building points cut already: all of it is kept (0: select '
+                                          'always)', allowed=_closed(0.0, 1.0))
+    sensor_height: float = param(1.73, "Patchwork++'s sensor height: each scan is centred on its sensor (or the "
+                                       "cloud's median) this high above the ground found around it", unit='m',
+                                 allowed=_positive(100.0))
+    max_range: float = param(80.0, 'Patchwork++ looks for ground this far from the scan centre; clouds without '
+                                   'sensor origins wider than twice this are cut into tiles of this side', unit='m',
+                             allowed=_closed(5.0, 10_000.0))
+    scan_cell: float = param(20.0, 'points whose sensor origins lie in one square cell of this side are one scan for '
+                                   'ground removal', unit='m', allowed=_positive(1e6))
+    ground_cell: float = param(2.0, 'cell of the ground height map built from the ground points', unit='m',
+                               allowed=_closed(0.1, 100.0))
+    cell: float = param(0.5, 'cell of the plane windows', unit='m', allowed=_closed(0.05, 10.0))
+    window_radius: int = param(1, 'a window is its centre cell and this many cells around it each way',
+                               allowed=_closed(0, 10))
+    band: float = param(0.4, "half-width of a window's vertical plane band: its points in the band are building "
+                             'points if the window is a wall', unit='m', allowed=_positive(10.0))
+    max_thickness: float = param(0.15, "RMS distance of a wall window's band points from its plane at most (tree "
+                                       'crowns are thicker)', unit='m', allowed=_positive(10.0))
+    min_share: float = param(0.5, "share of a wall window's points in its band at least",
+                             allowed=_closed(0.0, 1.0))
+    min_window_points: int = param(10, 'band points of a wall window at least', allowed=_closed(3, 1_000_000))
+    min_window_length: float = param(1.0, "extent of a wall window's band points along its plane at least "
+                                          '(sqrt(12) standard deviations; poles are narrower)', unit='m',
+                                     allowed=_closed(0.0, 100.0))
+    min_structure_height: float = param(3.0, "top of a wall window's band points above the ground at least (cars "
+                                             'and hedges are lower)', unit='m', allowed=_closed(0.0, 1000.0))
+    min_extent: float = param(1.0, "vertical extent of a wall window's band points at least (cables, eaves)",
+                              unit='m', allowed=_closed(0.0, 1000.0))
+    segment_angle: float = param(25.0, 'wall windows whose planes differ by less than this angle ...',
+                                 unit='degrees', allowed=_closed(0.0, 90.0))
+    link_distance: float = param(2.5, '... whose centre cells are at most this far apart and whose centroids lie in '
+                                      "each other's band are one wall segment", unit='m', allowed=_closed(0.0, 100.0))
+    min_segment_length: float = param(2.5, 'a wall segment shorter than this along its plane is no wall (tree '
+                                           'crowns, signs, poles)', unit='m', allowed=_closed(0.0, 1000.0))
 
 
 @dataclass(frozen=True)
@@ -490,6 +561,7 @@ class Config:
     """All parameters of the parameter file, by section (the modelling stages, then the rest)."""
 
     input: InputConfig = field(default_factory=InputConfig)
+    selection: SelectionConfig = field(default_factory=SelectionConfig)
     extraction: ExtractionParams = field(default_factory=ExtractionParams)
     layers: LayerParams = field(default_factory=LayerParams)
     gp: GPParams = field(default_factory=GPParams)

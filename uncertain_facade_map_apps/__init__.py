@@ -1,8 +1,8 @@
 """Applications on top of the core, msg_adapters and the node: what a user runs.
 
 - ``cli``: the ``uncertain-facade-map`` command line (simulate, build, query, replay, plot,
-  evaluate);
-- ``plots``: the paper's figures of a map (matplotlib, headless);
+  evaluate, benchmark);
+- ``plots``: the paper's figures of a map and the benchmark's figure (matplotlib, headless);
 - ``bench``: ``make bench``, throughput and memory of the hot paths;
 - ``demo``: ``make demo``, the street drive mapped live by the node, queried, saved, drawn.
 

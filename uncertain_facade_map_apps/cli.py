@@ -7,6 +7,7 @@ Sub-commands:
     replay     replay bags into a map (offline) or to a running facade_mapper (publish)
     plot       draw a map's façades and an overview as PNG figures
     evaluate   compare the map's occupancy with the baselines' against a reference scan
+    benchmark  hold points out of a cloud, map the rest, score the held-out points beside reference maps
 
 Every error a user can cause ends in one line on stderr and exit status 2; nothing ends in
 a traceback. Bag formats need ``msg_adapters`` (rosbags), imported only when asked for.
@@ -16,6 +17,8 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
+import math
 import shutil
 import sys
 import time
@@ -102,13 +105,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         with_overrides,
     )
     from uncertain_facade_map.simulation.export import scene_description, split_scans, write_scene_json
-    from uncertain_facade_map.simulation.scenes import build_scene, zurich_scene
+    from uncertain_facade_map.simulation.presets import SENSOR_PRESETS
+    from uncertain_facade_map.simulation.scenes import build_scene
 
-    if args.scene == 'zurich' and args.cityjson:
-        scene = zurich_scene(args.seed, args.cityjson)
-    else:
-        scene = build_scene(args.scene, args.seed)
-    sensor = with_overrides(SCENE_SENSORS.get(scene.name, SensorConfig()), range_noise=args.range_noise,
+    scene = build_scene(args.scene, args.seed, args.cityjson if args.scene.startswith('zurich') else None)
+    preset = SENSOR_PRESETS[args.sensor] if args.sensor else SCENE_SENSORS.get(scene.name, SensorConfig())
+    sensor = with_overrides(preset, range_noise=args.range_noise,
                             outlier_share=args.outlier_share, range_max=args.range_max,
                             angular_step_deg=args.angular_step, scan_rate_hz=args.scan_rate, speed=args.speed)
     out = Path(args.out)
@@ -167,7 +169,8 @@ def cmd_build(args: argparse.Namespace) -> int:
         raise CliError(f'output folder {out.parent} does not exist')
     started = time.perf_counter()
     cloud = load_inputs(args.inputs, topic=args.topic)
-    points = select_building_points(cloud, config.input)
+    selection = config.selection if args.select is None else dataclasses.replace(config.selection, mode=args.select)
+    points = select_building_points(cloud, config.input, selection, sensor=args.sensor)
     read_s = time.perf_counter() - started
     fmap = FacadeMap(map_params(config), points.map_origin)
     with _counter('buildings', 'building', args.quiet) as update:
@@ -177,6 +180,11 @@ def cmd_build(args: argparse.Namespace) -> int:
     total_s = time.perf_counter() - started
     stats = [f.stats for f in fmap.facades]
     print(f'read     {len(cloud):,} points ({len(points):,} building) from {len(args.inputs)} input(s) in {read_s:.1f} s')
+    if points.selection is not None:
+        found = points.selection
+        print(f'selected {len(points):,} points on {found.walls} wall segments, {found.ground.sum():,} ground'
+              if found.applied else
+              f'selected all: no class field, but {found.ground_share:.1%} ground, so building points cut already')
     print(f'mapped   {len(fmap.buildings)} buildings, {len(fmap.facades)} façades in {build_s:.1f} s '
           f'({len(cloud) / max(build_s, 1e-9):,.0f} points/s)')
     print(f'gp       {sum(s["training"] for s in stats):,} training points, '
@@ -272,7 +280,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         scans = select_window(scans, args.start, args.duration)
     fmap = FacadeMap(map_params(config), origin)
     with _counter('mapped', 'scan', args.quiet, len(scans)) as update:
-        summary = map_scans(fmap, (points for _, points in scans), config.input, update)
+        summary = map_scans(fmap, (points for _, points in scans), config.input, update, config.selection)
     print(f'replayed {summary.scans:,} scans of {topic}: {summary.points:,} points, {summary.building_points:,} '
           f'building, {summary.nonfinite:,} skipped (NaN/Inf)')
     print(f'mapped   {summary.buildings} buildings, {summary.facades} façades in {summary.seconds:.1f} s '
@@ -407,9 +415,99 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _sensor(text: str) -> tuple[float, float, float]:
+    try:
+        values = tuple(float(x) for x in text.split(','))
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(f'expected X,Y,Z in metres, got {text!r}')
+    return values  # type: ignore[return-value]
+
+
+def _unique_stem(name: str, used: set[str]) -> str:
+    stem, i = name, 1
+    while stem in used:
+        i += 1
+        stem = f'{name}_{i}'
+    used.add(stem)
+    return stem
+
+
+def cmd_benchmark(args: argparse.Namespace) -> int:
+    """Hold points out, map the rest, score them beside reference maps (see ``benchmark --help``)."""
+    import json
+
+    from msg_adapters.bag_io import load_inputs
+    from uncertain_facade_map.evaluation.benchmark import (
+        BenchmarkSettings,
+        benchmark_input,
+        format_table,
+        run_benchmark,
+    )
+    from uncertain_facade_map.io.parameter_file import load_config
+    from uncertain_facade_map.params import map_params
+
+    from .plots import output_folder, plot_benchmark
+
+    if args.scene is None and not args.inputs:
+        raise CliError('give INPUT clouds or --scene')
+    if args.scene is not None and args.inputs:
+        raise CliError('give either INPUT clouds or --scene, not both')
+    config = load_config(args.config)
+    params = map_params(config)
+    settings = BenchmarkSettings(holdout=args.holdout, seed=args.seed, max_scored=args.max_scored)
+    out = output_folder(args.out)
+    say = (lambda line: None) if args.quiet else (lambda line: print(f'  {line}', file=sys.stderr, flush=True))
+    jobs = [(f'scene {args.scene}', None)] if args.scene is not None else [(p, p) for p in args.inputs]
+    used: set[str] = set()
+    for name, path in jobs:
+        started = time.perf_counter()
+        scene = None
+        if path is None:
+            from uncertain_facade_map.simulation.campaign import (
+                SCENE_SENSORS,
+                SensorConfig,
+                campaign,
+                drive_duration,
+                simulate_campaign,
+            )
+            from uncertain_facade_map.simulation.scenes import build_scene
+
+            scene = build_scene(args.scene, args.seed)
+            update, close = _progress_bar(drive_duration(scene, campaign(scene, 0),
+                                                         SCENE_SENSORS.get(scene.name, SensorConfig())),
+                                          f'{scene.name} campaign 0', args.quiet)
+            try:
+                cloud = simulate_campaign(scene, 0, progress=update)
+            finally:
+                close()
+            stem = _unique_stem(f'scene_{args.scene}', used)
+        else:
+            cloud = load_inputs([path], topic=args.topic)
+            stem = _unique_stem(Path(path).name.split('.')[0] or 'input', used)
+        say(f'{name}: {len(cloud):,} points read; choosing the building points')
+        data = benchmark_input(cloud, config.input, params, seed=args.seed, sensor=args.sensor)
+        with _counter('buildings mapped', 'building', args.quiet) as update:
+            results = run_benchmark(data, params, settings, scene=scene, name=name, say=say, progress=update)
+        json_path = out / f'{stem}.json'
+        json_path.write_text(json.dumps({'command': 'uncertain-facade-map benchmark ' + ' '.join(sys.argv[2:]),
+                                         'results': [r.as_dict() for r in results]}, indent=1, allow_nan=False)
+                             + '\n')
+        png_path = plot_benchmark(results, out / f'{stem}.png')
+        for r in results:
+            print(format_table(r))
+            print()
+        print(f'written  {json_path}, {png_path} ({time.perf_counter() - started:.1f} s)')
+        print()
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of all sub-commands."""
     from uncertain_facade_map.evaluation.baselines import METHODS
+    from uncertain_facade_map.simulation.presets import SENSOR_PRESETS
+    from uncertain_facade_map.simulation.scenes import SCENES
 
     parser = argparse.ArgumentParser(prog=PROG, description='Façade maps with calibrated uncertainty.')
     sub = parser.add_subparsers(dest='command', required=True, metavar='COMMAND')
@@ -417,9 +515,12 @@ def build_parser() -> argparse.ArgumentParser:
     sim = sub.add_parser('simulate', help='scan a built-in scene with a simulated mobile-mapping system',
                          description='Scan a built-in scene (deterministic by seed) in one or more campaigns. '
                                      'Campaign 0 is the mapped one, the others are the reference.')
-    sim.add_argument('--scene', default='street', choices=('street', 'small', 'zurich'),
+    sim.add_argument('--scene', default='street', choices=tuple(SCENES),
                      help='street: ~1.7 M points, 7 buildings (default); small: < 50 000 points; '
-                          'zurich: real CityJSON footprints')
+                          'zurich: real CityJSON footprints; NAME_hard: the same with walls as built and '
+                          'a real error model (see README, "Hard simulator")')
+    sim.add_argument('--sensor', choices=tuple(SENSOR_PRESETS),
+                     help="sensor preset (default: the scene's; see README, \"Hard simulator\")")
     sim.add_argument('--seed', type=int, default=0, help='scene seed (default 0)')
     sim.add_argument('--campaigns', type=int, default=1, help='number of drives, 1 mapped + references (default 1)')
     sim.add_argument('--out', default='output/simulation', help='output folder (default output/simulation)')
@@ -439,19 +540,28 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument('--scan-rate', type=float, help='profiles per second per scanner')
     sim.add_argument('--speed', type=float, help='driving speed, m/s (default 5)')
     sim.add_argument('--cityjson',
-                     help='CityJSON file for --scene zurich (default: the Zurich subset shipped with the package)')
+                     help='CityJSON file for --scene zurich or zurich_hard (default: the Zurich subset shipped '
+                          'with the package)')
     sim.add_argument('--force', action='store_true', help='replace existing output files')
     sim.add_argument('--quiet', action='store_true', help='no progress bar')
     sim.set_defaults(func=cmd_simulate)
 
     build = sub.add_parser('build', help='build a façade map from classified point clouds or bags',
                            description='Build the uncertain façade map from PLY, LAS/LAZ, PCD, NPZ files or ROS bags '
-                                       '(ROS 1 .bag, ROS 2 folders, .db3, .mcap) of PointCloud2. A cloud without the '
-                                       'class field is taken as all building points.')
+                                       '(ROS 1 .bag, ROS 2 folders, .db3, .mcap) of PointCloud2. In a cloud without the '
+                                       'class field the building points are selected: ground removed (Patchwork++), '
+                                       'points on tall vertical planes kept (--select).')
     build.add_argument('inputs', nargs='+', metavar='INPUT', help='point clouds or bags')
     build.add_argument('--out', required=True, metavar='MAP', help='map file to write (.npz)')
     build.add_argument('--config', metavar='YAML', help='ROS 2 parameter file (default: config/facade_mapper.yaml)')
     build.add_argument('--topic', help='PointCloud2 topic of bag inputs (default: the only one)')
+    build.add_argument('--select', choices=('auto', 'on', 'off'),
+                       help='building points of clouds without classes (selection.mode; default from the config: '
+                            'auto, i.e. for clouds without the class field)')
+    build.add_argument('--sensor', type=_sensor, metavar='X,Y,Z',
+                       help='sensor position (map frame, metres) for clouds without per-point sensor origins, such '
+                            'as one sweep in its vehicle frame (0,0,1.8); turns the façades towards it (default: '
+                            'from the buildings\' shapes)')
     build.add_argument('--quiet', action='store_true', help='no progress bar')
     build.set_defaults(func=cmd_build)
 
@@ -505,7 +615,7 @@ def build_parser() -> argparse.ArgumentParser:
                                     'and ROC AUC and training/testing times per method and resolution, and the '
                                     'accurate-inference AUC of our map; --report writes report.md with figures.')
     ev.add_argument('clouds', nargs='*', metavar='CLOUD', help='MAPPED and REFERENCE clouds (with origin_x/y/z)')
-    ev.add_argument('--scene', choices=('street', 'small', 'zurich'),
+    ev.add_argument('--scene', choices=tuple(SCENES),
                     help='simulate this scene instead: campaign 0 mapped, campaign 1 as reference')
     ev.add_argument('--seed', type=int, default=0, help='scene seed and seed of the voxel subsets (default 0)')
     ev.add_argument('--methods', default=','.join(METHODS),
@@ -520,6 +630,33 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument('--config', metavar='YAML', help='ROS 2 parameter file (input section)')
     ev.add_argument('--quiet', action='store_true', help='no progress lines')
     ev.set_defaults(func=cmd_evaluate)
+
+    bm = sub.add_parser('benchmark', help='hold points out of a cloud, map the rest, score the held-out points',
+                        description='For each INPUT (or a simulated --scene): take its building points (the class '
+                                    'field if present, else the walls picked by RANSAC of vertical planes), hold out '
+                                    'a random share and occlusion patches on every façade, map the rest with this '
+                                    'package and two reference maps (a local plane through the 12 nearest mapped '
+                                    'points; one PCA plane per façade), and score the held-out points: share '
+                                    'answered, RMSE and bias of the signed distance, 68 %% and 95 %% interval '
+                                    'coverage, NLL, CRPS and occupancy PR-AUC, observed and occluded, planar and '
+                                    'near depth steps apart; a simulated scene is also scored against its exact '
+                                    'truth. Prints a table per input, writes DIR/NAME.json and DIR/NAME.png.')
+    bm.add_argument('inputs', nargs='*', metavar='INPUT', help='point clouds or bags, each benchmarked on its own')
+    bm.add_argument('--scene', choices=('street', 'small', 'zurich'),
+                    help='simulate this scene (campaign 0) instead and score against its exact truth too')
+    bm.add_argument('--holdout', type=float, default=0.5, help='random share of points held out (default 0.5)')
+    bm.add_argument('--seed', type=int, default=0, help='seed of the hold-out, the wall pick and the scene (default 0)')
+    bm.add_argument('--out', default='output/benchmark', metavar='DIR',
+                    help='folder of the JSON and PNG files (created if its parent exists; default output/benchmark)')
+    bm.add_argument('--config', metavar='YAML', help='ROS 2 parameter file (default: config/facade_mapper.yaml)')
+    bm.add_argument('--sensor', type=_sensor, metavar='X,Y,Z',
+                    help='sensor position for the wall pick of clouds without class field (default: the mean '
+                         'sensor origin, else 0,0,1.8 as in a vehicle-frame sweep)')
+    bm.add_argument('--max-scored', type=int, default=200_000,
+                    help='score at most this many held-out points, a seeded subset (default 200000)')
+    bm.add_argument('--topic', help='PointCloud2 topic of bag inputs (default: the only one)')
+    bm.add_argument('--quiet', action='store_true', help='no progress lines')
+    bm.set_defaults(func=cmd_benchmark)
     return parser
 
 

@@ -24,6 +24,9 @@ façade, the median standard deviation of the column; the 3D view draws the rast
 Both keep to the extent of the façade's points (the raster's margin beyond them, where
 the global prior holds, is left out; holes in the data are drawn).
 
+:func:`plot_benchmark` draws a run of ``uncertain-facade-map benchmark``: residuals on the
+façades and calibration curves.
+
 :func:`plot_map` writes both kinds into a folder (``uncertain-facade-map plot MAP --out
 DIR``). A map without façades is not an error: it gives the overview alone, its building
 points from above with a note saying that there are no façades.
@@ -206,19 +209,21 @@ def training_points(model: FacadeModel, uvd: np.ndarray, normal_cos: np.ndarray,
 
     Args:
         model: the façade.
-        uvd: (M, 3) its points (u, v, d), metres, façade frame.
+        uvd: (M, 3) its points (u, v, d), metres, façade frame (d from the plane).
         normal_cos: (M,) |cos| between point normals and the façade normal.
         gp: the map's GP parameters (thresholds of eqs. 7 and 8).
 
     Returns:
-        (M,) bool: on a facet and not explained by the facet's layer (paper eqs. 7, 8).
+        (M,) bool: on a facet and not explained by the facet's layer (paper eqs. 7, 8),
+        with depths taken from the wall's relief as in the fit.
     """
     facet = model.facets.facet_at(uvd[:, :2])
     has_facet = facet >= 0
     if not model.facets.n_facets:
         return np.zeros(len(uvd), dtype=bool)
     layer = np.where(has_facet, model.facets.layer_of_facet[np.maximum(facet, 0)], model.layers.main_)
-    return select_training(uvd[:, 2], normal_cos, layer, model.layers, gp) & has_facet
+    depth = uvd[:, 2] - model.relief.at(uvd[:, :2])
+    return select_training(depth, normal_cos, layer, model.layers, gp) & has_facet
 
 
 def block_layout(model: FacadeModel, c_min: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -680,3 +685,93 @@ def plot_map(fmap: FacadeMap, out: str | Path, facades: Sequence[int] | None = N
             progress(done, len(ids))
     written.append(plot_overview(fmap, out / 'overview.png', dpi, max_points, seed))
     return written
+
+
+#: Colour of each map in the benchmark's calibration panels.
+BENCHMARK_COLOURS = {'this package': '#1f77b4', 'local plane': '#ff7f0e', 'façade plane': '#2ca02c'}
+#: Façades drawn at most in the benchmark figure (those with the most scored points).
+BENCHMARK_FACADES = 4
+
+
+def plot_benchmark(results: Sequence, path: str | Path, dpi: int = DEFAULT_DPI, residual_range: float = 0.2,
+                   max_points: int = MAX_POINTS, seed: int = 0) -> Path:
+    """The figure of one benchmark run (``uncertain-facade-map benchmark``).
+
+    Left: on the façades with the most scored points (at most :data:`BENCHMARK_FACADES`),
+    each scored point at its place (u, v) on its façade, coloured by our map's signed
+    distance (residual, metres, clipped to +-``residual_range``; grey crosses: not
+    answered), the occlusion patches outlined. Right: per result (held-out points, and
+    the exact truth on simulated scenes) the calibration curve of every map: the share of
+    points inside the central interval against its nominal level, observed (solid) and
+    occluded (dashed); a calibrated map lies on the diagonal.
+
+    Args:
+        results: the :class:`~uncertain_facade_map.evaluation.benchmark.BenchmarkResult`
+            of one input (the first gives the residuals).
+        path: PNG file to write.
+        dpi: resolution.
+        residual_range: the colour scale's half range, metres.
+        max_points: at most this many points per façade panel (a seeded subset).
+        seed: seed of the subsets.
+
+    Returns:
+        The path written.
+    """
+    from matplotlib.colors import Normalize
+    from matplotlib.patches import Rectangle
+
+    from uncertain_facade_map.evaluation.benchmark import LEVELS
+
+    if not results:
+        raise InputError('no benchmark results to plot')
+    first = results[0]
+    plot = first.plot
+    facade, uv, residual, occluded = plot['facade'], plot['uv'], plot['residual'], plot['occluded']
+    ids, counts = np.unique(facade[facade >= 0], return_counts=True)
+    shown = ids[np.argsort(-counts, kind='stable')][:BENCHMARK_FACADES]
+    rng = np.random.default_rng(seed)
+    fig = _figure(16, 3.2 * max(len(shown), 2 * len(results), 2))
+    left, right = fig.subfigures(1, 2, width_ratios=[2.2, 1])
+    norm = Normalize(-residual_range, residual_range)
+    axes = left.subplots(max(len(shown), 1), 1, squeeze=False)[:, 0]
+    mappable = None
+    for ax, j in zip(axes, shown):
+        sel = np.flatnonzero(facade == j)
+        sel = sel[_sample(len(sel), max_points, rng)]
+        answered = np.isfinite(residual[sel])
+        a, b = sel[answered], sel[~answered]
+        mappable = ax.scatter(uv[a, 0], uv[a, 1], c=np.clip(residual[a], -residual_range, residual_range), s=3,
+                              cmap='RdBu_r', norm=norm, linewidths=0)
+        if len(b):
+            ax.scatter(uv[b, 0], uv[b, 1], c='0.6', s=6, marker='x', linewidths=0.5, label='not answered')
+            ax.legend(loc='upper right', fontsize=8)
+        for f, u0, u1, v0, v1 in plot['patches']:
+            if f == j:
+                ax.add_patch(Rectangle((u0, v0), u1 - u0, v1 - v0, fill=False, edgecolor='k', linewidth=1.0))
+        _facade_axes(ax)
+        ax.set_title(f'façade {j}: residual of this package at {len(sel):,} scored points '
+                     f'({int(occluded[sel].sum()):,} occluded, in the black patches)', fontsize=9)
+    if not len(shown):
+        axes[0].text(0.5, 0.5, 'no scored point on a façade', ha='center', va='center', transform=axes[0].transAxes)
+        axes[0].set_axis_off()
+    if mappable is not None:
+        left.colorbar(mappable, ax=list(axes), location='bottom', shrink=0.5, aspect=40,
+                      label='signed distance of the held-out point from our mean surface, outside + (m)')
+    cal_axes = right.subplots(len(results), 1, squeeze=False)[:, 0]
+    for ax, result in zip(cal_axes, results):
+        ax.plot([0, 1], [0, 1], color='0.5', linewidth=0.8)
+        for m in result.maps:
+            colour = BENCHMARK_COLOURS.get(m.name)
+            for split, style in (('observed', '-'), ('occluded', '--')):
+                curve = np.asarray(m.calibration.get(split, []), dtype=float)
+                if len(curve) and np.isfinite(curve).any():
+                    ax.plot(LEVELS, curve, style, color=colour, marker='.', markersize=3, label=f'{m.name}, {split}')
+        ax.set_xlim(0, 1)
+        ax.set_ylim(0, 1)
+        ax.set_aspect('equal')
+        ax.set_xlabel('nominal level of the central interval')
+        ax.set_ylabel('observed coverage')
+        ax.set_title(f'calibration against {result.against}', fontsize=10)
+        ax.legend(loc='lower right', fontsize=7)
+    fig.suptitle(f'Benchmark of {first.name}', fontsize=12)
+    return _save(fig, path, dpi)

@@ -247,7 +247,8 @@ class FacadeMapperNode(Node):
             self._reject(str(exc))
             return
         try:
-            scan = select_scan_points(points, cfg.input)
+            # A cloud in another frame than the map's is in its sensor's (or vehicle's) frame.
+            scan = select_scan_points(points, cfg.input, cfg.selection, None if pose is None else np.zeros(3))
         except InputError as exc:
             self._reject(str(exc))
             return

@@ -119,7 +119,7 @@ def test_query_contract(simulated, built, tmp_path):
         assert np.nanmedian(np.abs(r['signed_distance'][on])) < 0.05
 
 
-def test_cloud_without_class_is_all_building(tmp_path, simulated):
+def test_cloud_without_class_is_all_building(tmp_path, simulated, capsys):
     from uncertain_facade_map.io.cloud import Cloud
     from uncertain_facade_map.io.npz import write_npz
 
@@ -127,6 +127,58 @@ def test_cloud_without_class_is_all_building(tmp_path, simulated):
     pts = cloud.points[cloud.points['class'] == 1][['x', 'y', 'z']]
     write_npz(tmp_path / 'plain.npz', Cloud(pts.copy(), cloud.map_origin))
     assert main(['build', str(tmp_path / 'plain.npz'), '--out', str(tmp_path / 'm.npz'), '--quiet']) == 0
+    # No class field, but hardly any ground: building points cut already, kept whole.
+    out = capsys.readouterr().out
+    assert f'({len(pts):,} building)' in out and 'selected all: no class field, but' in out
+
+
+def test_build_selects_the_walls_of_a_cloud_without_classes(tmp_path, capsys):
+    from support import unclassified_street
+
+    from uncertain_facade_map.io.cloud import Cloud
+    from uncertain_facade_map.io.ply import write_ply
+
+    xyz, labels, _ = unclassified_street(seed=0)
+    pts = np.zeros(len(xyz), dtype=[('x', 'f8'), ('y', 'f8'), ('z', 'f8')])
+    pts['x'], pts['y'], pts['z'] = xyz.T
+    write_ply(tmp_path / 'sweep.ply', Cloud(pts))
+    assert main(['build', str(tmp_path / 'sweep.ply'), '--out', str(tmp_path / 'm.npz'), '--quiet']) == 0
+    out = capsys.readouterr().out
+    assert 'read     41,000 points (16,' in out and 'on 3 wall segments' in out
+    assert 'mapped   2 buildings, 3 façades' in out  # the side wall and its corner are one building
+    assert main(['build', str(tmp_path / 'sweep.ply'), '--out', str(tmp_path / 'm.npz'), '--quiet',
+                 '--select', 'off']) == 0
+    out = capsys.readouterr().out
+    assert 'read     41,000 points (41,000 building)' in out and 'selected' not in out
+
+
+def test_build_turns_the_facades_to_a_given_sensor(tmp_path, capsys):
+    """Two walls across a street in one cloud without origins or building ids, as one real
+    sweep in its vehicle frame: from the shape alone each looks like the back of the other;
+    with --sensor both face the street."""
+    from uncertain_facade_map.io.cloud import Cloud
+    from uncertain_facade_map.io.map_file import load_map
+    from uncertain_facade_map.io.ply import write_ply
+
+    rng = np.random.default_rng(2)
+    walls = []
+    for y in (-9.0, 11.0):
+        u, z = rng.uniform(-15, 15, 6000), rng.uniform(0, 9, 6000)
+        walls.append(np.c_[u, y + rng.normal(0, 0.01, 6000), z])
+    xyz = np.vstack(walls)
+    pts = np.zeros(len(xyz), dtype=[('x', 'f8'), ('y', 'f8'), ('z', 'f8')])
+    pts['x'], pts['y'], pts['z'] = xyz.T
+    write_ply(tmp_path / 'sweep.ply', Cloud(pts))
+    assert main(['build', str(tmp_path / 'sweep.ply'), '--out', str(tmp_path / 'm.npz'), '--quiet',
+                 '--select', 'off', '--sensor', '0,0,1.8']) == 0
+    capsys.readouterr()
+    facades = load_map(tmp_path / 'm.npz').facades
+    assert len(facades) == 2
+    for f in facades:
+        assert f.frame.normal @ (np.array([0.0, 0.0, 1.8]) - f.frame.origin) > 0
+    with pytest.raises(SystemExit) as exit_:
+        main(['build', str(tmp_path / 'sweep.ply'), '--out', str(tmp_path / 'm.npz'), '--sensor', '0,0'])
+    assert exit_.value.code == 2 and 'expected X,Y,Z' in capsys.readouterr().err
 
 
 @pytest.mark.parametrize('case', ['missing input', 'nan points', 'float32 points', 'bad map', 'empty cloud',

@@ -150,6 +150,21 @@ def test_default_config_on_a_scene() -> None:
     assert np.array_equal(selected.time, pts['time'][keep])
 
 
+def test_a_sensor_position_is_every_origin_of_a_cloud_without_origins() -> None:
+    pts = scene_points()
+    bare = pts[['x', 'y', 'z', 'class']]
+    selected = select_building_points(Cloud(bare), InputConfig(), sensor=(1.0, -2.0, 1.8))
+    assert selected.sensor_origins.shape == (len(selected.index), 3)
+    assert (selected.sensor_origins == [1.0, -2.0, 1.8]).all()
+    assert select_building_points(Cloud(bare), InputConfig()).sensor_origins is None
+    # The cloud's own origins win.
+    own = select_building_points(Cloud(pts), InputConfig(), sensor=(1.0, -2.0, 1.8))
+    assert np.array_equal(own.sensor_origins[:, 0], pts['origin_x'][own.index])
+    for bad in ((1.0, 2.0), (0.0, np.nan, 1.0)):
+        assert 'sensor position must be three finite numbers' in one_line_error(
+            select_building_points, Cloud(bare), InputConfig(), sensor=bad)
+
+
 def test_float_class_with_integral_values_is_accepted() -> None:
     pts = np.zeros(4, dtype=[('x', 'f8'), ('y', 'f8'), ('z', 'f8'), ('class', 'f4')])
     pts['class'] = [6.0, 1.0, -0.0, 6.0]
@@ -366,3 +381,86 @@ def test_corrupt_file_and_bag(tmp_path: Path) -> None:
     (tmp_path / 'bad.bag').write_bytes(b'#ROSBAG V2.0\n' + bytes(50))
     assert one_line_error(load_with_bags, [tmp_path / 'bad.bag']).startswith(
         f'cannot read {tmp_path / "bad.bag"} as a ROS 1 or ROS 2 bag: ')
+
+
+# --------------------------------------------------------------------------------------
+# Clouds without classes: the building point selection (uncertain_facade_map.selection)
+def street_cloud(with_class: bool = False) -> tuple[Cloud, np.ndarray]:
+    """The synthetic unclassified street (support.unclassified_street) as a cloud with sensor
+    origins (and a class field of all 1 when asked), and its labels."""
+    from support import unclassified_street
+
+    xyz, labels, sensor = unclassified_street(seed=1)
+    fields = [('x', 'f8'), ('y', 'f8'), ('z', 'f8'), ('origin_x', 'f8'), ('origin_y', 'f8'), ('origin_z', 'f8')]
+    pts = np.zeros(len(xyz), dtype=fields + ([('class', 'u1')] if with_class else []))
+    pts['x'], pts['y'], pts['z'] = xyz.T
+    pts['origin_x'], pts['origin_y'], pts['origin_z'] = sensor
+    if with_class:
+        pts['class'] = 1
+    return Cloud(pts, ORIGIN), labels
+
+
+def test_a_cloud_without_classes_is_selected() -> None:
+    from support import WALL
+
+    from uncertain_facade_map.params import SelectionConfig
+    from uncertain_facade_map.selection import select_building_points as select
+
+    cloud, labels = street_cloud()
+    selected = select_building_points(cloud, InputConfig(), SelectionConfig())
+    expected = select(cloud.xyz, cloud.sensor_origins).mask
+    assert selected.index.tolist() == np.flatnonzero(expected).tolist()
+    assert selected.selection is not None and selected.selection.applied and selected.selection.walls == 3
+    assert (labels[selected.index] == WALL).mean() >= 0.99 and len(selected) >= 0.97 * (labels == WALL).sum()
+    assert np.array_equal(selected.sensor_origins, cloud.sensor_origins[selected.index])
+    # No selection given, or mode off: all building, as before.
+    for off in (None, SelectionConfig(mode='off')):
+        everything = select_building_points(cloud, InputConfig(), off)
+        assert len(everything) == len(cloud) and everything.selection is None
+
+
+def test_the_class_field_wins_in_auto_and_is_ignored_when_on() -> None:
+    from uncertain_facade_map.params import SelectionConfig
+
+    cloud, _ = street_cloud(with_class=True)
+    by_class = select_building_points(cloud, InputConfig(), SelectionConfig(mode='auto'))
+    assert len(by_class) == len(cloud) and by_class.selection is None
+    on = select_building_points(cloud, InputConfig(), SelectionConfig(mode='on'))
+    plain, _ = street_cloud()
+    assert on.index.tolist() == select_building_points(plain, InputConfig(), SelectionConfig()).index.tolist()
+
+
+def test_a_selection_without_walls_is_a_one_line_error() -> None:
+    from uncertain_facade_map.params import SelectionConfig
+
+    rng = np.random.default_rng(0)
+    pts = np.zeros(3000, dtype=[('x', 'f8'), ('y', 'f8'), ('z', 'f8')])
+    pts['x'], pts['y'] = rng.uniform(-30, 30, (2, 3000))
+    pts['z'] = rng.normal(0, 0.02, 3000)
+    message = one_line_error(select_building_points, Cloud(pts), InputConfig(), SelectionConfig())
+    assert message.startswith('no building points: the selection (selection.mode: auto) found no wall in 3000 points')
+
+
+def test_scan_points_of_a_scan_without_classes() -> None:
+    from support import WALL
+
+    from uncertain_facade_map.io.inputs import select_scan_points
+    from uncertain_facade_map.params import SelectionConfig
+    from uncertain_facade_map.selection import select_building_points as select
+
+    cloud, labels = street_cloud()
+    points = cloud.points.copy()
+    points['x'][:5] = np.nan  # no returns (ground points): skipped and counted
+    finite = np.isfinite(points['x'])
+    expected = select(cloud.xyz[finite], cloud.sensor_origins[finite]).mask
+    scan = select_scan_points(points, InputConfig(), SelectionConfig())
+    assert scan.nonfinite == 5 and scan.not_building == int(finite.sum() - expected.sum())
+    assert np.array_equal(scan.xyz, cloud.xyz[finite][expected])
+    assert np.array_equal(scan.sensor_origins, cloud.sensor_origins[finite][expected])
+    assert (labels[finite][expected] == WALL).mean() >= 0.99
+    # Without origin fields the given sensor origin (the node: the scan's own frame) is used.
+    plain = points[['x', 'y', 'z']]
+    assert np.array_equal(select_scan_points(plain, InputConfig(), SelectionConfig(),
+                                             sensor_origin=np.array([0.0, 0.0, 1.8])).xyz, scan.xyz)
+    # No selection: all building, as before.
+    assert len(select_scan_points(points, InputConfig()).xyz) == finite.sum()

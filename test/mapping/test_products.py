@@ -115,10 +115,16 @@ def test_surface_grid_steps(corner):
     for f in facades:
         mine = odd.facade == f.facade_id
         local = f.frame.to_local(odd.xyz[mine])
-        mean, var = surface_at(f.surface, local[:, :2])
-        # (u, v) back from the map frame differ by rounding, which moves a bilinear blend a little.
-        np.testing.assert_allclose(local[:, 2], mean, atol=1e-6)
-        np.testing.assert_allclose(odd.std[mine], np.sqrt(var), atol=1e-6)
+        # (u, v) back from the map frame differ by rounding, which moves a bilinear blend a
+        # little; a node exactly halfway between cells across a facet edge may fall to
+        # either cell, so it must match surface_at on one side or the other.
+        err_mean = np.full(len(local), np.inf)
+        err_std = np.full(len(local), np.inf)
+        for du, dv in ((0, 0), (1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1)):
+            mean, var = surface_at(f.surface, local[:, :2] + 1e-7 * np.array([du, dv]))
+            err_mean = np.minimum(err_mean, np.abs(local[:, 2] - mean))
+            err_std = np.minimum(err_std, np.abs(odd.std[mine] - np.sqrt(var)))
+        assert err_mean.max() < 1e-6 and err_std.max() < 1e-6
     for bad in (0.0, -0.1, np.nan, np.inf):
         with pytest.raises(InputError, match='step'):
             surface_grid(facades, bad)

@@ -100,3 +100,22 @@ def test_snapshots_are_read_only():
         with pytest.raises(ValueError, match='read-only'):
             array.flat[0] = array.flat[0]
         assert not array.flags.writeable, name
+
+
+def test_map_scans_selects_in_scans_without_classes():
+    """Replay (and the node, which calls the same select_scan_points) maps the selected points
+    of scans without a class field, and all of them without a selection."""
+    from support import unclassified_street
+
+    from uncertain_facade_map.io.inputs import select_scan_points
+    from uncertain_facade_map.mapping.worker import map_scans
+    from uncertain_facade_map.params import InputConfig, SelectionConfig
+
+    xyz, _, _ = unclassified_street(seed=2)
+    scan = np.zeros(len(xyz), dtype=[('x', 'f4'), ('y', 'f4'), ('z', 'f4')])
+    scan['x'], scan['y'], scan['z'] = xyz.T
+    selected = len(select_scan_points(scan, InputConfig(), SelectionConfig()).xyz)
+    fmap = FacadeMap()
+    summary = map_scans(fmap, [scan], InputConfig(), selection=SelectionConfig())
+    assert summary.points == len(xyz) and summary.building_points == selected < 0.45 * len(xyz)
+    assert summary.facades == 3

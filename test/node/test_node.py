@@ -507,6 +507,48 @@ def test_clouds_in_a_sensor_frame_are_moved_by_its_pose(client, mapped, scans):
     assert on.mean() > 0.8 and np.median(np.abs(answer['signed_distance'][on])) < 0.05
 
 
+def test_a_cloud_without_classes_is_mapped_as_its_selected_points(client, mapped, workdir):
+    """A sweep without the class field, in its sensor's frame: the node maps the points the
+    selection keeps (walls), selected in that frame with the sensor at its origin."""
+    from geometry_msgs.msg import TransformStamped
+    from support import WALL, unclassified_street
+
+    from uncertain_facade_map.io.inputs import select_scan_points
+    from uncertain_facade_map.params import SelectionConfig
+    from uncertain_facade_map.srv import LoadMap, QueryPoints, SaveMap
+
+    before = workdir / 'before_unclassified.npz'
+    assert client.call(SaveMap, 'save_map', SaveMap.Request(path=str(before))).success
+    start = diagnostics(client)
+    xyz, labels, sensor = unclassified_street(seed=3)
+    points = np.zeros(len(xyz), dtype=[('x', 'f4'), ('y', 'f4'), ('z', 'f4')])
+    points['x'], points['y'], points['z'] = (xyz - sensor).T  # the sensor frame
+    expected = select_scan_points(points, InputConfig(), SelectionConfig(), sensor_origin=np.zeros(3))
+    t = np.array([1000.0, 0.0, 1.8])  # far from the street drive's buildings
+    pose = TransformStamped()
+    pose.header.frame_id = 'map'
+    pose.header.stamp.sec = 9
+    pose.child_frame_id = 'sweep'
+    pose.transform.translation.x, pose.transform.translation.y, pose.transform.translation.z = t
+    pose.transform.rotation.w = 1.0
+    client.pose_pub.publish(pose)
+    time.sleep(1.0)
+    client.pub.publish(ma.pointcloud2_from_structured(points, stamp_ns=9 * 10**9, frame_id='sweep',
+                                                      msg_types=ma.rclpy_types()))
+    values = diagnostics(client, until=lambda v: int(v['clouds_mapped']) > int(start['clouds_mapped'])
+                         and v['settled'] == 'True', timeout=120)
+    assert int(values['clouds_rejected']) == int(start['clouds_rejected'])
+    assert int(values['points_not_building']) - int(start['points_not_building']) == expected.not_building
+    assert expected.not_building > 0.55 * len(points)
+    # The walls are mapped where they stand, and answer queries.
+    probe = xyz[labels == WALL][::50] - sensor + t
+    answer = answers_of(client.call(QueryPoints, 'query_points', query_request(probe)))
+    on = answer['facade'] >= 0
+    assert on.mean() > 0.9 and np.median(np.abs(answer['signed_distance'][on])) < 0.05
+    # The later tests compare the node's map with the street drive's alone.
+    assert client.call(LoadMap, 'load_map', LoadMap.Request(path=str(before))).success
+
+
 def test_a_loaded_map_answers_with_its_own_bands(client, mapped, scans, workdir):
     """A map built with other façade bands, loaded into the node, answers as the command line does."""
     from uncertain_facade_map.srv import LoadMap, QueryPoints, SaveMap

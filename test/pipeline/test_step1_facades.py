@@ -336,6 +336,28 @@ def test_wall_behind_deep_balconies_is_the_facade_plane():
     assert np.median(depth[len(wall):]) == pytest.approx(1.4, abs=0.01)  # ... the balconies stand out
 
 
+def test_a_narrow_plane_behind_the_wall_is_not_the_facade_plane():
+    """A shop's back wall 1.9 m behind a 30 m wall, seen through its 5 m window (as on the
+    real AV1 sweep), has a fifth of the wall's points but not its width: the façade plane
+    stays the wall, and the whole wall is allocated to it. The back wall, beyond the
+    wall's allocation band, is a façade of its own (else its points would be on none)."""
+    rng = np.random.default_rng(15)
+    wall = _plane([0.0, -1.0, 0.0], np.array([0.0, 0.0, 4.0]), (30.0, 8.0), 40.0, 0.01, rng)
+    back = _plane([0.0, -1.0, 0.0], np.array([3.0, 1.9, 1.5]), (5.0, 3.0), 160.0, 0.01, rng)
+    xyz = np.vstack([wall, back])
+    sensors = np.tile([0.0, -15.0, 1.8], (len(xyz), 1))
+    facades, unallocated = extract_facades(xyz, PARAMS, sensor_origins=sensors, rng=np.random.default_rng(4))
+    assert len(facades) == 2 and unallocated.sum() == 0
+    f = facades[0]
+    assert np.isin(np.arange(len(wall)), f.index).all() and np.isin(facades[1].index, np.arange(len(wall), len(xyz))).all()
+    depth = np.full(len(xyz), np.nan)
+    depth[f.index] = f.uvd[:, 2]
+    assert abs(np.median(depth[:len(wall)])) < 0.01
+    assert facades[1].frame.origin[1] == pytest.approx(1.9, abs=0.02)
+    u0, u1, v0, v1 = f.plane_extent
+    assert u1 - u0 > 29.5 and v1 - v0 > 7.5
+
+
 def test_facades_built_elsewhere_allocate_with_their_extent():
     """An ExtractedFacade made from stored fields without plane_extent uses extent."""
     frame = FacadeFrame.from_normal(np.zeros(3), np.array([0.0, -1.0, 0.0]))

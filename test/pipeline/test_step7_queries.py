@@ -42,10 +42,23 @@ def test_point_query_answers(model):
 
     sigma = np.sqrt(res.variance[:3] + res.noise_variance[:3])
     np.testing.assert_allclose(res.p_occupied[:3], ndtr((0.05 - res.signed_distance[:3]) / sigma))
-    np.testing.assert_allclose(res.noise_variance[:3], 0.02**2)
+    # sigma_eta is estimated from the points (their noise is 2 cm).
+    np.testing.assert_allclose(np.sqrt(res.noise_variance[:3]), 0.02, rtol=0.1)
     assert np.isnan(res.mean_depth[3]) and res.p_occupied[3] == 0.5
     for arr in res.as_dict().values():
         assert arr.shape == (5,)
+
+
+def test_points_on_the_face_of_a_step_are_on_the_surface(model):
+    """The face of the 50 cm step at u = 4 m is surface: points on it are near, not 25 cm off."""
+    depth = np.array([0.1, 0.25, 0.4])
+    on_face = np.c_[np.full(3, 4.0), np.full(3, 4.0), depth]
+    beside = np.c_[np.full(3, 3.6), np.full(3, 4.0), depth]  # 40 cm from the face, on its low side
+    res = query_points([model], model.frame.to_world(np.vstack([on_face, beside])), 0.1, 1.0, 2.0)
+    assert np.all(np.abs(res.signed_distance[:3]) <= 0.1)  # within a cell of the face
+    np.testing.assert_allclose(res.signed_distance[3:], depth, atol=0.03)  # the wall below is nearer
+    assert np.all(res.signed_distance[3:] > 0)  # outside
+    assert np.all(res.variance[:3] >= 0.1**2 / 12)  # the face's position is known to a cell
 
 
 def test_bad_query_points(model):

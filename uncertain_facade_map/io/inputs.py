@@ -7,7 +7,9 @@ bags are read by the caller's ``read_bag`` (``msg_adapters.bag_io.load_inputs`` 
 rosbags reader): the core imports no ROS package, so without a reader a bag is refused with
 a message saying how to read it.
 :func:`select_building_points` then keeps the points the configuration calls building and
-returns them as plain arrays (:class:`BuildingPoints`).
+returns them as plain arrays (:class:`BuildingPoints`): by their class, or, in a cloud
+without the class field, by :mod:`uncertain_facade_map.selection` (``selection.mode``);
+:func:`select_scan_points` does the same for one live scan.
 
 A path is taken as a bag if it is a directory (a ROS 2 bag folder, which must hold
 ``metadata.yaml``) or ends in ``.bag`` (ROS 1), ``.db3`` (ROS 2 sqlite3 storage) or
@@ -19,14 +21,17 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 
 from ..errors import InputError
-from ..params import InputConfig
+from ..params import InputConfig, SelectionConfig
 from .cloud import COORDINATE_FIELDS, Cloud
 from .clouds import SUPPORTED_SUFFIXES, read_cloud
+
+if TYPE_CHECKING:  # the selection (scipy, Patchwork++) loads only when a cloud needs it
+    from ..selection import Selection
 
 #: File suffixes read as ROS bags (besides directories, which are ROS 2 bag folders).
 BAG_SUFFIXES = ('.bag', '.db3', '.mcap')
@@ -184,6 +189,8 @@ class BuildingPoints:
             ``time`` field); None when the cloud has none.
         index: (N,) int64 index of each point in the input cloud.
         map_origin: (3,) float64, metres; georeferenced = ``xyz`` + ``map_origin``.
+        selection: what the selection found when the points were selected by
+            :mod:`uncertain_facade_map.selection` (a cloud without classes), else None.
     """
 
     xyz: np.ndarray
@@ -192,6 +199,7 @@ class BuildingPoints:
     time: np.ndarray | None
     index: np.ndarray
     map_origin: np.ndarray
+    selection: Selection | None = None
 
     def __len__(self) -> int:
         return int(self.xyz.shape[0])
@@ -224,38 +232,72 @@ def _listed(values: np.ndarray) -> str:
     return f'[{shown}{more}]'
 
 
-def select_building_points(cloud: Cloud, config: InputConfig) -> BuildingPoints:
-    """Keep the points whose class is one of ``config.building_classes``.
+def _selects(names: Sequence[str], config: InputConfig, selection: SelectionConfig | None) -> bool:
+    """Whether a cloud with fields ``names`` is reduced by the selection rather than by its class."""
+    if selection is None or selection.mode == 'off':
+        return False
+    return selection.mode == 'on' or config.class_field not in names
 
-    A cloud without the field ``config.class_field`` is taken as all building points. The
-    class field may be of any integer or bool type, or float holding integral values
-    (e.g. a PCD label stored as float); values are compared as int64.
+
+def select_building_points(cloud: Cloud, config: InputConfig, selection: SelectionConfig | None = None,
+                           sensor: Sequence[float] | np.ndarray | None = None) -> BuildingPoints:
+    """Keep the points whose class is one of ``config.building_classes``, or the selected ones.
+
+    A cloud without the field ``config.class_field`` (or any cloud, with
+    ``selection.mode: on``) is reduced to the points on tall vertical planes by
+    :func:`uncertain_facade_map.selection.select_building_points`, given the cloud's sensor
+    origins when it has them; with ``selection`` None or ``selection.mode: off`` it is
+    taken as all building points. The class field may be of any integer or bool type, or
+    float holding integral values (e.g. a PCD label stored as float); values are compared
+    as int64.
 
     Args:
         cloud: the input cloud (map frame, metres).
         config: ``class_field``, ``building_classes`` and ``building_id_field`` are used.
+        selection: the selection's parameters; None for none.
+        sensor: (3,) the sensor's position (map frame, metres) for a cloud without sensor
+            origins (one sweep, or a map scanned from about one place); every point takes
+            it as its origin. Ignored when the cloud has origins. None: without origins
+            the façades are turned outwards from their buildings' shapes.
 
     Returns:
         The building points in input order, with their indices in ``cloud``, the building
         ids (from ``building_id_field``, if the cloud has that field; it must hold
-        integers too), sensor origins and times when the cloud has them.
+        integers too), sensor origins (the cloud's, else ``sensor``'s) and times when the
+        cloud has them.
 
     Raises:
         InputError: an empty cloud; NaN or infinite coordinates (x, y or z) in any point,
             building or not (the message says how many); a class or building id field that
             is not integer-valued; no building point at all (the message lists the class
-            values found and the configured ``building_classes``).
+            values found and the configured ``building_classes``, or says that the
+            selection found no wall); ``sensor`` not three finite numbers.
     """
     n = len(cloud)
     if n == 0:
         raise InputError('the input cloud has no points')
+    origins = cloud.sensor_origins
+    if origins is None and sensor is not None:
+        position = np.asarray(sensor, dtype=np.float64)
+        if position.shape != (3,) or not np.isfinite(position).all():
+            raise InputError(f'the sensor position must be three finite numbers (x, y, z), got {sensor!r}')
+        origins = np.broadcast_to(position, (n, 3))
     finite = np.ones(n, dtype=bool)
     for c in ('x', 'y', 'z'):
         finite &= np.isfinite(cloud.points[c])
     if not finite.all():
         raise InputError(f'{int(n - finite.sum())} of {n} input points have NaN or infinite coordinates')
 
-    if config.class_field in cloud.fields:
+    found = None
+    if _selects(cloud.fields, config, selection):
+        from ..selection import select_building_points as select_walls
+
+        found = select_walls(cloud.xyz, origins, selection)
+        if not found.mask.any():
+            raise InputError(f'no building points: the selection (selection.mode: {selection.mode}) found no wall '
+                             f'in {n} points of a cloud without classes ({found.ground.sum()} ground)')
+        index = np.flatnonzero(found.mask).astype(np.int64)
+    elif config.class_field in cloud.fields:
         classes = _integer_values(cloud, config.class_field, 'class')
         wanted = np.asarray(config.building_classes, dtype=np.int64)
         mask = np.isin(classes, wanted)
@@ -280,10 +322,11 @@ def select_building_points(cloud: Cloud, config: InputConfig) -> BuildingPoints:
     return BuildingPoints(
         xyz=selected.xyz,
         building_id=building_id,
-        sensor_origins=selected.sensor_origins,
+        sensor_origins=None if origins is None else np.array(origins[index], dtype=np.float64),
         time=None if time is None else time.astype(np.float64),
         index=index,
         map_origin=cloud.map_origin.copy(),
+        selection=found,
     )
 
 
@@ -296,7 +339,7 @@ class ScanPoints:
         building_id: (N,) int64 building ids, or None.
         sensor_origins: (N, 3) float64 sensor positions, metres, or None.
         nonfinite: number of points skipped for NaN or infinite coordinates.
-        not_building: number of finite points of another class.
+        not_building: number of finite points of another class, or not selected.
     """
 
     xyz: np.ndarray
@@ -306,19 +349,26 @@ class ScanPoints:
     not_building: int
 
 
-def select_scan_points(points: np.ndarray, config: InputConfig) -> ScanPoints:
+def select_scan_points(points: np.ndarray, config: InputConfig, selection: SelectionConfig | None = None,
+                       sensor_origin: np.ndarray | None = None) -> ScanPoints:
     """Building points of one scan (a PointCloud2 as a structured array), tolerant of gaps.
 
     Unlike :func:`select_building_points` (whole inputs, where a NaN is an error), a live
     scan may hold NaN or infinite points (no return): they are skipped and counted. A scan
-    without building points gives empty arrays. Used alike by the node and by offline
-    replay, so both map the same points.
+    without building points gives empty arrays. A scan without the class field is reduced
+    by the selection as :func:`select_building_points` does, in the scan's own frame. Used
+    alike by the node and by offline replay, so both map the same points.
 
     Args:
         points: (M,) structured array with at least float fields ``x``, ``y``, ``z``;
             ``config.class_field``, ``config.building_id_field`` and ``origin_x``,
             ``origin_y``, ``origin_z`` are used when present.
         config: which class values are building.
+        selection: the selection's parameters for scans without classes; None for none
+            (such a scan is all building).
+        sensor_origin: (3,) sensor position in the scan's frame, metres, for the selection
+            when the scan has no origin fields (e.g. zeros for a scan in the sensor's frame);
+            None if unknown.
 
     Returns:
         The building points.
@@ -340,7 +390,19 @@ def select_scan_points(points: np.ndarray, config: InputConfig) -> ScanPoints:
     keep = np.isfinite(xyz).all(axis=1)
     nonfinite = int((~keep).sum())
     not_building = 0
-    if config.class_field in names:
+    origin_fields = all(c in names for c in ('origin_x', 'origin_y', 'origin_z'))
+    if _selects(names, config, selection):
+        origins = sensor_origin
+        if origin_fields:
+            origins = np.stack([points[c][keep].astype(np.float64) for c in ('origin_x', 'origin_y', 'origin_z')], 1)
+            origins = origins if np.isfinite(origins).all() else sensor_origin
+        from ..selection import select_building_points as select_walls
+
+        selected = np.zeros(len(keep), dtype=bool)
+        selected[keep] = select_walls(xyz[keep], origins, selection).mask
+        not_building = int((keep & ~selected).sum())
+        keep = selected
+    elif config.class_field in names:
         classes = _integer_values(cloud, config.class_field, 'class')
         building = np.isin(classes, np.asarray(config.building_classes, dtype=np.int64))
         not_building = int((keep & ~building).sum())
@@ -349,7 +411,7 @@ def select_scan_points(points: np.ndarray, config: InputConfig) -> ScanPoints:
     if config.building_id_field in names:
         ids = _integer_values(cloud, config.building_id_field, 'building id')[keep]
     origins = None
-    if all(c in names for c in ('origin_x', 'origin_y', 'origin_z')):
+    if origin_fields:
         origins = np.stack([points[c][keep].astype(np.float64) for c in ('origin_x', 'origin_y', 'origin_z')], 1)
         if not np.isfinite(origins).all():
             origins = None

@@ -13,7 +13,8 @@ An open format any numpy (or any zip + .npy reader) can read, no pickle. It hold
 
 Version 2 added what incremental mapping needs (per façade the wall's ``plane_extent``,
 the block grid's ``anchor`` and the points at the last whole fit; per building the point
-normals and the pool size at the last RANSAC run); version 1 files are upgraded on load.
+normals and the pool size at the last RANSAC run); version 3 the wall's relief per façade
+(``relief_origin``, ``relief_values``, ``relief_spacing``). Older files are upgraded on load.
 
 Loading gives back every array bit for bit. A file of a newer version is refused with a
 message saying so; older versions are upgraded by the functions in :data:`MIGRATIONS`.
@@ -31,13 +32,13 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..datatypes import DepthLayers, FacadeFrame, FacadeModel, Facets, SurfaceRaster
+from ..datatypes import DepthLayers, FacadeFrame, FacadeModel, Facets, Relief, SurfaceRaster
 from ..errors import InputError
 from ..mapping.facade_map import FacadeMap
 from ..params import map_params_from_record, map_params_record
 
 FORMAT = 'uncertain_facade_map.map'
-VERSION = 2
+VERSION = 3
 #: Upgrades of older files: version -> function(meta, arrays) returning the next version's.
 MIGRATIONS: dict[int, Callable[[dict, dict], tuple[dict, dict]]] = {}
 
@@ -62,6 +63,8 @@ def _facade_arrays(f: FacadeModel) -> dict[str, np.ndarray]:
         p + 'outlier_index': f.outlier_index,
         p + 'plane_extent': np.asarray(f.plane_extent, dtype=np.float64),
         p + 'anchor': np.asarray(f.anchor, dtype=np.float64),
+        p + 'relief_origin': np.asarray(f.relief.origin, dtype=np.float64),
+        p + 'relief_values': np.asarray(f.relief.values, dtype=np.float64),
     }
 
 
@@ -84,7 +87,8 @@ def save_map(fmap: FacadeMap, path: str | Path) -> Path:
         'facades': [{'facade_id': f.facade_id, 'building': f.building, 'main_layer': f.layers.main_,
                      'facet_cell': f.facets.cell, 'surface_cell': f.surface.cell,
                      'global_mean': f.global_mean_, 'global_var': f.global_var_, 'noise_var': f.noise_var,
-                     'fitted_points': f.fitted_points, 'stats': f.stats} for f in fmap.facades],
+                     'fitted_points': f.fitted_points, 'relief_spacing': f.relief.spacing,
+                     'stats': f.stats} for f in fmap.facades],
         'pool_checked': {str(b): int(n) for b, n in fmap.pool_checked.items()},
     }
     arrays: dict[str, np.ndarray] = {'meta': np.array(json.dumps(meta))}
@@ -180,7 +184,8 @@ def _from_records(meta: dict, arrays: dict[str, np.ndarray]) -> FacadeMap:
             noise_var=float(info['noise_var']), surface=surface, point_index=arrays[p + 'point_index'],
             outlier_index=arrays[p + 'outlier_index'], stats=info.get('stats', {}),
             plane_extent=tuple(float(x) for x in arrays[p + 'plane_extent']), anchor=arrays[p + 'anchor'],
-            fitted_points=int(info['fitted_points'])))
+            fitted_points=int(info['fitted_points']),
+            relief=Relief(arrays[p + 'relief_origin'], float(info['relief_spacing']), arrays[p + 'relief_values'])))
     points = {int(b): arrays[f'building/{b}/points'] for b in meta['buildings']}
     origins = {int(b): arrays.get(f'building/{b}/sensor_origins') for b in meta['buildings']}
     normals = {int(b): arrays[f'building/{b}/normals'] for b in meta['buildings']}
@@ -219,3 +224,21 @@ def _upgrade_1(meta: dict, arrays: dict[str, np.ndarray]) -> tuple[dict, dict]:
 
 
 MIGRATIONS[1] = _upgrade_1
+
+
+def _upgrade_2(meta: dict, arrays: dict[str, np.ndarray]) -> tuple[dict, dict]:
+    """Version 2 -> 3: the façades' walls are flat (no relief) and their noise was the
+    configured sigma_eta; the parameters say so, so that the map goes on as it was built."""
+    for info in meta['facades']:
+        p = f'facade/{info["facade_id"]}/'
+        arrays[p + 'relief_origin'] = np.zeros(2)
+        arrays[p + 'relief_values'] = np.zeros((1, 1))
+        info['relief_spacing'] = 1.0
+    record = meta['params']
+    record['layers'] = dict(record.get('layers', {}), relief_spacing=0.0)
+    record['gp'] = dict(record.get('gp', {}), estimate_noise=False)
+    record['gp'].setdefault('planar_per_block', 0)
+    return dict(meta, version=3), arrays
+
+
+MIGRATIONS[2] = _upgrade_2

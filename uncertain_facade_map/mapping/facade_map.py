@@ -48,6 +48,10 @@ from ..pipeline.step6_surface import _extent, fit_facade, update_facade
 _CELL_NEIGHBOURS = np.array([du * (1 << 32) + dv for du in (-1, 0, 1) for dv in (-1, 0, 1)], dtype=np.int64)
 
 
+#: Points of the other buildings at most that turn the normals of a wall without sensor origins.
+_CONTEXT_POINTS = 20_000
+
+
 @dataclass(eq=False)
 class FacadeMap:
     """Façade models of all buildings, built incrementally from building points.
@@ -172,10 +176,12 @@ class FacadeMap:
         self.last_update = {'buildings': [], 'facades_new': [], 'facades_refitted': [], 'facades_updated': [],
                             'updated_cells': 0}
         changed = [int(b) for b in np.unique(labels)]
+        # Every building's points first: without sensor origins the others' points turn a
+        # building's walls (``_context``), whichever building comes first.
+        firsts = {b: self._append(b, xyz[labels == b], None if sensor_origins is None else sensor_origins[labels == b])
+                  for b in changed}
         for done, b in enumerate(changed, 1):
-            sel = labels == b
-            first = self._append(b, xyz[sel], None if sensor_origins is None else sensor_origins[sel])
-            self._update_building(b, first)
+            self._update_building(b, firsts[b])
             if progress is not None:
                 progress(done, len(changed))
         self.last_update['buildings'] = changed
@@ -270,6 +276,17 @@ class FacadeMap:
         cos = np.minimum(np.abs(self.normals[b][index] @ frame.normal), 1.0)
         return ExtractedFacade(frame, index, uvd, cos, _extent(uvd[:, :2]), plane_extent)
 
+    def _context(self, b: int, rng: np.random.Generator) -> np.ndarray:
+        """(C, 3) points of the other buildings (at most ``_CONTEXT_POINTS``, a random draw),
+        metres, map frame: they turn the normals of walls without sensor origins."""
+        others = [p for o, p in self.points.items() if o != b]
+        if not others:
+            return np.empty((0, 3))
+        every = np.concatenate(others)
+        if len(every) > _CONTEXT_POINTS:
+            every = every[rng.choice(len(every), _CONTEXT_POINTS, replace=False)]
+        return every
+
     def _update_building(self, b: int, first: int) -> None:
         """Allocate a building's points from ``first`` on, extract new façades from its pool,
         and update the façades that received points."""
@@ -288,7 +305,8 @@ class FacadeMap:
         if len(pool) >= ex.min_facade_points and len(pool) >= checked + step:
             rng = np.random.default_rng([params.seed, b, n])
             so = self.sensor_origins.get(b)
-            extracted, _ = extract_facades(pts[pool], ex, sensor_origins=None if so is None else so[pool], rng=rng)
+            extracted, _ = extract_facades(pts[pool], ex, sensor_origins=None if so is None else so[pool], rng=rng,
+                                           context=None if so is not None else self._context(b, rng))
             for e in extracted:
                 index = pool[e.index]
                 target = self._coplanar(b, e)
@@ -351,7 +369,9 @@ class FacadeMap:
     def _coplanar(self, b: int, e: ExtractedFacade) -> int | None:
         """Id of the building's façade that a newly extracted one continues (the merge rule
         of the extraction: parallel within ``merge_angle_deg``, closer than ``merge_offset``
-        along the normal and in u), or None."""
+        along the normal and in u), or None. Only a façade whose allocation band holds the
+        new plane (``-band_back <= d <= band_front``) can take it: a recess deeper than
+        that (a set-back entrance) would join and then lose all its points to no façade."""
         ex = self.params.extraction
         cos_max = np.cos(np.deg2rad(ex.merge_angle_deg))
         best = None
@@ -361,7 +381,7 @@ class FacadeMap:
             box = _plane_corners_in(e, f.frame)
             d = float(f.frame.to_local(e.frame.origin[None])[0, 2])
             gap = max(f.plane_extent[0] - box[:, 0].max(), box[:, 0].min() - f.plane_extent[1], 0.0)
-            if abs(d) < ex.merge_offset and gap <= ex.merge_offset:
+            if abs(d) < ex.merge_offset and -ex.band_back <= d <= ex.band_front and gap <= ex.merge_offset:
                 if best is None or len(f.point_index) > len(self.facades[best].point_index):
                     best = f.facade_id
         return best

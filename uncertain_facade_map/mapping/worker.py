@@ -329,8 +329,8 @@ class ReplaySummary:
     seconds: float
 
 
-def map_scans(fmap: FacadeMap, scans: Any, config: Any,
-              progress: Callable[[int], None] | None = None) -> ReplaySummary:
+def map_scans(fmap: FacadeMap, scans: Any, config: Any, progress: Callable[[int], None] | None = None,
+              selection: Any = None) -> ReplaySummary:
     """Feed scans to a map one by one, as the node's worker does, then flush.
 
     The node maps the clouds it receives exactly so (``add_points(defer=True)`` per
@@ -344,6 +344,8 @@ def map_scans(fmap: FacadeMap, scans: Any, config: Any,
             fields of ``config``), in the map frame.
         config: an :class:`~uncertain_facade_map.params.InputConfig`.
         progress: called with the number of scans done after each one.
+        selection: a :class:`~uncertain_facade_map.params.SelectionConfig` for scans
+            without the class field, as the node passes it; None: such scans are all building.
 
     Returns:
         The summary.
@@ -356,7 +358,7 @@ def map_scans(fmap: FacadeMap, scans: Any, config: Any,
     started = time.perf_counter()
     n_scans = n_points = n_building = n_bad = 0
     for points in scans:
-        scan = select_scan_points(points, config)
+        scan = select_scan_points(points, config, selection)
         n_scans += 1
         n_points += len(points)
         n_bad += scan.nonfinite

@@ -35,10 +35,14 @@ Pipeline of :func:`extract_facades` (one building, all coordinates metres, map f
 2. **Merging**: a plane within ``merge_angle_deg`` of a larger one (same outward side),
    closer than ``merge_offset`` to it along its normal and no further than
    ``merge_offset`` from its box in ``u`` joins it: one façade (balcony and oriel fronts
-   are depth layers of their wall, as in the paper's GMM). *Choice:* the façade's plane
-   is the group's back-most plane with at least a fifth of the largest one's support,
-   not simply the largest: behind deep balconies a wall can have fewer inliers than the
-   balcony fronts, and the band must reach back from the wall.
+   are depth layers of their wall, as in the paper's GMM), unless it lies beyond the
+   allocation band of the group's plane (then it is a façade of its own: its points
+   would otherwise belong to none). *Choice:* the façade's plane
+   is the group's back-most plane with at least a fifth of the largest one's support
+   and at least half its width in ``u``, not simply the largest: behind deep balconies a
+   wall can have fewer inliers than the balcony fronts, and the band must reach back
+   from the wall; but a wall spans its façade, so a narrow plane behind it (a recessed
+   entrance, a shop's back wall seen through its window, as on real scans) is not one.
 3. **Allocation** (:func:`assign_to_facades`, also used for incremental mapping): a point
    belongs to a façade if ``-band_back <= d <= band_front`` and (u, v) lies within the
    façade's *plane extent* grown by ``extent_margin``; among several such façades the
@@ -71,7 +75,10 @@ Pipeline of :func:`extract_facades` (one building, all coordinates metres, map f
    scanned from one street lies near its street façade, in front of it if it has deep
    balconies -- but from the building's shape around the plane, within its extent (plus
    margin): the side with fewer of the building's points further than the wider side
-   of the band (the other walls lie behind a wall); if that is undecided (a lone wall),
+   of the band (the other walls lie behind a wall), counting with them the points of
+   the other buildings within 40 m along the wall and of it, on the side opposite
+   (what a sensor saw beyond a wall, such as the houses across the street, lies in
+   front of it: it saw the wall from there); if that is undecided (a lone wall),
    the side with more points between 0.35 m and that distance (balconies and oriels
    stand out, window recesses are shallower); else up (``n_z >= 0``, right for walls
    leaning back).
@@ -110,6 +117,11 @@ _TRIM = 0.002
 #: Depth (m) beyond which a point in a façade's band is taken for a protrusion or a recess
 #: (window recesses are shallower) when the outward side must be guessed from the shape.
 _PROTRUSION = 0.35
+#: A group's façade plane has at least this share of its largest plane's support and width.
+_MAIN_SUPPORT_SHARE = 0.2
+_MAIN_WIDTH_SHARE = 0.5
+#: Other buildings' points this far (m) beyond a wall's ends and from its plane vote on its outward side.
+_CONTEXT_REACH = 40.0
 #: A plane within 60 degrees of an earlier one's normal can be that façade's detail.
 _DETAIL_COS = 0.5
 #: Planes narrower than this in u or v (m) are slivers, e.g. the points along a wall's foot.
@@ -367,7 +379,7 @@ def _vertical_ok(normal: np.ndarray, max_tilt_deg: float) -> bool | np.ndarray:
 
 
 def _faces_outwards(frame: FacadeFrame, box: np.ndarray, xyz: np.ndarray, origins: np.ndarray | None,
-                    params: ExtractionParams) -> bool:
+                    params: ExtractionParams, context: np.ndarray | None = None) -> bool:
     """Whether ``frame.normal`` points out of the building (module docstring, item 5).
 
     Args:
@@ -376,6 +388,9 @@ def _faces_outwards(frame: FacadeFrame, box: np.ndarray, xyz: np.ndarray, origin
         xyz: (M, 3) points of the plane (``origins`` given) or of the whole building.
         origins: (M, 3) sensor origins of the plane's points, or None.
         params: gives the band and the margin.
+        context: (C, 3) points of the other buildings, or None. A sensor sees a wall from
+            its front, so what it saw beyond the band (the houses across the street)
+            lies mostly in front; the building's own other walls lie behind.
     """
     if origins is not None:
         score = float(np.mean(np.einsum('ij,j->i', origins - xyz, frame.normal)))
@@ -385,14 +400,23 @@ def _faces_outwards(frame: FacadeFrame, box: np.ndarray, xyz: np.ndarray, origin
     m = params.extent_margin
     d = uvd[(uvd[:, 0] >= box[0] - m) & (uvd[:, 0] <= box[1] + m)
             & (uvd[:, 1] >= box[2] - m) & (uvd[:, 1] <= box[3] + m), 2]
-    # The rest of the building lies behind a wall; then protrusions stand out in front.
-    # (Symmetric limits: the normal may point either way yet.)
+    # The rest of the building lies behind a wall, the other buildings in front of it;
+    # then protrusions stand out in front. (Symmetric limits: the normal may point
+    # either way yet.)
     band = max(params.band_front, params.band_back)
-    for front, back in ((np.count_nonzero(d > band), np.count_nonzero(d < -band)),
-                        (np.count_nonzero((d > _PROTRUSION) & (d <= band)),
-                         np.count_nonzero((d < -_PROTRUSION) & (d >= -band)))):
-        if abs(front - back) > max(10, 0.1 * (front + back)):
-            return back > front
+    front, back = np.count_nonzero(d > band), np.count_nonzero(d < -band)
+    if context is not None and len(context):
+        c = _to_local(context, frame)
+        reach = _CONTEXT_REACH
+        near = (c[:, 0] >= box[0] - reach) & (c[:, 0] <= box[1] + reach) & (np.abs(c[:, 2]) <= reach)
+        # Seen beyond the wall in front speaks for outwards, as the building behind does.
+        back += np.count_nonzero(near & (c[:, 2] > band))
+        front += np.count_nonzero(near & (c[:, 2] < -band))
+    for ahead, behind in ((front, back),
+                          (np.count_nonzero((d > _PROTRUSION) & (d <= band)),
+                           np.count_nonzero((d < -_PROTRUSION) & (d >= -band)))):
+        if abs(ahead - behind) > max(10, 0.1 * (ahead + behind)):
+            return behind > ahead
     return frame.normal[2] >= 0.0
 
 
@@ -506,8 +530,9 @@ def _refine(points: np.ndarray, normal: np.ndarray, offset: float, threshold: fl
 
 
 def _ransac(xyz: np.ndarray, origins: np.ndarray | None, n_total: int, params: ExtractionParams,
-            rng: np.random.Generator) -> list[_Plane]:
-    """Sequential RANSAC on the subsample ``xyz`` (see module docstring, item 1)."""
+            rng: np.random.Generator, context: np.ndarray | None = None) -> list[_Plane]:
+    """Sequential RANSAC on the subsample ``xyz`` (see module docstring, item 1); ``context``:
+    points of other buildings in the same frame (turns normals without sensor origins)."""
     m = len(xyz)
     min_support = max(3, int(np.ceil(0.5 * params.min_facade_points * m / max(n_total, 1))))
     if m < max(3, min_support):
@@ -560,7 +585,7 @@ def _ransac(xyz: np.ndarray, origins: np.ndarray | None, n_total: int, params: E
         if origins is not None:
             outwards = _faces_outwards(frame, box, inl_xyz, origins[pool[inl]], params)
         else:
-            outwards = _faces_outwards(frame, box, xyz, None, params)
+            outwards = _faces_outwards(frame, box, xyz, None, params, context)
         if not outwards:  # turn round: u and d change sign, v stays
             normal = -normal
             frame = FacadeFrame.from_normal(centroid, normal)
@@ -598,8 +623,9 @@ def _merge(planes: list[_Plane], params: ExtractionParams) -> list[_Plane]:
     within ``merge_angle_deg`` (same outward side), closer than ``merge_offset`` along
     its normal and no further than ``merge_offset`` from its box in ``u``. A group's
     façade plane is its back-most plane with at least a fifth of the largest one's
-    support: a wall hidden behind deep balconies may have fewer inliers than the balcony
-    fronts, and the band must reach back from the wall, not from the balconies.
+    support and half its width: a wall hidden behind deep balconies may have fewer
+    inliers than the balcony fronts, and the band must reach back from the wall, not
+    from the balconies; a narrow plane behind (a recess) is not the wall.
     """
     cos_max = np.cos(np.deg2rad(params.merge_angle_deg))
     groups: list[list[_Plane]] = []
@@ -619,8 +645,16 @@ def _merge(planes: list[_Plane], params: ExtractionParams) -> list[_Plane]:
     merged = []
     for group in groups:
         big = group[0]
-        able = [p for p in group if p.support >= 0.2 * big.support]
+        width = _MAIN_WIDTH_SHARE * (big.box[1] - big.box[0])
+        able = [p for p in group if p.support >= _MAIN_SUPPORT_SHARE * big.support and p.box[1] - p.box[0] >= width]
         main = min(able, key=lambda p: float(big.frame.to_local(p.frame.origin[None])[0, 2]))
+        # A member beyond the façade plane's allocation band would lose its points to no
+        # façade: it is a façade of its own (a set-back entrance deeper than band_back).
+        depth = [float(main.frame.to_local(p.frame.origin[None])[0, 2]) for p in group]
+        apart = [p for p, d in zip(group, depth) if not -params.band_back <= d <= params.band_front]
+        if apart:
+            merged += _merge(apart, params)
+            group = [p for p in group if all(p is not q for q in apart)]
         uv = np.vstack([_box_in(p, main.frame) for p in group])
         box = np.array([uv[:, 0].min(), uv[:, 0].max(), uv[:, 1].min(), uv[:, 1].max()])
         merged.append(_Plane(main.frame, box, sum(p.support for p in group)))
@@ -810,7 +844,8 @@ def _final_frame(points: np.ndarray, normals: np.ndarray, frame: FacadeFrame,
 
 
 def extract_facades(xyz: np.ndarray, params: ExtractionParams, *, sensor_origins: np.ndarray | None = None,
-                    rng: np.random.Generator) -> tuple[list[ExtractedFacade], np.ndarray]:
+                    rng: np.random.Generator, context: np.ndarray | None = None
+                    ) -> tuple[list[ExtractedFacade], np.ndarray]:
     """Extract the façades of ONE building.
 
     Args:
@@ -820,6 +855,9 @@ def extract_facades(xyz: np.ndarray, params: ExtractionParams, *, sensor_origins
             turn the normals outwards (towards the sensor). None: away from the building's
             (x, y) centroid.
         rng: random source of the subsample and the hypotheses.
+        context: (C, 3) points of the other buildings, metres, map frame, or None; without
+            sensor origins they help to turn the normals (what the sensor saw beyond a
+            wall lies mostly in front of it).
 
     Returns:
         ``(facades, unallocated)``: the façades, most points first, and an (N,) bool mask
@@ -848,7 +886,8 @@ def extract_facades(xyz: np.ndarray, params: ExtractionParams, *, sensor_origins
     sub = np.sort(rng.choice(n, params.ransac_sample, replace=False)) if n > params.ransac_sample else np.arange(n)
     sub_xyz = local[sub]
     sub_origins = None if origins is None else origins[sub] - centre
-    planes = _merge(_ransac(sub_xyz, sub_origins, n, params, rng), params)
+    sub_context = None if context is None or origins is not None else np.asarray(context, np.float64) - centre
+    planes = _merge(_ransac(sub_xyz, sub_origins, n, params, rng, sub_context), params)
     if not planes:
         return [], unallocated
     # Final frames from the subsample's allocation (the subsample pins a plane down to

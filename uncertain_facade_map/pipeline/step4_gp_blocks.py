@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 from scipy.optimize import minimize
+from scipy.spatial import cKDTree
 
 from ..params import GPParams
 
@@ -81,6 +82,41 @@ def _tri_solve(lower: np.ndarray, rhs: np.ndarray, transpose: bool = False) -> n
             acc = np.einsum('bj,bjk->bk', coef, x[..., :i, :]) if i else 0.0
         x[..., i, :] = (rhs[..., i, :] - acc) / lower[..., i, i][..., None]
     return x
+
+
+def estimate_noise(uv: np.ndarray, depth: np.ndarray, max_lag: float, fallback: float) -> float:
+    """sigma_eta from the data: the nugget of the depths' variogram at the shortest lags.
+
+    Two points closer than ``max_lag`` on the plane see nearly the same surface, so half
+    the variance of their depth difference is the noise variance (plus the surface's
+    change over the lag, small at a few centimetres). Each point is paired with its
+    nearest neighbour (on sparse data the 30 closest pairs are used even beyond
+    ``max_lag``, up to four times it); the spread of the differences is taken robustly
+    (1.4826 x median absolute deviation), so that pairs across a depth step do not count.
+
+    Args:
+        uv: (N, 2) locations, metres, façade frame.
+        depth: (N,) depths, metres.
+        max_lag: pairs further apart than this are not used, metres.
+        fallback: returned when fewer than 30 pairs are close enough, metres.
+
+    Returns:
+        sigma_eta, metres.
+    """
+    if len(uv) < 31:
+        return fallback
+    dist, idx = cKDTree(uv).query(uv, k=2)
+    i = np.arange(len(uv))
+    j = idx[:, 1]
+    pairs, first = np.unique(np.stack([np.minimum(i, j), np.maximum(i, j)], axis=1), axis=0, return_index=True)
+    lag = dist[first, 1]
+    # The pairs within max_lag; on sparse data, the 30 closest pairs up to 4 max_lag.
+    close = lag <= max(max_lag, min(np.sort(lag)[min(29, len(lag) - 1)], 4 * max_lag))
+    if close.sum() < 30:
+        return fallback
+    pairs = pairs[close]
+    diff = depth[pairs[:, 0]] - depth[pairs[:, 1]]
+    return float(1.4826 * np.median(np.abs(diff - np.median(diff))) / np.sqrt(2.0))
 
 
 def block_size(lengthscale2: np.ndarray, c_min: float) -> np.ndarray:

@@ -11,6 +11,7 @@ façade and recomputes only the blocks the new points touch. The caller
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -30,13 +31,14 @@ from ..datatypes import (
 )
 from ..errors import InputError
 from ..params import MapParams
-from .step2_layers import find_facets, fit_layers
+from .step2_layers import count_peaks, find_facets, fit_layers, fit_relief
 from .step3_training import _thin_planar, select_training
 from .step4_gp_blocks import (
     _NEIGHBOURS,
     BlockData,
     block_codes,
     block_size,
+    estimate_noise,
     fit_surface,
     optimisation_patches,
     optimise_lengthscales,
@@ -78,13 +80,27 @@ def _global_prior(depth: np.ndarray, layers: DepthLayers) -> tuple[float, float]
     return mean, float(np.mean((depth - mean) ** 2))
 
 
+def _noise_sigma(uv: np.ndarray, depth: np.ndarray, params: MapParams) -> float:
+    """sigma_eta of a façade, metres: estimated from its points (``gp.estimate_noise``), or
+    ``gp.noise_sigma``."""
+    gp = params.gp
+    if not gp.estimate_noise:
+        return gp.noise_sigma
+    return max(estimate_noise(uv, depth, gp.noise_lag, gp.noise_sigma), gp.min_noise_sigma)
+
+
+def _with_noise(params: MapParams, noise_sigma: float) -> MapParams:
+    """``params`` with the façade's sigma_eta, metres."""
+    return dataclasses.replace(params, gp=dataclasses.replace(params.gp, noise_sigma=noise_sigma))
+
+
 @dataclass(frozen=True, eq=False)
 class _LayeredPoints:
     """A façade's points read through its depth layers and facets (steps 2 and 3).
 
     Attributes:
         uv: (N, 2) locations on the plane, metres, façade frame.
-        depth: (N,) depths, metres.
+        depth: (N,) depths from the wall's relief, metres.
         facets: the facets of the layers on the raster.
         point_facet: (N,) facet of each point, -1 outside every facet.
         point_layer: (N,) layer of each point's facet (the main layer outside facets).
@@ -101,10 +117,12 @@ class _LayeredPoints:
     centred: np.ndarray
 
 
-def _layered_points(extracted: ExtractedFacade, layers: DepthLayers, raster_extent: tuple[float, float, float, float],
-                    params: MapParams) -> _LayeredPoints:
-    """Facets of the layers on the raster, and the GP training points (eqs. 7 and 8)."""
-    uv, depth = extracted.uvd[:, :2], extracted.uvd[:, 2]
+def _layered_points(extracted: ExtractedFacade, depth: np.ndarray, layers: DepthLayers,
+                    raster_extent: tuple[float, float, float, float], params: MapParams) -> _LayeredPoints:
+    """Facets of the layers on the raster, and the GP training points (eqs. 7 and 8).
+
+    ``depth``: (N,) the points' depths from the wall's relief, metres."""
+    uv = extracted.uvd[:, :2]
     facets = find_facets(uv, layers.predict(depth), layers.n_layers, raster_extent, params.layers)
     point_facet = facets.facet_at(uv)
     has_facet = point_facet >= 0
@@ -166,7 +184,7 @@ def _block_data(pts: _LayeredPoints, setup: _GPSetup, take: np.ndarray, anchor: 
 
 def _predict_cells(data: BlockData, centres: np.ndarray, cell_facet: np.ndarray, cells: np.ndarray,
                    layers: DepthLayers, facets: Facets, params: MapParams, rng: np.random.Generator,
-                   mean: np.ndarray, var: np.ndarray, source: np.ndarray) -> np.ndarray:
+                   relief: np.ndarray, mean: np.ndarray, var: np.ndarray, source: np.ndarray) -> np.ndarray:
     """Test the training points for outliers and predict the local GPs at the raster cells
     ``cells`` (steps 4 and 5), writing mean, variance and source there.
 
@@ -175,6 +193,7 @@ def _predict_cells(data: BlockData, centres: np.ndarray, cell_facet: np.ndarray,
         centres: (C, 2) all cell centres, metres, façade frame.
         cell_facet: (C,) facet of every cell.
         cells: (C,) bool, the cells to predict (inside a facet).
+        relief: (C,) depth of the wall's relief at every cell, metres.
         mean, var, source: (C,) the raster's values, written at ``cells``.
 
     Returns:
@@ -183,7 +202,8 @@ def _predict_cells(data: BlockData, centres: np.ndarray, cell_facet: np.ndarray,
     f = cell_facet[cells]
     dev, v, seen, outlier = fit_surface(data, centres[cells], f, params.gp, rng, params.outliers.alpha,
                                         params.outliers.iterations)
-    mean[cells] = layers.means_[facets.layer_of_facet[f]] + dev  # d(x) = g(x) + f(x), eq. 2
+    # d(x) = g(x) + f(x), eq. 2, with g = the relief plus the layer's offset mu_k.
+    mean[cells] = relief[cells] + layers.means_[facets.layer_of_facet[f]] + dev
     var[cells] = v
     source[cells] = np.where(seen, SOURCE_GP, SOURCE_FACET_PRIOR)
     return outlier
@@ -216,11 +236,16 @@ def fit_facade(extracted: ExtractedFacade, params: MapParams, rng: np.random.Gen
         InputError: too few points.
     """
     t0 = time.perf_counter()
-    uv, depth = extracted.uvd[:, :2], extracted.uvd[:, 2]
-    if len(depth) < 10:
-        raise InputError(f'façade {facade_id} has {len(depth)} points, at least 10 are needed')
+    uv, raw_depth = extracted.uvd[:, :2], extracted.uvd[:, 2]
+    if len(raw_depth) < 10:
+        raise InputError(f'façade {facade_id} has {len(raw_depth)} points, at least 10 are needed')
     cell = params.gp.grid_resolution
-    # Step 2: the GMM of depth layers (eq. 3); the raster and its block grid's anchor.
+    # The noise from the data (or the configured sigma_eta): the GPs of this façade use it.
+    params = _with_noise(params, _noise_sigma(uv, raw_depth, params))
+    # Step 2: the wall's relief, then the GMM of depth layers (eq. 3) as offsets from it.
+    relief = fit_relief(uv, raw_depth, float(count_peaks(raw_depth, params.layers)[0]), params.gp.noise_sigma,
+                        params.layers, rng)
+    depth = raw_depth - relief.at(uv)
     layers = fit_layers(depth, params.layers, rng)
     extent = _extent(uv)
     if anchor is None:
@@ -228,7 +253,7 @@ def fit_facade(extracted: ExtractedFacade, params: MapParams, rng: np.random.Gen
     anchor = np.asarray(anchor, dtype=np.float64)
     raster_extent = _raster_extent(extent, raster_margin, anchor, cell)
     # Steps 2-3: facets of the layers, training points (eqs. 7, 8).
-    pts = _layered_points(extracted, layers, raster_extent, params)
+    pts = _layered_points(extracted, depth, layers, raster_extent, params)
     t1 = time.perf_counter()
     # Step 4: length scales per layer by maximum marginal likelihood; blocks per facet.
     l2_layer = _fit_lengthscales(pts, layers, params, rng)
@@ -241,7 +266,8 @@ def fit_facade(extracted: ExtractedFacade, params: MapParams, rng: np.random.Gen
     centres = cell_centres(origin, cell, shape)
     cell_facet = pts.facets.facet_at(centres)
     global_mean, global_var = _global_prior(depth, layers)
-    mean = np.full(len(centres), global_mean)
+    base = relief.at(centres)
+    mean = base + global_mean
     var = np.full(len(centres), global_var)
     source = np.full(len(centres), SOURCE_GLOBAL, np.int8)
     inside = cell_facet >= 0
@@ -249,11 +275,13 @@ def fit_facade(extracted: ExtractedFacade, params: MapParams, rng: np.random.Gen
     t3 = time.perf_counter()
     # Steps 4-5: outliers by the chi-squared test, then the GPs' posterior on the cells.
     if inside.any():
-        outlier = _predict_cells(data, centres, cell_facet, inside, layers, pts.facets, params, rng, mean, var, source)
+        outlier = _predict_cells(data, centres, cell_facet, inside, layers, pts.facets, params, rng, base, mean, var,
+                                 source)
     t4 = time.perf_counter()
     index = np.asarray(extracted.index, dtype=np.int64)
     stats = {'points': len(depth), 'training': int(pts.training.sum()), 'planar_in_gp': int(setup.planar.sum()),
              'outliers_removed': int(outlier.sum()), 'layers': layers.n_layers, 'facets': pts.facets.n_facets,
+             'noise_sigma': params.gp.noise_sigma, 'relief_range': float(np.ptp(relief.values)),
              'seconds': {'layers': t1 - t0, 'hyper': t2 - t1, 'setup': t3 - t2, 'gp': t4 - t3}}
     return FacadeModel(
         facade_id=facade_id, building=building, frame=extracted.frame, extent=extent, layers=layers,
@@ -261,7 +289,7 @@ def fit_facade(extracted: ExtractedFacade, params: MapParams, rng: np.random.Gen
         noise_var=params.gp.noise_sigma**2,
         surface=_raster(origin, cell, shape, mean, var, cell_facet, source),
         point_index=index, outlier_index=index[np.flatnonzero(setup.used)[outlier]], stats=stats,
-        plane_extent=tuple(extracted.plane_extent), anchor=anchor, fitted_points=len(depth))
+        plane_extent=tuple(extracted.plane_extent), anchor=anchor, fitted_points=len(depth), relief=relief)
 
 
 def _changed_cells(old: FacadeModel, offset: tuple[int, int], facet: np.ndarray, layer_of_facet: np.ndarray
@@ -269,8 +297,11 @@ def _changed_cells(old: FacadeModel, offset: tuple[int, int], facet: np.ndarray,
     """(H, W) bool: cells of the new raster whose facet changed since ``old``'s.
 
     A cell changed if it is new, if its layer changed, or if its facet was split, merged
-    or joined (facet ids are renumbered at every update; a facet is the same if it pairs
-    with exactly one facet of the other raster).
+    or joined (facet ids are renumbered at every update; a facet is the same if, over the
+    cells that kept their layer, it pairs with exactly one facet of the other raster: a
+    facet that only lost cells to another layer, such as a new balcony on a wall, is the
+    same facet, and the cells around the lost ones are computed again by the caller's
+    block reach).
     """
     h0, w0 = old.surface.facet.shape
     r0, c0 = offset
@@ -279,7 +310,7 @@ def _changed_cells(old: FacadeModel, offset: tuple[int, int], facet: np.ndarray,
     old_layer = np.where(old_facet >= 0, old.facets.layer_of_facet[np.maximum(old_facet, 0)], old_facet)
     new_layer = np.where(facet >= 0, layer_of_facet[np.maximum(facet, 0)], -1)
     changed = (old_layer != new_layer) & ~((old_facet == -2) & (facet < 0))
-    both = (old_facet >= 0) & (facet >= 0)
+    both = (old_facet >= 0) & (facet >= 0) & ~changed
     pairs = np.unique(old_facet[both] * (1 << 31) + facet[both])
     old_ids, new_ids = pairs >> 31, pairs & ((1 << 31) - 1)
     o, oc = np.unique(old_ids, return_counts=True)
@@ -323,8 +354,9 @@ def update_facade(model: FacadeModel, extracted: ExtractedFacade, new: np.ndarra
     h0, w0 = old.mean.shape
     old_extent = (old.origin[0], old.origin[0] + w0 * cell, old.origin[1], old.origin[1] + h0 * cell)
     raster_extent = _raster_extent(extent, raster_margin, anchor, cell, cover=old_extent)
-    # Steps 2-3 with the layers kept: facets found again, training points (eqs. 7, 8).
-    pts = _layered_points(extracted, layers, raster_extent, params)
+    # Steps 2-3 with the relief, noise and layers kept: facets found again, training points (eqs. 7, 8).
+    params = _with_noise(params, float(np.sqrt(model.noise_var)))
+    pts = _layered_points(extracted, extracted.uvd[:, 2] - model.relief.at(uv), layers, raster_extent, params)
     # Step 4 with the length scales kept.
     setup = _gp_setup(pts, layers, model.lengthscale2_, anchor, params, rng)
     facets, used = pts.facets, setup.used
@@ -359,6 +391,7 @@ def update_facade(model: FacadeModel, extracted: ExtractedFacade, new: np.ndarra
 
     # The raster: the old one where it was, the global prior where no facet is.
     global_mean, global_var = _global_prior(pts.depth, layers)
+    base = model.relief.at(centres)
     mean = np.full(shape, global_mean)
     var = np.full(shape, global_var)
     source = np.full(shape, SOURCE_GLOBAL, np.int8)
@@ -367,12 +400,12 @@ def update_facade(model: FacadeModel, extracted: ExtractedFacade, new: np.ndarra
     var[r0:r0 + h0, c0:c0 + w0] = old.var
     source[r0:r0 + h0, c0:c0 + w0] = old.source
     mean, var, source = mean.ravel(), var.ravel(), source.ravel()
-    mean[~inside], var[~inside], source[~inside] = global_mean, global_var, SOURCE_GLOBAL
+    mean[~inside], var[~inside], source[~inside] = base[~inside] + global_mean, global_var, SOURCE_GLOBAL
     # Steps 4-5 on the cells to compute again.
     flagged = np.zeros(n, dtype=bool)
     if test.any():
         outlier = _predict_cells(_block_data(pts, setup, take, anchor), centres, cell_facet.ravel(), test, layers,
-                                 facets, params, rng, mean, var, source)
+                                 facets, params, rng, base, mean, var, source)
         flagged[np.flatnonzero(take)[outlier]] = True
     outliers = (removed_before & ~own & used) | flagged
     t2 = time.perf_counter()
@@ -386,4 +419,4 @@ def update_facade(model: FacadeModel, extracted: ExtractedFacade, new: np.ndarra
         facets=facets, lengthscale2_=model.lengthscale2_, global_mean_=global_mean, global_var_=global_var,
         noise_var=model.noise_var, surface=_raster(origin, cell, shape, mean, var, cell_facet, source),
         point_index=index, outlier_index=index[outliers], stats=stats, plane_extent=tuple(extracted.plane_extent),
-        anchor=anchor, fitted_points=model.fitted_points)
+        anchor=anchor, fitted_points=model.fitted_points, relief=model.relief)

@@ -17,13 +17,16 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
+from scipy import ndimage
 
-from ..datatypes import FacadeModel, SurfaceRaster
+from ..datatypes import SOURCE_GLOBAL, FacadeModel, SurfaceRaster
 from ..errors import InputError
 from .step8_occupancy import occupancy_probability
 
 #: Points handled at once (bounds memory of the (N, F) façade test).
 CHUNK = 262_144
+#: Depth-step faces further than this within the plane are not searched (metres).
+STEP_REACH = 0.3
 
 
 def surface_at(raster: SurfaceRaster, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -55,6 +58,85 @@ def surface_at(raster: SurfaceRaster, uv: np.ndarray) -> tuple[np.ndarray, np.nd
     return out[0], out[1]
 
 
+def nearer_step_faces(raster: SurfaceRaster, uvd: np.ndarray, distance: np.ndarray, var: np.ndarray,
+                      reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """Distances to the faces of depth steps where they are nearer than the surface along the normal.
+
+    The raster is a height field: where the mean depth jumps between two adjacent cells
+    (a window's reveal, the side of a pillar or a balcony), the surface between them is
+    the face across the cell boundary, perpendicular to the plane. A point on that face
+    lies at some depth between the two cells' depths, often far from either along the
+    normal, yet on the surface. Its distance is the distance, within the plane, to the
+    nearest such face whose depth range holds the point's depth (at most ``reach`` away).
+    Faces next to a cell of the global prior are not faces of the observed surface and
+    are skipped. The variance there is the larger of the two cells' plus the uniform
+    uncertainty of the step's position within a cell, ``cell^2 / 12``.
+
+    Args:
+        raster: the façade's raster.
+        uvd: (N, 3) points in the façade frame, metres.
+        distance: (N,) signed distances along the normal, metres.
+        var: (N,) surface variance there, m^2.
+        reach: faces further than this within the plane are not searched, metres.
+
+    Returns:
+        ``(distance, var)``: (N,) signed distances (the sign of the distance along the
+        normal: outside or inside) and variances, changed where a face is nearer.
+    """
+    distance, var = distance.copy(), var.copy()
+    cell = raster.cell
+    todo = np.flatnonzero(np.abs(distance) > 0.25 * cell)
+    if not len(todo) or reach <= 0:
+        return distance, var
+    h, w = raster.mean.shape
+    mean, cell_var = raster.mean, raster.var
+    observed = raster.source != SOURCE_GLOBAL
+    k = int(np.ceil(reach / cell))
+    # A face within reach spans depths within the observed cells' range around the point
+    # (the (2k + 3)^2 cells searched below): points outside it, most of them off steps,
+    # need no search. Points off the raster are searched.
+    lo = ndimage.minimum_filter(np.where(observed, mean, np.inf), size=2 * k + 3, mode='constant', cval=np.inf)
+    hi = ndimage.maximum_filter(np.where(observed, mean, -np.inf), size=2 * k + 3, mode='constant', cval=-np.inf)
+    r0 = np.floor((uvd[todo, 1] - raster.origin[1]) / cell).astype(np.int64)
+    c0 = np.floor((uvd[todo, 0] - raster.origin[0]) / cell).astype(np.int64)
+    on = (r0 >= 0) & (r0 < h) & (c0 >= 0) & (c0 < w)
+    rc, cc = np.clip(r0, 0, h - 1), np.clip(c0, 0, w - 1)
+    d_all = uvd[todo, 2]
+    todo = todo[~on | ((lo[rc, cc] <= d_all) & (d_all <= hi[rc, cc]))]
+    if not len(todo):
+        return distance, var
+    u = (uvd[todo, 0] - raster.origin[0]) / cell
+    v = (uvd[todo, 1] - raster.origin[1]) / cell
+    d = uvd[todo, 2]
+    row, col = np.floor(v).astype(np.int64), np.floor(u).astype(np.int64)
+    best = np.abs(distance[todo]) / cell
+    best_var = var[todo]
+    for dr in range(-k - 1, k + 1):
+        for dc in range(-k - 1, k + 1):
+            r, c = row + dr, col + dc
+            for across_u in (True, False):
+                r2, c2 = (r, c + 1) if across_u else (r + 1, c)
+                ok = (r >= 0) & (c >= 0) & (r2 < h) & (c2 < w)
+                ra, ca = np.where(ok, r, 0), np.where(ok, c, 0)
+                rb, cb = np.where(ok, r2, 0), np.where(ok, c2, 0)
+                ma, mb = mean[ra, ca], mean[rb, cb]
+                ok &= observed[ra, ca] & observed[rb, cb] & (np.minimum(ma, mb) <= d) & (d <= np.maximum(ma, mb))
+                if not ok.any():
+                    continue
+                if across_u:  # the face at u = c + 1 (cell units), v from r to r + 1
+                    gap = np.hypot(u - (c + 1), v - np.clip(v, r, r + 1))
+                else:  # the face at v = r + 1, u from c to c + 1
+                    gap = np.hypot(v - (r + 1), u - np.clip(u, c, c + 1))
+                nearer = ok & (gap < best) & (gap * cell <= reach)
+                best = np.where(nearer, gap, best)
+                best_var = np.where(nearer, np.maximum(cell_var[ra, ca], cell_var[rb, cb]) + cell**2 / 12, best_var)
+    moved = best < np.abs(distance[todo]) / cell
+    idx = todo[moved]
+    distance[idx] = np.where(distance[idx] < 0, -1.0, 1.0) * best[moved] * cell
+    var[idx] = best_var[moved]
+    return distance, var
+
+
 @dataclass(frozen=True, eq=False)
 class PointQuery:
     """Answers for N 3D points (the command line's R.npz holds these arrays).
@@ -81,6 +163,11 @@ class PointQuery:
                                               'signed_distance', 'p_occupied')}
 
 
+#: Metres added to a point's ``|d|`` from a façade without a facet at the point when
+#: façades compete for it (:func:`assign_facades`).
+NO_FACET_PENALTY = 1.0
+
+
 def assign_facades(facades: Sequence[FacadeModel], xyz: np.ndarray, band_back: float, band_front: float
                    ) -> tuple[np.ndarray, np.ndarray]:
     """Façade of each 3D point and its façade coordinates.
@@ -95,15 +182,16 @@ def assign_facades(facades: Sequence[FacadeModel], xyz: np.ndarray, band_back: f
         ``(facade, uvd)``: (N,) int32 index into ``facades`` (-1 for none) and (N, 3) the
         point in that façade's frame (NaN for none).
 
-    A point within several façades' slabs goes to the one with the smallest ``|d|`` among
-    those whose raster holds a facet at the point, else among all: near a corner, the air
-    in front of one wall lies in the margin of the other wall's raster, where only that
-    wall's global prior holds, and would otherwise read as that wall's solid.
+    A point within several façades' slabs goes to the one with the smallest ``|d|``, where
+    a façade whose raster holds no facet at the point counts ``NO_FACET_PENALTY`` further:
+    near a corner, the air in front of one wall lies in the margin of the other wall's
+    raster, where only that wall's global prior holds, and would otherwise read as that
+    wall's solid; but a hole in a wall (an occlusion) is still the wall's, not that of a
+    recess more than the penalty behind it.
     """
     n = len(xyz)
     best = np.full(n, -1, dtype=np.int32)
     best_abs = np.full(n, np.inf)
-    no_facet = 1e6  # added to |d| where the façade has no facet at the point
     uvd = np.full((n, 3), np.nan)
     for i, f in enumerate(facades):
         r = f.surface
@@ -122,7 +210,7 @@ def assign_facades(facades: Sequence[FacadeModel], xyz: np.ndarray, band_back: f
                   & (local[:, 2] >= -band_back) & (local[:, 2] <= band_front))
         col = np.clip(((local[:, 0] - u0) / r.cell).astype(np.int64), 0, w - 1)
         row = np.clip(((local[:, 1] - v0) / r.cell).astype(np.int64), 0, h - 1)
-        key = np.abs(local[:, 2]) + np.where(r.facet[row, col] >= 0, 0.0, no_facet)
+        key = np.abs(local[:, 2]) + np.where(r.facet[row, col] >= 0, 0.0, NO_FACET_PENALTY)
         better = inside & (key < best_abs[cand])
         sel = cand[better]
         best[sel] = i
@@ -171,6 +259,7 @@ def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: fl
             m, v = surface_at(facades[i].surface, uvd[sel - start, :2])
             mean[sel], var[sel] = m, v
             noise[sel] = facades[i].noise_var
-            dist[sel] = uvd[sel - start, 2] - m
+            dist[sel], var[sel] = nearer_step_faces(facades[i].surface, uvd[sel - start], uvd[sel - start, 2] - m, v,
+                                                    STEP_REACH)
     p = occupancy_probability(dist, var, np.where(np.isfinite(noise), noise, 0.0), resolution)
     return PointQuery(facade, mean, var, noise, dist, p)

@@ -36,7 +36,8 @@ def scene_description(scene: Scene, sensor: SensorConfig, campaigns: list[tuple[
     """Everything needed to understand and rebuild a simulated data set.
 
     The scene is rebuilt exactly by ``build_scene(name, seed)``; the geometry is listed so
-    that other tools can read the truth without this package.
+    that other tools can read the truth without this package (for a hard scene with its
+    walls and the relief of every façade: depth r(u, v) of :mod:`.walls`).
 
     Args:
         scene: the scene.
@@ -46,7 +47,7 @@ def scene_description(scene: Scene, sensor: SensorConfig, campaigns: list[tuple[
     Returns:
         A JSON-serialisable dict.
     """
-    return {
+    description = {
         'format': SCENE_FORMAT,
         'scene': scene.name,
         'seed': scene.seed,
@@ -59,6 +60,11 @@ def scene_description(scene: Scene, sensor: SensorConfig, campaigns: list[tuple[
         'buildings': [_jsonable(b) for b in scene.buildings],
         'static_occluders': [_jsonable(o) for o in scene.static_occluders],
     }
+    if scene.walls is not None:
+        # Walls as built: the relief of each façade is part of the truth (see simulation/walls.py).
+        description['walls'] = _jsonable(scene.walls)
+        description['reliefs'] = {str(k): _jsonable(r) for k, r in scene.reliefs.items()}
+    return description
 
 
 def write_scene_json(path: str | Path, description: dict) -> Path:

@@ -13,7 +13,7 @@ All coordinates are metres in the map frame (z up, ground at z = 0).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Iterable, Sequence
+from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -28,6 +28,7 @@ from .raycast import (
     ray_sphere,
     ray_vertical_cylinder,
 )
+from .walls import FacadeRelief, WallRealism, on_pane, panes
 
 CLASS_GROUND = 2
 CLASS_VEGETATION = 3
@@ -479,11 +480,17 @@ def _occluder_nodes(occ: Occluder) -> list[_Node]:
 # The scene
 # ----------------------------------------------------------------------------------------
 class Caster:
-    """Casts rays against a fixed set of solids (and optionally the ground)."""
+    """Casts rays against a fixed set of solids (and optionally the ground).
 
-    def __init__(self, bvh: _Bvh, ground: bool) -> None:
+    ``relief``, if given, is called with ``(origins, directions, hits)`` after the cast and
+    moves the hits on bent façades (see :mod:`.walls`).
+    """
+
+    def __init__(self, bvh: _Bvh, ground: bool,
+                 relief: Callable[[np.ndarray, np.ndarray, Hits], None] | None = None) -> None:
         self.bvh = bvh
         self.ground = ground
+        self.relief = relief
 
     def cast(self, origins: np.ndarray, directions: np.ndarray, rng: np.random.Generator | None = None) -> Hits:
         """Closest hit of every ray.
@@ -503,6 +510,8 @@ class Caster:
             _cast_ground(origins, directions, hits)
         self.bvh.visit(origins, directions, inverse_directions(directions), np.arange(len(origins)), hits,
                        _Context(rng=rng))
+        if self.relief is not None:
+            self.relief(origins, directions, hits)
         return hits
 
 
@@ -524,12 +533,14 @@ class Scene:
     """Buildings, occluders, ground and street, with exact ray casting.
 
     Attributes:
-        name: scene name (``street``, ``small``, ``zurich``).
+        name: scene name (``street``, ``small``, ``zurich``, or one of them with ``_hard``).
         seed: seed the scene was built from.
         buildings: the buildings, indexed by ``building_id``.
         static_occluders: trees and poles, the same in every campaign.
         street: the street the campaigns drive.
         map_origin: (3,) georeference of the map frame, metres.
+        walls: how the walls differ from their plans (relief, plaster, glass; see
+            :mod:`.walls`); None for walls exactly as planned.
     """
 
     name: str
@@ -538,11 +549,21 @@ class Scene:
     static_occluders: list[Occluder]
     street: Street
     map_origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    walls: WallRealism | None = None
 
     def __post_init__(self) -> None:
         self._building_leaves = {b.building_id: self._building_leaves_of(b) for b in self.buildings}
         self._static_leaves = [n for occ in self.static_occluders for n in _occluder_nodes(occ)]
         self._truth_casters: dict[int, Caster] = {}
+        self._plan_casters: dict[int, Caster] = {}
+        #: Relief of every façade (empty without ``walls``), drawn from the seed.
+        self.reliefs: dict[int, FacadeRelief] = {}
+        self._panes: dict[int, np.ndarray] = {}
+        if self.walls is not None:
+            for f in self.facades:
+                rng = np.random.default_rng([self.seed, 17, f.facade_id])
+                self.reliefs[f.facade_id] = FacadeRelief.draw(self.walls, f.frame.length, f.frame.height, rng)
+                self._panes[f.facade_id] = panes(f.features, self.walls.frame)
 
     @property
     def facades(self) -> list[Facade]:
@@ -556,15 +577,20 @@ class Scene:
             leaves += [s for f in facade.features if (s := _feature_solid(facade, f)) is not None]
         return leaves
 
+    @property
+    def _relief_hook(self) -> Callable[[np.ndarray, np.ndarray, Hits], None] | None:
+        return self._bend_hits if self.reliefs else None
+
     def caster(self, parked: Iterable[Occluder] = ()) -> Caster:
         """A ray caster for the whole scene with the given parked cars (one per campaign)."""
         leaves = [leaf for ls in self._building_leaves.values() for leaf in ls] + self._static_leaves
         leaves += [n for occ in parked for n in _occluder_nodes(occ)]
-        return Caster(_Bvh(leaves), ground=True)
+        return Caster(_Bvh(leaves), ground=True, relief=self._relief_hook)
 
     def building_caster(self) -> Caster:
         """A ray caster for the buildings alone (no ground, no occluders)."""
-        return Caster(_Bvh([leaf for ls in self._building_leaves.values() for leaf in ls]), ground=False)
+        return Caster(_Bvh([leaf for ls in self._building_leaves.values() for leaf in ls]), ground=False,
+                      relief=self._relief_hook)
 
     def cast(self, origins: np.ndarray, directions: np.ndarray, *, parked: Iterable[Occluder] = (),
              rng: np.random.Generator | None = None) -> Hits:
@@ -573,14 +599,71 @@ class Scene:
 
     def _truth_caster(self, building_id: int) -> Caster:
         if building_id not in self._truth_casters:
-            self._truth_casters[building_id] = Caster(_Bvh(self._building_leaves[building_id]), ground=False)
+            self._truth_casters[building_id] = Caster(_Bvh(self._building_leaves[building_id]), ground=False,
+                                                      relief=self._relief_hook)
         return self._truth_casters[building_id]
+
+    def _plan_caster(self, building_id: int) -> Caster:
+        """The building as planned (no relief)."""
+        if building_id not in self._plan_casters:
+            self._plan_casters[building_id] = Caster(_Bvh(self._building_leaves[building_id]), ground=False)
+        return self._plan_casters[building_id]
+
+    def _bend_hits(self, origins: np.ndarray, directions: np.ndarray, hits: Hits, passes: int = 2) -> None:
+        """Move the hits on façades to their bent surface (relief, see :mod:`.walls`).
+
+        Each ray that hit a façade is cast again against its building's plan after the
+        inverse bend, linearised at its current hit, ``passes`` times. A ray whose bent
+        cast misses the façade (within millimetres of its edges) keeps its planned hit.
+        """
+        fid_all = hits.facade_id
+        rows_all = np.flatnonzero((fid_all >= 0) & np.isfinite(hits.t))
+        if not len(rows_all):
+            return
+        facades = self.facades
+        for fid in np.unique(fid_all[rows_all]):
+            rows = rows_all[fid_all[rows_all] == fid]
+            facade = facades[fid]
+            fr = facade.frame
+            axes = np.stack([fr.u, fr.v, fr.n])  # (3, 3): rows are the façade axes
+            o_f = (origins[rows] - fr.origin) @ axes.T
+            d_f = directions[rows] @ axes.T
+            t = hits.t[rows].copy()
+            relief = self.reliefs[int(fid)]
+            caster = self._plan_caster(facade.building_id)
+            for _ in range(passes):
+                hit_uv = o_f[:, :2] + t[:, None] * d_f[:, :2]
+                o_b, d_b = relief.bend(o_f, d_f, hit_uv)
+                scale = np.linalg.norm(d_b, axis=1)
+                o_w = fr.origin + o_b @ axes
+                d_w = (d_b / scale[:, None]) @ axes
+                again = caster.cast(o_w, d_w)
+                t_new = again.t / scale
+                ok = np.isfinite(t_new) & (again.facade_id == fid)
+                t = np.where(ok, t_new, t)
+            hits.t[rows] = t
+
+    def relief_at(self, facade_id: int, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """(K,) relief of a façade at (u, v), metres along its normal (zeros without walls)."""
+        relief = self.reliefs.get(facade_id)
+        u = np.asarray(u, dtype=np.float64)
+        return relief.depth(u, np.asarray(v, dtype=np.float64))[0] if relief is not None else np.zeros(len(u))
+
+    def glass(self, facade_id: int, points: np.ndarray) -> np.ndarray:
+        """(K,) bool: map-frame points (on the façade's surface) that lie on a window pane."""
+        pane = self._panes.get(facade_id)
+        if pane is None or not len(pane):
+            return np.zeros(len(points), dtype=bool)
+        uvn = self.facades[facade_id].frame.to_facade(points)
+        uvn[:, 2] -= self.relief_at(facade_id, uvn[:, 0], uvn[:, 1])
+        return on_pane(uvn, pane)
 
     def true_depth(self, facade_id: int, u: np.ndarray, v: np.ndarray, *, reach: float = 5.0) -> np.ndarray:
         """The true surface of a façade as a depth map over its plane.
 
         The depth is the position along the outward normal of the first surface of the
-        façade's building met by a ray coming from the street, ``reach`` metres out.
+        façade's building met by a ray coming from the street, ``reach`` metres out. With
+        ``walls`` set, it includes the façade's relief (the wall as built), not its plaster.
 
         Args:
             facade_id: scene-wide façade index.
@@ -634,7 +717,7 @@ class Scene:
         return np.where(np.isfinite(hits.t), reach - hits.t, np.nan), hits.facade_id
 
     def inside_building(self, points: np.ndarray) -> np.ndarray:
-        """(K,) bool: True for points inside any building's solid (for tests)."""
+        """(K,) bool: True for points inside any building's solid as planned (no relief; for tests)."""
         points = np.asarray(points, dtype=np.float64)
         inside = np.zeros(len(points), dtype=bool)
         for leaves in self._building_leaves.values():

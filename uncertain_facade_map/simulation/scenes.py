@@ -1,4 +1,6 @@
-"""Built-in scenes: ``street`` (default), ``small`` (for tests) and ``zurich`` (real footprints).
+"""Built-in scenes: ``street`` (default), ``small`` (for tests) and ``zurich`` (real footprints),
+and their hard variants ``street_hard``, ``small_hard`` and ``zurich_hard`` (the same
+geometry with walls as built: relief, plaster, glass; see :mod:`.walls` and :mod:`.presets`).
 
 Every scene is a straight street along +x with its centreline on y = 0, façade lines at
 y = +-``FACADE_LINE`` and buildings behind them; trees and poles stand on the pavements,
@@ -14,6 +16,7 @@ import numpy as np
 
 from ..errors import InputError
 from .facades import FacadeStyle, decorate
+from .presets import HARD_SCENES, WALL_PRESETS
 from .scene import Building, Car, Facade, FacadeFrame, Occluder, Pole, Scene, Street, Tree
 
 #: Distance from the street centreline to the façade lines, metres.
@@ -216,17 +219,49 @@ def zurich_scene(seed: int = 0, path: str | Path | None = None, count: int = 8) 
     return Scene('zurich', seed, buildings, occluders, street, map_origin=np.array([2_683_000.0, 1_247_000.0, 400.0]))
 
 
-SCENES: dict[str, Callable[[int], Scene]] = {'street': street_scene, 'small': small_scene, 'zurich': zurich_scene}
+def with_walls(scene: Scene, walls: str = 'hard', name: str | None = None) -> Scene:
+    """The same scene with walls as built (a preset of :data:`~.presets.WALL_PRESETS`).
 
-
-def build_scene(name: str, seed: int = 0) -> Scene:
-    """Build a named scene.
+    Args:
+        scene: a scene (its geometry, occluders and seed are kept).
+        walls: name of the walls preset.
+        name: name of the new scene; ``<scene>_<walls>`` if None.
 
     Raises:
-        InputError: unknown scene name.
+        InputError: unknown walls preset.
+    """
+    try:
+        realism = WALL_PRESETS[walls]
+    except KeyError:
+        raise InputError(f'unknown walls preset {walls!r}; choose one of {", ".join(WALL_PRESETS)}') from None
+    return Scene(name or f'{scene.name}_{walls}', scene.seed, scene.buildings, scene.static_occluders, scene.street,
+                 map_origin=scene.map_origin, walls=realism)
+
+
+SCENES: dict[str, Callable[[int], Scene]] = {'street': street_scene, 'small': small_scene, 'zurich': zurich_scene}
+SCENES.update({hard: (lambda seed, clean=clean, walls=walls, hard=hard: with_walls(SCENES[clean](seed), walls, hard))
+               for hard, (clean, walls) in HARD_SCENES.items()})
+
+
+def build_scene(name: str, seed: int = 0, cityjson: str | Path | None = None) -> Scene:
+    """Build a named scene.
+
+    Args:
+        name: one of :data:`SCENES`.
+        seed: the scene's seed.
+        cityjson: for ``zurich`` and ``zurich_hard``: another CityJSON file than the packaged one.
+
+    Raises:
+        InputError: unknown scene name, or a CityJSON file for another scene.
     """
     try:
         factory = SCENES[name]
     except KeyError:
         raise InputError(f'unknown scene {name!r}; choose one of {", ".join(SCENES)}') from None
-    return factory(seed)
+    if cityjson is None:
+        return factory(seed)
+    clean, walls = HARD_SCENES.get(name, (name, None))
+    if clean != 'zurich':
+        raise InputError(f'a CityJSON file is for the zurich scenes, not {name!r}')
+    scene = zurich_scene(seed, cityjson)
+    return scene if walls is None else with_walls(scene, walls, name)
