@@ -52,6 +52,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..errors import InputError
+from .wall_points import local_ground
 
 
 @dataclass(frozen=True)
@@ -129,16 +130,6 @@ class CloudFigures:
         points/m^2 (NaN for none)."""
         sel = (self.cell_range >= near) & (self.cell_range < far)
         return float(np.median(self.cell_density[sel])) if sel.any() else float('nan')
-
-
-def local_ground(xyz: np.ndarray, cell: float = 2.0) -> np.ndarray:
-    """(N,) height of the lowest point of each point's ``cell`` x ``cell`` column, metres."""
-    key = np.floor(xyz[:, :2] / cell).astype(np.int64)
-    _, inverse = np.unique(key, axis=0, return_inverse=True)
-    inverse = inverse.ravel()
-    low = np.full(inverse.max() + 1, np.inf)
-    np.minimum.at(low, inverse, xyz[:, 2])
-    return low[inverse]
 
 
 def find_walls(xyz: np.ndarray, sensor: np.ndarray, rng: np.random.Generator, *, max_walls: int = 12,
