@@ -36,8 +36,9 @@ Pipeline of :func:`extract_facades` (one building, all coordinates metres, map f
    closer than ``merge_offset`` to it along its normal and no further than
    ``merge_offset`` from its box in ``u`` joins it: one façade (balcony and oriel fronts
    are depth layers of their wall, as in the paper's GMM), unless it lies beyond the
-   allocation band of the group's plane (then it is a façade of its own: its points
-   would otherwise belong to none). *Choice:* the façade's plane
+   allocation band of the group's plane with at least a fifth of the largest plane's
+   support (then it is a façade of its own: its points would otherwise belong to none;
+   a smaller one, such as a room seen through windows, stays and loses them). *Choice:* the façade's plane
    is the group's back-most plane with at least a fifth of the largest one's support
    and at least half its width in ``u``, not simply the largest: behind deep balconies a
    wall can have fewer inliers than the balcony fronts, and the band must reach back
@@ -648,10 +649,12 @@ def _merge(planes: list[_Plane], params: ExtractionParams) -> list[_Plane]:
         width = _MAIN_WIDTH_SHARE * (big.box[1] - big.box[0])
         able = [p for p in group if p.support >= _MAIN_SUPPORT_SHARE * big.support and p.box[1] - p.box[0] >= width]
         main = min(able, key=lambda p: float(big.frame.to_local(p.frame.origin[None])[0, 2]))
-        # A member beyond the façade plane's allocation band would lose its points to no
-        # façade: it is a façade of its own (a set-back entrance deeper than band_back).
+        # A large member beyond the façade plane's allocation band would lose its points
+        # to no façade: it is a façade of its own (a set-back ground floor deeper than
+        # band_back). Small ones stay (and lose them): rooms seen through windows.
         depth = [float(main.frame.to_local(p.frame.origin[None])[0, 2]) for p in group]
-        apart = [p for p, d in zip(group, depth) if not -params.band_back <= d <= params.band_front]
+        apart = [p for p, d in zip(group, depth) if not -params.band_back <= d <= params.band_front
+                 and p.support >= _MAIN_SUPPORT_SHARE * big.support]
         if apart:
             merged += _merge(apart, params)
             group = [p for p in group if all(p is not q for q in apart)]
