@@ -178,8 +178,10 @@ class FacadeMap:
         changed = [int(b) for b in np.unique(labels)]
         # Every building's points first: without sensor origins the others' points turn a
         # building's walls (``_context``), whichever building comes first.
-        firsts = {b: self._append(b, xyz[labels == b], None if sensor_origins is None else sensor_origins[labels == b])
-                  for b in changed}
+        firsts = {}
+        for b in changed:
+            sel = labels == b
+            firsts[b] = self._append(b, xyz[sel], None if sensor_origins is None else sensor_origins[sel])
         for done, b in enumerate(changed, 1):
             self._update_building(b, firsts[b])
             if progress is not None:
@@ -282,10 +284,17 @@ class FacadeMap:
         others = [p for o, p in self.points.items() if o != b]
         if not others:
             return np.empty((0, 3))
-        every = np.concatenate(others)
-        if len(every) > _CONTEXT_POINTS:
-            every = every[rng.choice(len(every), _CONTEXT_POINTS, replace=False)]
-        return every
+        starts = np.cumsum([0] + [len(p) for p in others])
+        if starts[-1] <= _CONTEXT_POINTS:
+            return np.concatenate(others)
+        # The draw's rows gathered from each building (not a copy of all their points).
+        pick = rng.choice(int(starts[-1]), _CONTEXT_POINTS, replace=False)
+        part = np.searchsorted(starts, pick, side='right') - 1
+        out = np.empty((_CONTEXT_POINTS, 3))
+        for k, p in enumerate(others):
+            mine = part == k
+            out[mine] = p[pick[mine] - starts[k]]
+        return out
 
     def _update_building(self, b: int, first: int) -> None:
         """Allocate a building's points from ``first`` on, extract new façades from its pool,

@@ -58,8 +58,20 @@ def surface_at(raster: SurfaceRaster, uv: np.ndarray) -> tuple[np.ndarray, np.nd
     return out[0], out[1]
 
 
+def step_depth_range(raster: SurfaceRaster, reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """(H, W) lowest and highest mean depth of the observed cells that
+    :func:`nearer_step_faces` searches around each cell (``2 ceil(reach / cell) + 3`` cells
+    square), metres; +inf and -inf where there are none."""
+    size = 2 * int(np.ceil(reach / raster.cell)) + 3
+    observed = raster.source != SOURCE_GLOBAL
+    lo = ndimage.minimum_filter(np.where(observed, raster.mean, np.inf), size=size, mode='constant', cval=np.inf)
+    hi = ndimage.maximum_filter(np.where(observed, raster.mean, -np.inf), size=size, mode='constant', cval=-np.inf)
+    return lo, hi
+
+
 def nearer_step_faces(raster: SurfaceRaster, uvd: np.ndarray, distance: np.ndarray, var: np.ndarray,
-                      reach: float) -> tuple[np.ndarray, np.ndarray]:
+                      reach: float, depth_range: tuple[np.ndarray, np.ndarray] | None = None
+                      ) -> tuple[np.ndarray, np.ndarray]:
     """Distances to the faces of depth steps where they are nearer than the surface along the normal.
 
     The raster is a height field: where the mean depth jumps between two adjacent cells
@@ -78,6 +90,8 @@ def nearer_step_faces(raster: SurfaceRaster, uvd: np.ndarray, distance: np.ndarr
         distance: (N,) signed distances along the normal, metres.
         var: (N,) surface variance there, m^2.
         reach: faces further than this within the plane are not searched, metres.
+        depth_range: :func:`step_depth_range` of ``raster`` and ``reach``, when the caller
+            keeps it for several calls; None computes it.
 
     Returns:
         ``(distance, var)``: (N,) signed distances (the sign of the distance along the
@@ -95,8 +109,7 @@ def nearer_step_faces(raster: SurfaceRaster, uvd: np.ndarray, distance: np.ndarr
     # A face within reach spans depths within the observed cells' range around the point
     # (the (2k + 3)^2 cells searched below): points outside it, most of them off steps,
     # need no search. Points off the raster are searched.
-    lo = ndimage.minimum_filter(np.where(observed, mean, np.inf), size=2 * k + 3, mode='constant', cval=np.inf)
-    hi = ndimage.maximum_filter(np.where(observed, mean, -np.inf), size=2 * k + 3, mode='constant', cval=-np.inf)
+    lo, hi = step_depth_range(raster, reach) if depth_range is None else depth_range
     r0 = np.floor((uvd[todo, 1] - raster.origin[1]) / cell).astype(np.int64)
     c0 = np.floor((uvd[todo, 0] - raster.origin[0]) / cell).astype(np.int64)
     on = (r0 >= 0) & (r0 < h) & (c0 >= 0) & (c0 < w)
@@ -250,6 +263,7 @@ def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: fl
     var = np.full(n, np.nan)
     noise = np.full(n, np.nan)
     dist = np.full(n, np.nan)
+    depth_ranges: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # per façade, for every chunk
     for start in range(0, n, CHUNK):
         part = slice(start, min(start + CHUNK, n))
         which, uvd = assign_facades(facades, xyz[part], band_back, band_front)
@@ -259,7 +273,9 @@ def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: fl
             m, v = surface_at(facades[i].surface, uvd[sel - start, :2])
             mean[sel], var[sel] = m, v
             noise[sel] = facades[i].noise_var
+            if i not in depth_ranges:
+                depth_ranges[i] = step_depth_range(facades[i].surface, STEP_REACH)
             dist[sel], var[sel] = nearer_step_faces(facades[i].surface, uvd[sel - start], uvd[sel - start, 2] - m, v,
-                                                    STEP_REACH)
+                                                    STEP_REACH, depth_ranges[i])
     p = occupancy_probability(dist, var, np.where(np.isfinite(noise), noise, 0.0), resolution)
     return PointQuery(facade, mean, var, noise, dist, p)
