@@ -160,6 +160,7 @@ def cmd_build(args: argparse.Namespace) -> int:
     from uncertain_facade_map.io.inputs import select_building_points
     from uncertain_facade_map.io.map_file import save_map
     from uncertain_facade_map.io.parameter_file import load_config
+    from uncertain_facade_map.io.trajectory import read_trajectory
     from uncertain_facade_map.mapping.facade_map import FacadeMap
     from uncertain_facade_map.params import map_params
 
@@ -167,10 +168,13 @@ def cmd_build(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if not out.parent.exists():
         raise CliError(f'output folder {out.parent} does not exist')
+    if args.sensor is not None and args.trajectory is not None:
+        raise CliError('give --sensor or --trajectory, not both')
+    trajectory = None if args.trajectory is None else read_trajectory(args.trajectory)
     started = time.perf_counter()
     cloud = load_inputs(args.inputs, topic=args.topic)
     selection = config.selection if args.select is None else dataclasses.replace(config.selection, mode=args.select)
-    points = select_building_points(cloud, config.input, selection, sensor=args.sensor)
+    points = select_building_points(cloud, config.input, selection, sensor=args.sensor, trajectory=trajectory)
     read_s = time.perf_counter() - started
     fmap = FacadeMap(map_params(config), points.map_origin)
     with _counter('buildings', 'building', args.quiet) as update:
@@ -562,6 +566,10 @@ def build_parser() -> argparse.ArgumentParser:
                        help='sensor position (map frame, metres) for clouds without per-point sensor origins, such '
                             'as one sweep in its vehicle frame (0,0,1.8); turns the façades towards it (default: '
                             'from the buildings\' shapes)')
+    build.add_argument('--trajectory', metavar='FILE',
+                       help='sensor trajectory for clouds without per-point sensor origins but with a time field: '
+                            'text, "t x y z ..." per line (TUM format works), t on the clouds\' time base, x y z in '
+                            'their coordinates; each point\'s origin is the position at its time')
     build.add_argument('--quiet', action='store_true', help='no progress bar')
     build.set_defaults(func=cmd_build)
 

@@ -181,6 +181,42 @@ def test_build_turns_the_facades_to_a_given_sensor(tmp_path, capsys):
     assert exit_.value.code == 2 and 'expected X,Y,Z' in capsys.readouterr().err
 
 
+def test_build_turns_the_facades_to_a_trajectory(tmp_path, capsys):
+    """The two walls of the test above, now with per-point times and no origins: a vehicle
+    driving down the street between them (a TUM file) turns both to the street; the same
+    drive 9 m beyond the north wall turns both to the north. Both options together are
+    refused."""
+    from uncertain_facade_map.io.cloud import Cloud
+    from uncertain_facade_map.io.map_file import load_map
+    from uncertain_facade_map.io.ply import write_ply
+
+    rng = np.random.default_rng(2)
+    walls = []
+    for y in (-9.0, 11.0):
+        u, z = rng.uniform(-15, 15, 6000), rng.uniform(0, 9, 6000)
+        walls.append(np.c_[u, y + rng.normal(0, 0.01, 6000), z])
+    xyz = np.vstack(walls)
+    pts = np.zeros(len(xyz), dtype=[('x', 'f8'), ('y', 'f8'), ('z', 'f8'), ('time', 'f8')])
+    pts['x'], pts['y'], pts['z'] = xyz.T
+    pts['time'] = 100.0 + (xyz[:, 0] + 15) / 3  # seen as the vehicle passes at 3 m/s
+    write_ply(tmp_path / 'sweep.ply', Cloud(pts))
+    for street_y in (0.0, 20.0):
+        t = np.linspace(100.0, 110.0, 11)
+        poses = np.c_[t, 3 * (t - 100) - 15, np.full(11, street_y), np.full(11, 1.8), np.zeros((11, 3)), np.ones(11)]
+        np.savetxt(tmp_path / 'poses.txt', poses, header='timestamp tx ty tz qx qy qz qw')
+        assert main(['build', str(tmp_path / 'sweep.ply'), '--out', str(tmp_path / 'm.npz'), '--quiet',
+                     '--select', 'off', '--trajectory', str(tmp_path / 'poses.txt')]) == 0
+        capsys.readouterr()
+        facades = load_map(tmp_path / 'm.npz').facades
+        assert len(facades) == 2
+        for f in facades:
+            side = np.sign(street_y - f.frame.origin[1])
+            assert f.frame.normal[1] * side > 0.9
+    assert main(['build', str(tmp_path / 'sweep.ply'), '--out', str(tmp_path / 'm.npz'), '--sensor', '0,0,1',
+                 '--trajectory', str(tmp_path / 'poses.txt')]) == 2
+    assert 'not both' in capsys.readouterr().err
+
+
 @pytest.mark.parametrize('case', ['missing input', 'nan points', 'float32 points', 'bad map', 'empty cloud',
                                   'missing config', 'bad config'])
 def test_build_and_query_bad_input_one_line_exit_2(tmp_path, built, simulated, capsys, case):

@@ -19,6 +19,7 @@ from uncertain_facade_map.io.las import LAS_SCALE
 from uncertain_facade_map.io.npz import write_npz
 from uncertain_facade_map.io.pcd import write_pcd
 from uncertain_facade_map.io.ply import write_ply
+from uncertain_facade_map.io.trajectory import Trajectory
 from uncertain_facade_map.params import InputConfig
 
 SETTINGS = settings(max_examples=60, deadline=None,
@@ -163,6 +164,28 @@ def test_a_sensor_position_is_every_origin_of_a_cloud_without_origins() -> None:
     for bad in ((1.0, 2.0), (0.0, np.nan, 1.0)):
         assert 'sensor position must be three finite numbers' in one_line_error(
             select_building_points, Cloud(bare), InputConfig(), sensor=bad)
+
+
+def test_a_trajectory_gives_each_point_the_position_at_its_time() -> None:
+    """Positions interpolated at the points' times, in the map frame (the cloud's origin
+    subtracted); the cloud's own origins win; a cloud without times and a trajectory with a
+    sensor position are refused."""
+    pts = scene_points()
+    bare = pts[['x', 'y', 'z', 'class', 'time']]
+    t0, t1 = pts['time'][0], pts['time'][-1]
+    path = Trajectory(np.array([t0, t1]), ORIGIN + np.array([[0.0, 0.0, 2.0], [60.0, 30.0, 2.0]]))
+    selected = select_building_points(Cloud(bare, ORIGIN), InputConfig(), trajectory=path)
+    share = (pts['time'][selected.index] - t0) / (t1 - t0)
+    assert np.allclose(selected.sensor_origins, np.c_[60 * share, 30 * share, np.full(len(share), 2.0)], atol=1e-6)
+    own = select_building_points(Cloud(pts, ORIGIN), InputConfig(), trajectory=path)
+    assert np.array_equal(own.sensor_origins[:, 0], pts['origin_x'][own.index])
+    assert 'has no time field' in one_line_error(
+        select_building_points, Cloud(bare[['x', 'y', 'z', 'class']]), InputConfig(), trajectory=path)
+    assert 'not both' in one_line_error(select_building_points, Cloud(bare), InputConfig(),
+                                        sensor=(0.0, 0.0, 1.0), trajectory=path)
+    late = Trajectory(np.array([t0 + 30, t1]), path.position)
+    assert 'point times lie outside the trajectory' in one_line_error(
+        select_building_points, Cloud(bare), InputConfig(), trajectory=late)
 
 
 def test_float_class_with_integral_values_is_accepted() -> None:

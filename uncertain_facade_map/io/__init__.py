@@ -7,5 +7,6 @@
   shared helpers;
 - ``inputs``: any inputs joined into one cloud and reduced to the building points of a map
   (ROS bags are read by ``msg_adapters.bag_io``, outside the core);
+- ``trajectory``: a sensor trajectory file, the sensor origins of clouds without them;
 - ``map_file``: the versioned map file.
 """

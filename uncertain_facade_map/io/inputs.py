@@ -29,6 +29,7 @@ from ..errors import InputError
 from ..params import InputConfig, SelectionConfig
 from .cloud import COORDINATE_FIELDS, Cloud
 from .clouds import SUPPORTED_SUFFIXES, read_cloud
+from .trajectory import Trajectory
 
 if TYPE_CHECKING:  # the selection (scipy, Patchwork++) loads only when a cloud needs it
     from ..selection import Selection
@@ -240,7 +241,8 @@ def _selects(names: Sequence[str], config: InputConfig, selection: SelectionConf
 
 
 def select_building_points(cloud: Cloud, config: InputConfig, selection: SelectionConfig | None = None,
-                           sensor: Sequence[float] | np.ndarray | None = None) -> BuildingPoints:
+                           sensor: Sequence[float] | np.ndarray | None = None,
+                           trajectory: Trajectory | None = None) -> BuildingPoints:
     """Keep the points whose class is one of ``config.building_classes``, or the selected ones.
 
     A cloud without the field ``config.class_field`` (or any cloud, with
@@ -259,6 +261,11 @@ def select_building_points(cloud: Cloud, config: InputConfig, selection: Selecti
             origins (one sweep, or a map scanned from about one place); every point takes
             it as its origin. Ignored when the cloud has origins. None: without origins
             the façades are turned outwards from their buildings' shapes.
+        trajectory: the sensor's path, for a cloud without sensor origins but with a
+            per-point ``time`` field (seconds, the trajectory's time base): each point's
+            origin is the path's position at its time (:mod:`.trajectory`; positions
+            georeferenced, the cloud's map origin is subtracted). Ignored when the cloud
+            has origins; not together with ``sensor``.
 
     Returns:
         The building points in input order, with their indices in ``cloud``, the building
@@ -271,12 +278,22 @@ def select_building_points(cloud: Cloud, config: InputConfig, selection: Selecti
             building or not (the message says how many); a class or building id field that
             is not integer-valued; no building point at all (the message lists the class
             values found and the configured ``building_classes``, or says that the
-            selection found no wall); ``sensor`` not three finite numbers.
+            selection found no wall); ``sensor`` not three finite numbers; ``trajectory``
+            with ``sensor``, for a cloud without a ``time`` field, or with point times
+            outside its span.
     """
     n = len(cloud)
     if n == 0:
         raise InputError('the input cloud has no points')
     origins = cloud.sensor_origins
+    if sensor is not None and trajectory is not None:
+        raise InputError('give the sensor a position or a trajectory, not both')
+    if origins is None and trajectory is not None:
+        times = cloud.get('time')
+        if times is None:
+            raise InputError(f'a trajectory gives sensor origins by each point\'s time, but the cloud has no '
+                             f'time field (fields: {", ".join(cloud.fields)})')
+        origins = trajectory.positions_at(times) - cloud.map_origin
     if origins is None and sensor is not None:
         position = np.asarray(sensor, dtype=np.float64)
         if position.shape != (3,) or not np.isfinite(position).all():
