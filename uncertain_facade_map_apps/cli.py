@@ -650,7 +650,7 @@ def build_parser() -> argparse.ArgumentParser:
                                     'near depth steps apart; a simulated scene is also scored against its exact '
                                     'truth. Prints a table per input, writes DIR/NAME.json and DIR/NAME.png.')
     bm.add_argument('inputs', nargs='*', metavar='INPUT', help='point clouds or bags, each benchmarked on its own')
-    bm.add_argument('--scene', choices=('street', 'small', 'zurich'),
+    bm.add_argument('--scene', choices=tuple(SCENES),
                     help='simulate this scene (campaign 0) instead and score against its exact truth too')
     bm.add_argument('--holdout', type=float, default=0.5, help='random share of points held out (default 0.5)')
     bm.add_argument('--seed', type=int, default=0, help='seed of the hold-out, the wall pick and the scene (default 0)')
