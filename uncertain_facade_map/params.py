@@ -507,6 +507,10 @@ class NodeConfig(Section):
     pose_tolerance: float = param(0.05, 'a cloud in another frame is mapped with the sensor pose nearest its stamp '
                                         'if closer than this', unit='s', allowed=_closed(0.0, 3600.0))
     pose_buffer: int = param(1000, 'sensor poses kept for clouds in another frame', allowed=_closed(1, 1_000_000))
+    max_coordinate: float = param(100_000.0, 'a cloud with a point (after its pose), or a pose, farther than this '
+                                             'from the map origin in x, y or z is refused: no street is that big, '
+                                             'a corrupted cloud (wrong endianness, 1e30 m) is', unit='m',
+                                  allowed=_closed(1.0, 1e9))
 
 
 @dataclass(frozen=True)
@@ -532,6 +536,12 @@ class PublishConfig(Section):
     grid_z_max: float = param(2.0, "upper end of the 2D grid's height band, map frame", unit='m')
     diagnostics_period: float = param(1.0, 'diagnostics are published this often', unit='s',
                                       allowed=_closed(0.01, 3600.0))
+    diagnostics_window: float = param(60.0, 'the diagnostic level and last_error tell of the drops, rejections and '
+                                            'failures of this recent window, not of the whole run', unit='s',
+                                      allowed=_closed(1.0, 86400.0))
+    grid_max_cells: int = param(4_000_000, 'the 2D occupancy grid (topic and get_map) has at most this many cells: '
+                                           'a wider map is served at 2, 4, 8... times grid_resolution, with a '
+                                           'warning', allowed=_closed(1, 1_000_000_000))
 
 
 @dataclass(frozen=True)

@@ -162,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
     std = np.sqrt(answers['variance'][on])
     print()
     print(f'demo done in {time.monotonic() - started:.0f} s; everything is in {out}/')
-    print(f'  drive    {bag} ({diag.get("clouds_in")} scans, {int(diag.get("points_in", 0)):,} building points)')
+    print(f'  drive    {bag} ({diag.get("clouds_received")} scans, {int(diag.get("points_mapped", 0)):,} building points)')
     print(f'  mapping  {diag.get("buildings")} buildings, {diag.get("facades")} façades; '
           f'{diag.get("clouds_dropped")} scans dropped; settled {settle_seconds:.0f} s after the replay')
     print(f'  queries  {n_query:,} points in {query_seconds:.2f} s: {on.mean():.0%} on a façade, surface std median '

@@ -19,16 +19,27 @@ Topics (names relative, remap with ``--ros-args -r``):
 Services: ``query_points`` (uncertain_facade_map/QueryPoints), ``get_facades``
 (uncertain_facade_map/GetFacades), ``save_map`` / ``load_map``
 (uncertain_facade_map/SaveMap, LoadMap), ``reset`` (std_srvs/Trigger) and ``get_map``
-(nav_msgs/GetMap, the 2D grid).
+(nav_msgs/GetMap, the 2D grid). Their names are relative: two mappers in one domain need
+namespaces (``--ros-args -r __ns:=/robot1``); the node warns when another node already
+offers one of its services under the same name. No exception escapes a callback: a
+failure is logged, counted (``callback_errors``) and answered as a failure.
+
+Input that cannot be right is refused and counted before it reaches the map: clouds with a
+coordinate beyond ``node.max_coordinate`` of the map origin (a corrupted cloud: 1e30 m, or
+data whose byte order differs from ``is_bigendian``, which the message then names), poses
+likewise; an update that fails anyway leaves the map as it was (the worker rolls back).
 """
 
 from __future__ import annotations
 
 import bisect
+import difflib
+import functools
 import threading
 import time
+from collections import deque
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
@@ -48,7 +59,7 @@ from msg_adapters import map_messages as mm
 from msg_adapters import parameters as mp_params
 from uncertain_facade_map.errors import FacadeMapError, InputError
 from uncertain_facade_map.io.inputs import select_scan_points
-from uncertain_facade_map.io.map_file import load_map, save_map
+from uncertain_facade_map.io.map_file import load_map, remove_stale_temporaries, save_map
 from uncertain_facade_map.mapping import products as mp
 from uncertain_facade_map.mapping.facade_map import FacadeMap
 from uncertain_facade_map.mapping.worker import Cloud, MapSnapshot, MapWorker, ReplaceMap
@@ -63,8 +74,14 @@ from uncertain_facade_map.params import (
 from uncertain_facade_map.pipeline.step7_queries import query_points
 from uncertain_facade_map.srv import GetFacades, LoadMap, QueryPoints, SaveMap
 
-#: Seconds a service waits for the map worker (save, load, reset) before answering "busy".
+#: Seconds a service waits for the map worker (load, reset) before answering "busy".
 COMMAND_TIMEOUT = 120.0
+#: Seconds after start when the node looks for other nodes offering its services.
+SERVICE_CHECK_DELAY = 3.0
+#: Parameters every rclpy node has, besides the declared ones.
+_BUILTIN_PARAMETERS = frozenset({'use_sim_time', 'start_type_description_service'})
+#: Kinds of event that make the diagnostic level WARN while they are recent.
+_WARN_EVENTS = ('dropped', 'rejected', 'failed', 'callback_error')
 
 
 def declare_config(node: Any) -> Config:
@@ -89,11 +106,60 @@ def declare_config(node: Any) -> Config:
             raise InputError(f'parameter {info.name}: {" ".join(str(exc).split())} '
                              f'(allowed: {info.spec.constraint_text() or "any " + info.type.__name__})') from exc
         values[info.name] = mp_params.parameter_value(node.get_parameter(info.name).value)
+    _refuse_unknown_overrides(node, set(values))
     return config_from_parameters(values)
+
+
+def _refuse_unknown_overrides(node: Any, declared: set[str]) -> None:
+    """Raise InputError for a ``-p`` or parameter-file override that names no parameter
+    (rclpy would ignore it silently), with the closest declared names."""
+    overrides = getattr(node, '_parameter_overrides', None) or {}
+    unknown = sorted(set(overrides) - declared - _BUILTIN_PARAMETERS)
+    if unknown:
+        name = unknown[0]
+        close = difflib.get_close_matches(name, sorted(declared), n=3, cutoff=0.6)
+        hint = f'; did you mean {" or ".join(close)}?' if close else ''
+        more = f' (and {", ".join(unknown[1:])})' if len(unknown) > 1 else ''
+        raise InputError(f'unknown parameter {name}{more}{hint}')
 
 
 def _stamp_ns(header: Any) -> int:
     return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+def _guarded(callback: Callable[..., Any]) -> Callable[..., Any]:
+    """No exception escapes ``callback`` (it would end the executor, and the node): it is
+    logged and counted, and a service answers ``success = False`` with the reason."""
+    @functools.wraps(callback)
+    def run(self: FacadeMapperNode, *args: Any) -> Any:
+        try:
+            return callback(self, *args)
+        except Exception as exc:  # noqa: BLE001 - the node must live on
+            self._event('callback_error', f'{callback.__name__} failed: {type(exc).__name__}: {exc}')
+            self.get_logger().error(f'{callback.__name__} failed: {type(exc).__name__}: {exc}',
+                                    throttle_duration_sec=5.0)
+            response = args[1] if len(args) == 2 else None
+            if response is not None and hasattr(response, 'success'):
+                response.success = False
+                if hasattr(response, 'message'):
+                    response.message = f'internal error: {type(exc).__name__}: {exc}'
+            return response
+    return run
+
+
+def _byte_order_hint(points: np.ndarray, msg: Any, bound: float) -> str:
+    """A note when the coordinates would lie within ``bound`` read in the other byte order."""
+    try:
+        swapped = np.stack([points[c].byteswap() for c in ('x', 'y', 'z')], axis=1).astype(np.float64)
+    except (TypeError, ValueError):
+        return ''
+    with np.errstate(all='ignore'):
+        plausible = np.isfinite(swapped).all(axis=1) & (np.abs(swapped) <= bound).all(axis=1)
+    if plausible.mean() < 0.9:
+        return ''
+    said = 'big' if msg.is_bigendian else 'little'
+    other = 'little' if msg.is_bigendian else 'big'
+    return f'; read as {other}-endian they would be plausible: is is_bigendian ({said}-endian) wrong?'
 
 
 class FacadeMapperNode(Node):
@@ -107,9 +173,13 @@ class FacadeMapperNode(Node):
         cfg = self.config
         self.params = map_params(cfg)
         self.frame_id = cfg.input.frame_id
-        self.counters = {'clouds_rejected': 0, 'points_nonfinite': 0, 'points_not_building': 0,
-                         'queries': 0, 'queries_failed': 0, 'saves': 0}
-        self.last_error = ''
+        self.counters = {'clouds_received': 0, 'points_received': 0, 'clouds_rejected': 0, 'points_rejected': 0,
+                         'clouds_no_building': 0, 'points_nonfinite': 0, 'points_not_building': 0,
+                         'clouds_missed_estimate': 0, 'poses_rejected': 0, 'queries': 0, 'queries_failed': 0,
+                         'saves': 0, 'callback_errors': 0}
+        self._count_lock = threading.Lock()
+        self._events: deque[tuple[float, str, str]] = deque(maxlen=1000)  # (monotonic, kind, text)
+        self._last_stamp: dict[str, tuple[int, deque[int]]] = {}  # frame -> (last stamp, recent periods)
         self._warned: dict[str, float] = {}
         self._poses: dict[str, tuple[list[int], list[tuple[np.ndarray, np.ndarray]]]] = {}
         self._pose_lock = threading.Lock()
@@ -118,7 +188,10 @@ class FacadeMapperNode(Node):
         self._saved_version = 0
         self._last_publish = 0.0
         self._publish_lock = threading.Lock()
+        self._save_lock = threading.Lock()
 
+        for stale in remove_stale_temporaries(cfg.persistence.map_path) if cfg.persistence.map_path else ():
+            self.get_logger().warning(f'removed {stale}, the temporary file of a save that did not finish')
         fmap = self._initial_map()
         self.worker = MapWorker(fmap, cfg.node.queue_size, on_error=self._cloud_failed, idle_flush=cfg.node.idle_flush,
                                on_flush=self._flushed)
@@ -153,6 +226,9 @@ class FacadeMapperNode(Node):
         if cfg.persistence.autosave_period > 0:
             self.create_timer(cfg.persistence.autosave_period, self.autosave_callback,
                               callback_group=MutuallyExclusiveCallbackGroup())
+        self._service_names = ('query_points', 'get_facades', 'save_map', 'load_map', 'reset', 'get_map')
+        self._service_check = self.create_timer(SERVICE_CHECK_DELAY, self.service_check_callback,
+                                                callback_group=MutuallyExclusiveCallbackGroup())
         snap = self.worker.snapshot
         self.get_logger().info(f'mapping clouds on "points" in frame "{self.frame_id}"; '
                                f'{len(snap.facades)} façades, {snap.points} points to start with')
@@ -184,22 +260,55 @@ class FacadeMapperNode(Node):
             self._warned[key] = now
             self.get_logger().warning(text)
 
-    def _reject(self, why: str) -> None:
+    def _event(self, kind: str, text: str) -> None:
+        """Remember a drop, rejection or failure for the diagnostics' recent window."""
+        self._events.append((time.monotonic(), kind, text))
+        if kind == 'callback_error':
+            with self._count_lock:
+                self.counters['callback_errors'] += 1
+
+    def _reject(self, why: str, points: int) -> None:
+        """Count a refused cloud of ``points`` points (the caller holds ``_count_lock``)."""
         self.counters['clouds_rejected'] += 1
-        self.last_error = why
+        self.counters['points_rejected'] += points
+        self._event('rejected', f'cloud rejected: {why}')
         self._warn(f'cloud rejected: {why}', why.split(':')[0][:30])
 
+    def _count_gap(self, frame: str, stamp: int) -> None:
+        """Estimate clouds lost before they reached the node from the gaps between stamps
+        (a gap of k typical periods, the median of the last 20, means k - 1 lost)."""
+        last, periods = self._last_stamp.get(frame, (None, deque(maxlen=20)))
+        if last is not None and stamp > last:
+            gap = stamp - last
+            if len(periods) >= 5:
+                typical = float(np.median(periods))
+                if typical > 0 and gap > 1.5 * typical:
+                    self.counters['clouds_missed_estimate'] += int(round(gap / typical)) - 1
+            periods.append(gap)
+        if last is None or stamp > last:
+            self._last_stamp[frame] = (stamp, periods)
+
+    def _reject_pose(self, why: str) -> None:
+        with self._count_lock:
+            self.counters['poses_rejected'] += 1
+        self._event('rejected', f'sensor_pose rejected: {why}')
+        self._warn(f'sensor_pose rejected: {why}', 'pose ' + why[:20])
+
+    @_guarded
     def pose_callback(self, msg: Any) -> None:
         """Keep the pose of a sensor frame in the map frame (for clouds in that frame)."""
         if msg.header.frame_id != self.frame_id:
-            self.get_logger().warning(f'sensor_pose in frame "{msg.header.frame_id}" ignored: '
-                                      f'poses must be given in the map frame "{self.frame_id}"',
-                                      throttle_duration_sec=5.0)
+            self._reject_pose(f'in frame "{msg.header.frame_id}": poses must be given in the map frame '
+                              f'"{self.frame_id}"')
             return
         try:
             rigid = mm.rigid_from_pose(msg)
         except (InputError, ValueError) as exc:
-            self.get_logger().warning(f'sensor_pose ignored: {exc}', throttle_duration_sec=5.0)
+            self._reject_pose(str(exc))
+            return
+        bound = self.config.node.max_coordinate
+        if not np.all(np.abs(rigid[1]) <= bound):
+            self._reject_pose(f'translation {rigid[1].tolist()} beyond node.max_coordinate = {bound:g} m')
             return
         with self._pose_lock:
             stamps, poses = self._poses.setdefault(msg.child_frame_id, ([], []))
@@ -222,62 +331,90 @@ class FacadeMapperNode(Node):
                 return None
             return poses[best]
 
+    @_guarded
     def points_callback(self, msg: Any) -> None:
-        """Check and convert a cloud, keep its building points, queue it for the worker."""
+        """Check and convert a cloud, keep its building points, queue it for the worker.
+
+        Every cloud is counted once: received, then rejected, mapped without building
+        points, or handed to the worker (which counts it mapped, dropped or failed).
+        """
+        with self._count_lock:  # the diagnostics read the counts between two clouds
+            n = int(msg.width) * int(msg.height)
+            self.counters['clouds_received'] += 1
+            self.counters['points_received'] += n
+            self._count_gap(msg.header.frame_id, _stamp_ns(msg.header))
+            why = self._map_cloud(msg, n)
+            if why is not None:
+                self._reject(why, n)
+
+    def _map_cloud(self, msg: Any, n: int) -> str | None:
+        """Queue a cloud's building points; returns why it was refused, or None."""
         cfg = self.config
-        n = int(msg.width) * int(msg.height)
         if n > cfg.node.max_cloud_points:
-            self._reject(f'{n:,} points, more than node.max_cloud_points = {cfg.node.max_cloud_points:,}')
-            return
+            return f'{n:,} points, more than node.max_cloud_points = {cfg.node.max_cloud_points:,}'
         if n == 0:
-            self._reject('empty cloud')
-            return
+            return 'empty cloud'
         frame = msg.header.frame_id
         stamp = _stamp_ns(msg.header)
         pose = None
         if frame != self.frame_id:
             pose = self._pose_for(frame, stamp)
             if pose is None:
-                self._reject(f'cloud in frame "{frame}", not the map frame "{self.frame_id}", and no '
-                             f'sensor_pose of "{frame}" within {cfg.node.pose_tolerance} s of its stamp')
-                return
+                return (f'cloud in frame "{frame}", not the map frame "{self.frame_id}", and no '
+                        f'sensor_pose of "{frame}" within {cfg.node.pose_tolerance} s of its stamp')
         try:
             points = ma.structured_from_pointcloud2(msg)
         except (InputError, ValueError, TypeError) as exc:
-            self._reject(str(exc))
-            return
+            return str(exc)
+        names = points.dtype.names or ()
+        if cfg.input.class_field not in names and all(c in names for c in ('x', 'y', 'z')):
+            what = ('its building points are selected (selection.mode: auto)' if cfg.selection.mode != 'off'
+                    else 'every point is taken as building (selection.mode: off)')
+            self._warn(f'a cloud has no field "{cfg.input.class_field}" (input.class_field; fields: '
+                       f'{", ".join(names)}): {what}', 'class field', period=60.0)
         try:
             # A cloud in another frame than the map's is in its sensor's (or vehicle's) frame.
             scan = select_scan_points(points, cfg.input, cfg.selection, None if pose is None else np.zeros(3))
         except InputError as exc:
-            self._reject(str(exc))
-            return
-        self.counters['points_not_building'] += scan.not_building
-        if scan.nonfinite:
-            self.counters['points_nonfinite'] += scan.nonfinite
-            self._warn(f'{scan.nonfinite} of {n} points with NaN or infinite coordinates skipped', 'nonfinite')
-        if not len(scan.xyz):
-            return
+            return str(exc)
         xyz, ids, origins = scan.xyz, scan.building_id, scan.sensor_origins
-        if pose is not None:
+        if pose is not None and len(xyz):
             rotation, translation = pose
             xyz = mm.transform_points(xyz, rotation, translation)
             origins = (mm.transform_points(origins, rotation, translation) if origins is not None
                        else np.broadcast_to(translation, xyz.shape).copy())
+        bound = cfg.node.max_coordinate
+        far = ~(np.abs(xyz) <= bound).all(axis=1)
+        if far.any():
+            example = xyz[np.flatnonzero(far)[0]].tolist()
+            return (f'{int(far.sum()):,} of {n:,} points lie beyond node.max_coordinate = {bound:g} m of the map '
+                    f'origin, e.g. {example}{_byte_order_hint(points, msg, bound)}')
+        self.counters['points_not_building'] += scan.not_building
+        if scan.nonfinite:
+            self.counters['points_nonfinite'] += scan.nonfinite
+            self._warn(f'{scan.nonfinite} of {n} points with NaN or infinite coordinates skipped', 'nonfinite')
+        if not len(xyz):
+            self.counters['clouds_no_building'] += 1
+            return None
         if not self.worker.put(Cloud(xyz, ids, origins, stamp)):
-            self.get_logger().warning('mapping falls behind: dropped the oldest waiting cloud '
-                                      f'({self.worker.counters["clouds_dropped"]} so far)',
+            dropped = self.worker.counters['clouds_dropped']
+            self._event('dropped', f'mapping falls behind: {dropped} clouds dropped so far')
+            self.get_logger().warning(f'mapping falls behind: dropped the oldest waiting cloud ({dropped} so far; '
+                                      'a larger node.queue_size or update.batch_points may help)',
                                       throttle_duration_sec=5.0)
+        return None
 
     def _flushed(self, points: int, refitted: list[int]) -> None:
         self.get_logger().info(f'input idle: mapped the {points} points held back, fitted {len(refitted)} '
                                f'façades whole')
 
     def _cloud_failed(self, cloud: Cloud, exc: BaseException) -> None:
-        self.last_error = f'mapping failed: {exc}'
-        self.get_logger().error(f'a cloud of {len(cloud.xyz)} points could not be mapped: {exc}')
+        self._event('failed', f'mapping failed: {type(exc).__name__}: {exc}')
+        self.get_logger().error(f'a cloud of {len(cloud.xyz)} points could not be mapped, the map is left as it '
+                                f'was: {type(exc).__name__}: {exc}')
 
     # -- publishing ---------------------------------------------------------------------
+    @_guarded
     def publish_callback(self) -> None:
         """Publish the maps when the map changed and the period has passed."""
         snap = self.worker.snapshot
@@ -306,6 +443,10 @@ class FacadeMapperNode(Node):
                     mesh = mp.surface_mesh(facades, cfg.mesh_step)
                     self.pub_mesh.publish(mm.triangle_marker_array(mesh.vertices, mesh.triangles, mesh.std,
                                                                    mesh.facade, self.frame_id, stamp, self.types))
+                else:  # an empty map (after reset or load) clears the mesh a late subscriber gets
+                    self.pub_mesh.publish(mm.triangle_marker_array(np.empty((0, 3)), np.empty((0, 3), np.int64),
+                                                                   np.empty(0), np.empty(0, np.int64), self.frame_id,
+                                                                   stamp, self.types))
                 self.pub_grids.publish(mm.facade_grid_array(facades, self.frame_id, stamp, self.types))
                 band = snap.params.extraction
                 vox = mp.voxel_occupancy(facades, cfg.voxel_resolution, cfg.voxel_shell,
@@ -319,56 +460,118 @@ class FacadeMapperNode(Node):
                 grid = self._grid_msg(snap, stamp)
                 self.pub_grid.publish(grid)
             except FacadeMapError as exc:
-                self.last_error = f'publishing failed: {exc}'
-                self.get_logger().error(self.last_error, throttle_duration_sec=10.0)
+                self._event('failed', f'publishing failed: {exc}')
+                self.get_logger().error(f'publishing failed: {exc}', throttle_duration_sec=10.0)
             self._published_version = snap.version
             self._last_publish = time.monotonic()
             self.get_logger().debug(f'published map version {snap.version} in '
                                     f'{time.perf_counter() - started:.2f} s')
 
     def _grid_msg(self, snap: MapSnapshot, stamp: int) -> Any:
-        """The 2D occupancy grid of a snapshot (cached per version)."""
+        """The 2D occupancy grid of a snapshot (cached per version), at ``grid_resolution`` or,
+        for a map too wide for ``grid_max_cells`` cells, at the finest of 2, 4, 8, ... times it."""
         if self._grid is not None and self._grid[0] == snap.version:
             return self._grid[1]
         cfg = self.config.publish
         params = snap.params.extraction  # the map's own bands (a loaded map keeps its own)
+        p, origin, resolution = np.full((1, 1), np.nan), np.zeros(2), cfg.grid_resolution
         if snap.facades:
-            g = mp.height_band_grid(list(snap.facades), cfg.grid_resolution, cfg.grid_z_min, cfg.grid_z_max,
-                                    band_back=params.band_back, band_front=params.band_front)
-            p, origin = g.p, g.origin
-        else:
-            p, origin = np.full((1, 1), np.nan), np.zeros(2)
-        msg = mm.occupancy_grid_msg(p, origin, cfg.grid_resolution, self.frame_id, stamp, self.types,
-                                    z=cfg.grid_z_min)
+            for _ in range(40):
+                try:
+                    g = mp.height_band_grid(list(snap.facades), resolution, cfg.grid_z_min, cfg.grid_z_max,
+                                            band_back=params.band_back, band_front=params.band_front,
+                                            max_cells=cfg.grid_max_cells,
+                                            max_samples=max(50_000_000, 25 * cfg.grid_max_cells))
+                except InputError as exc:
+                    if 'more than max_' not in str(exc):
+                        raise
+                    resolution *= 2.0
+                    continue
+                p, origin = g.p, g.origin
+                break
+            if resolution != cfg.grid_resolution:
+                self._warn(f'the 2D grid of this map would have more than publish.grid_max_cells = '
+                           f'{cfg.grid_max_cells:,} cells at {cfg.grid_resolution:g} m: served at {resolution:g} m '
+                           f'({p.shape[1]} x {p.shape[0]} cells)', 'coarse grid', period=60.0)
+        msg = mm.occupancy_grid_msg(p, origin, resolution, self.frame_id, stamp, self.types, z=cfg.grid_z_min)
         self._grid = (snap.version, msg)
         return msg
 
+    def service_check_callback(self) -> None:
+        """Once, after start: warn when another node offers one of this node's services."""
+        self._service_check.cancel()
+        try:
+            mine = {self.resolve_service_name(n) for n in self._service_names}
+            me = (self.get_name(), self.get_namespace())
+            advice = ('clients may reach either node. Give each mapper its own namespace '
+                      '(--ros-args -r __ns:=/robot1) or remap the services')
+            nodes = self.get_node_names_and_namespaces()
+            if nodes.count(me) > 1:  # a twin: same name, hence the same services
+                self.get_logger().warning(f'another node is called {self.get_fully_qualified_name()} and offers '
+                                          f'the same services: {advice}')
+            for name, namespace in set(nodes) - {me}:
+                offered = {s for s, _ in self.get_service_names_and_types_by_node(name, namespace)}
+                shared = sorted(mine & offered)
+                if shared:
+                    full = namespace.rstrip('/') + '/' + name
+                    self.get_logger().warning(f'node {full} offers {", ".join(shared)} too: {advice}')
+        except Exception as exc:  # noqa: BLE001 - a check, not a duty
+            self.get_logger().debug(f'service check skipped: {exc}')
+
+    def accounts(self) -> dict[str, Any]:
+        """Clouds and points received, mapped, dropped, rejected, failed and waiting, read
+        at one moment so that they add up (``received = mapped + dropped + rejected + failed
+        + waiting``, for points also ``+ not_building + nonfinite``)."""
+        with self._count_lock:
+            c = dict(self.counters)
+            w = self.worker.accounts()
+        return {
+            'clouds_received': c['clouds_received'], 'clouds_mapped': w['clouds_mapped'] + c['clouds_no_building'],
+            'clouds_dropped': w['clouds_dropped'], 'clouds_rejected': c['clouds_rejected'],
+            'clouds_failed': w['clouds_failed'], 'clouds_waiting': w['clouds_waiting'],
+            'clouds_missed_estimate': c['clouds_missed_estimate'],
+            'points_received': c['points_received'], 'points_mapped': w['points_mapped'],
+            'points_not_building': c['points_not_building'], 'points_nonfinite': c['points_nonfinite'],
+            'points_dropped': w['points_dropped'], 'points_rejected': c['points_rejected'],
+            'points_failed': w['points_failed'], 'points_waiting': w['points_waiting'],
+            'points_pending': w['points_pending'], 'poses_rejected': c['poses_rejected'],
+            'flushes': w['flushes'], 'queries': c['queries'], 'queries_failed': c['queries_failed'],
+            'saves': c['saves'], 'callback_errors': c['callback_errors'],
+        }
+
+    @_guarded
     def diagnostics_callback(self) -> None:
-        """Publish the counters: points in, dropped, buildings, façades, update time."""
+        """Publish the accounts, the map's size, update time and latency, and a level that
+        tells of the recent window (``publish.diagnostics_window``)."""
         snap = self.worker.snapshot
-        w = self.worker.counters
-        values = {'clouds_in': w['clouds_in'], 'clouds_mapped': w['clouds_mapped'],
-                  'clouds_dropped': w['clouds_dropped'], 'clouds_failed': w['clouds_failed'],
-                  'flushes': w['flushes'],
-                  'clouds_rejected': self.counters['clouds_rejected'], 'clouds_queued': self.worker.queued,
-                  'points_in': w['points_in'], 'points_dropped': w['points_dropped'],
-                  'points_mapped': w['points_mapped'], 'points_pending': self.worker.pending_points,
-                  'settled': self.worker.settled, 'points_nonfinite': self.counters['points_nonfinite'],
-                  'points_not_building': self.counters['points_not_building'],
-                  'buildings': snap.buildings, 'facades': len(snap.facades), 'map_points': snap.points,
-                  'map_version': snap.version, 'last_update_seconds': round(self.worker.last_update_seconds, 4),
-                  'queries': self.counters['queries'], 'queries_failed': self.counters['queries_failed'],
-                  'last_error': self.last_error}
-        dropped = w['clouds_dropped'] or w['clouds_failed'] or self.counters['clouds_rejected']
-        level = 1 if dropped else 0
-        message = 'mapping' if not dropped else 'clouds dropped or rejected (see values)'
+        window = self.config.publish.diagnostics_window
+        now = time.monotonic()
+        recent = [(t, kind, text) for t, kind, text in list(self._events) if now - t <= window]
+        latencies = np.array(list(self.worker.latencies))
+        values = dict(self.accounts())
+        values.update({
+            'map_points': snap.points, 'buildings': snap.buildings, 'facades': len(snap.facades),
+            'map_version': snap.version, 'settled': self.worker.settled,
+            'last_update_seconds': round(self.worker.last_update_seconds, 4),
+            'latency_seconds': round(float(latencies[-1]), 3) if len(latencies) else 0.0,
+            'latency_p95_seconds': round(float(np.percentile(latencies, 95)), 3) if len(latencies) else 0.0,
+            'recent_window_seconds': window,
+            **{f'recent_{kind}': sum(1 for _, k, _ in recent if k == kind) for kind in _WARN_EVENTS},
+            'last_error': recent[-1][2] if recent else '',
+            'last_error_age_seconds': round(now - recent[-1][0], 1) if recent else -1,
+        })
+        level = 1 if recent else 0
+        message = ('mapping' if not recent else
+                   f'{len(recent)} drops, rejections or failures in the last {window:g} s (see values)')
         self.pub_diag.publish(mm.diagnostic_array(f'{NODE_NAME}: map', level, message, values, NODE_NAME,
                                                   self.get_clock().now().nanoseconds, self.types))
 
     # -- services -----------------------------------------------------------------------
+    @_guarded
     def query_callback(self, request: Any, response: Any) -> Any:
         """Answer a batch of 3D points from the latest snapshot (never waits for the worker)."""
-        self.counters['queries'] += 1
+        with self._count_lock:
+            self.counters['queries'] += 1
         try:
             xyz = mm.points_from_request(request, self.config.service.max_query_points)
             resolution = float(request.resolution) or self.config.query.resolution
@@ -380,11 +583,13 @@ class FacadeMapperNode(Node):
             mm.fill_query_response(response, answers, f'{len(xyz)} points, map version {snap.version}',
                                    msg_types=self.types)
         except FacadeMapError as exc:
-            self.counters['queries_failed'] += 1
+            with self._count_lock:
+                self.counters['queries_failed'] += 1
             response.success = False
             response.message = str(exc)
         return response
 
+    @_guarded
     def get_facades_callback(self, request: Any, response: Any) -> Any:
         """The façade models of one building (or all, building = -1)."""
         snap = self.worker.snapshot
@@ -400,29 +605,38 @@ class FacadeMapperNode(Node):
             raise InputError('no path given and the parameter persistence.map_path is empty')
         return path
 
-    def _save(self, path: str) -> int:
-        """Save in the worker (the map is consistent between clouds); returns the version."""
-        def work(fmap: FacadeMap) -> int:
-            save_map(fmap, path)
-            return self.worker.snapshot.version
-        version = self.worker.call(work, COMMAND_TIMEOUT, changes=False)
-        self._saved_version = version
-        self.counters['saves'] += 1
-        return version
+    def _save(self, path: str) -> tuple[int, int]:
+        """Save the map as it stands now, without waiting for the queue (the worker keeps a
+        clone after every cloud, which is written while it maps on); one save at a time.
 
+        Returns:
+            (map version saved, clouds waiting that the file does not hold).
+        """
+        with self._save_lock:
+            fmap, version, waiting = self.worker.committed()
+            save_map(fmap, path)
+            self._saved_version = version
+            with self._count_lock:
+                self.counters['saves'] += 1
+            return version, waiting
+
+    @_guarded
     def save_callback(self, request: Any, response: Any) -> Any:
-        """Save the map atomically (after the clouds received so far)."""
+        """Save the map atomically, at once: the clouds mapped so far and the points held
+        back; the message says how many received clouds still wait and are not in it."""
         try:
             path = self._path(request.path)
             if not Path(path).parent.exists():
                 raise InputError(f'folder {Path(path).parent} does not exist')
-            version = self._save(path)
+            version, waiting = self._save(path)
             response.success, response.path = True, str(path)
-            response.message = f'saved map version {version} to {path}'
-        except (FacadeMapError, OSError, TimeoutError) as exc:
+            response.message = (f'saved map version {version} to {path}'
+                                + (f'; {waiting} received clouds still wait and are not in it' if waiting else ''))
+        except (FacadeMapError, OSError) as exc:
             response.success, response.message = False, f'not saved: {exc}'
         return response
 
+    @_guarded
     def load_callback(self, request: Any, response: Any) -> Any:
         """Replace the map by a map file; a bad file leaves the current map as it is."""
         try:
@@ -435,6 +649,7 @@ class FacadeMapperNode(Node):
             response.success, response.message = False, f'not loaded: {exc}'
         return response
 
+    @_guarded
     def reset_callback(self, request: Any, response: Any) -> Any:
         """Start an empty map (clouds queued before the call are mapped first, then cleared)."""
         empty = FacadeMap(self.params, np.asarray(self.config.input.map_origin, dtype=np.float64))
@@ -445,23 +660,28 @@ class FacadeMapperNode(Node):
             response.success, response.message = False, str(exc)
         return response
 
+    @_guarded
     def get_map_callback(self, request: Any, response: Any) -> Any:
         """nav_msgs/GetMap: the 2D occupancy grid of the height band."""
         snap = self.worker.snapshot
         response.map = self._grid_msg(snap, snap.stamp_ns or self.get_clock().now().nanoseconds)
         return response
 
+    @_guarded
     def autosave_callback(self) -> None:
         """Save to persistence.map_path when the map changed since the last save."""
-        if not self.config.persistence.map_path or self.worker.snapshot.version == self._saved_version:
+        if not self.config.persistence.map_path or self.worker.committed()[1] == self._saved_version:
             return
         try:
             self._save(self.config.persistence.map_path)
-        except (FacadeMapError, OSError, TimeoutError) as exc:
-            self.last_error = f'autosave failed: {exc}'
-            self.get_logger().error(self.last_error, throttle_duration_sec=30.0)
+        except (FacadeMapError, OSError) as exc:
+            self._event('failed', f'autosave failed: {exc}')
+            self.get_logger().error(f'autosave failed: {exc}', throttle_duration_sec=30.0)
 
     def destroy_node(self) -> None:
+        waiting = self.worker.accounts()['clouds_waiting']
+        if waiting:
+            self.get_logger().warning(f'stopping: {waiting} received clouds were still waiting and are not mapped')
         self.worker.stop()
         super().destroy_node()
 

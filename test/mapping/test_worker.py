@@ -119,3 +119,78 @@ def test_map_scans_selects_in_scans_without_classes():
     summary = map_scans(fmap, [scan], InputConfig(), selection=SelectionConfig())
     assert summary.points == len(xyz) and summary.building_points == selected < 0.45 * len(xyz)
     assert summary.facades == 3
+
+
+def test_an_update_that_fails_half_way_leaves_the_map_as_it_was(monkeypatch):
+    """A linear-algebra failure inside the update of a building, after the points were
+    stored: the map goes back to what it was, the cloud counts as failed, and the next
+    clouds build the same map as if the bad one had never come."""
+    from uncertain_facade_map.mapping import facade_map as fm
+
+    params = MapParams(update=UpdateParams(batch_points=1))
+    errors = []
+    worker = MapWorker(FacadeMap(params), idle_flush=0, on_error=lambda c, e: errors.append(e))
+    offline = FacadeMap(params)
+    first = wall(400, seed=1)
+    worker.put(Cloud(first, np.zeros(400, np.int64)))
+    offline.add_points(first, np.zeros(400, np.int64), defer=True)
+    assert worker.wait_idle(30)
+    before = worker.snapshot
+
+    real = fm.FacadeMap._update_building
+
+    def broken(self, b, first_index):
+        real(self, b, first_index)
+        raise np.linalg.LinAlgError('Matrix is not positive definite')
+
+    monkeypatch.setattr(fm.FacadeMap, '_update_building', broken)
+    worker.put(Cloud(wall(300, seed=2, u0=3.0), np.zeros(300, np.int64)))
+    assert worker.wait_idle(30)
+    monkeypatch.setattr(fm.FacadeMap, '_update_building', real)
+    assert len(errors) == 1 and isinstance(errors[0], np.linalg.LinAlgError)
+    accounts = worker.accounts()
+    assert accounts['clouds_failed'] == 1 and accounts['points_failed'] == 300
+    assert worker.snapshot.version == before.version
+    fmap, version, waiting = worker.committed()
+    assert fmap.n_points == offline.n_points == 400 and version == before.version and waiting == 0
+
+    last = wall(400, seed=3, u0=1.0)
+    worker.put(Cloud(last, np.zeros(400, np.int64)))
+    offline.add_points(last, np.zeros(400, np.int64), defer=True)
+    assert worker.wait_idle(30)
+    snap = worker.snapshot
+    assert snap.points == offline.n_points == 800 and len(snap.facades) == len(offline.facades)
+    for a, b in zip(snap.facades, offline.facades):
+        np.testing.assert_array_equal(a.surface.mean, b.surface.mean)
+    worker.stop()
+
+
+def test_accounts_add_up_at_any_moment_and_latency_is_measured():
+    """Clouds in = mapped + dropped + failed + waiting (and points alike), read while the
+    worker is blocked, after drops, failures and held-back clouds; a held-back cloud gets
+    its latency when the batch update maps it."""
+    params = MapParams(update=UpdateParams(batch_points=600))
+    worker = MapWorker(FacadeMap(params), queue_size=3, idle_flush=0)
+    gate, started = threading.Event(), threading.Event()
+    threading.Thread(target=lambda: worker.call(lambda m: (started.set(), gate.wait(10)), changes=False)).start()
+    assert started.wait(5)
+
+    def balanced():
+        a = worker.accounts()
+        for kind in ('clouds', 'points'):
+            assert a[f'{kind}_in'] == sum(a[f'{kind}_{k}'] for k in ('mapped', 'dropped', 'failed', 'waiting')), a
+        return a
+
+    sizes = [200, 50, 300, 250, 400]
+    for i, n in enumerate(sizes):
+        worker.put(Cloud(wall(n, seed=i, u0=i), np.zeros(n, np.int64)))
+    worker.put(Cloud(np.full((7, 3), np.nan)))
+    a = balanced()
+    assert a['clouds_waiting'] == 3 and a['clouds_dropped'] == 3 and a['points_in'] == sum(sizes) + 7
+    gate.set()
+    assert worker.wait_idle(30)
+    a = balanced()
+    assert a['clouds_failed'] == 1 and a['points_failed'] == 7 and a['clouds_mapped'] == 2
+    assert a['points_mapped'] == 650 and a['points_pending'] == 0  # 250 + 400 >= 600: one update
+    assert len(worker.latencies) == 2 and all(t >= 0 for t in worker.latencies)
+    worker.stop()

@@ -334,7 +334,7 @@ def probe_points(fmap: FacadeMap, n: int = 3000) -> np.ndarray:
 # ------------------------------------------------------------------------------------------
 def test_every_scan_is_mapped_and_reported(client, mapped, scans):
     values = diagnostics(client)
-    assert int(values['clouds_in']) == len(scans)
+    assert int(values['clouds_received']) == len(scans)
     assert int(values['clouds_mapped']) == len(scans)
     assert int(values['clouds_dropped']) == 0 and int(values['clouds_failed']) == 0
     # One flush, after the stream: none in between (which would make another map).
@@ -470,6 +470,83 @@ def test_bad_queries_get_error_responses(client, mapped):
     assert mapped.alive()
 
 
+def assert_accounts_add_up(values: dict) -> None:
+    """received = mapped + dropped + rejected + failed + waiting, for clouds and points."""
+    v = {k: int(x) for k, x in values.items() if k.startswith(('clouds_', 'points_')) and x.lstrip('-').isdigit()}
+    assert v['clouds_received'] == sum(v[f'clouds_{k}'] for k in ('mapped', 'dropped', 'rejected', 'failed',
+                                                                   'waiting')), values
+    assert v['points_received'] == sum(v[f'points_{k}'] for k in ('mapped', 'not_building', 'nonfinite', 'dropped',
+                                                                   'rejected', 'failed', 'waiting')), values
+
+
+def test_absurd_and_byte_swapped_clouds_are_refused_and_the_map_unchanged(client, mapped, scans):
+    """A building cloud at 1e30 m, and one whose header says big-endian over little-endian
+    data, are refused with a reason (the second names is_bigendian): the map version and
+    every answer stay as they were, and the accounts add up."""
+    from geometry_msgs.msg import TransformStamped
+
+    from uncertain_facade_map.srv import QueryPoints
+
+    xyz = probe_points(offline_map(scans), 300)
+    before = answers_of(client.call(QueryPoints, 'query_points', query_request(xyz)))
+    start = diagnostics(client)
+    types = ma.rclpy_types()
+    good = ma.structured_from_pointcloud2(scans[5])[:2000].copy()
+    far = good.copy()
+    far['x'][::3] = 1e30
+    client.pub.publish(ma.pointcloud2_from_structured(far, stamp_ns=1, frame_id='map', msg_types=types))
+    swapped = ma.pointcloud2_from_structured(good, stamp_ns=2, frame_id='map', msg_types=types)
+    swapped.is_bigendian = True
+    client.pub.publish(swapped)
+    pose = TransformStamped()
+    pose.header.frame_id, pose.child_frame_id = 'map', 'far_sensor'
+    pose.transform.translation.x = 1e12
+    pose.transform.rotation.w = 1.0
+    client.pose_pub.publish(pose)
+    values = diagnostics(client, until=lambda v: int(v['clouds_rejected']) >= int(start['clouds_rejected']) + 2
+                         and int(v['poses_rejected']) >= int(start['poses_rejected']) + 1, timeout=60)
+    assert int(values['clouds_rejected']) == int(start['clouds_rejected']) + 2
+    assert int(values['points_rejected']) == int(start['points_rejected']) + 2 * len(good)
+    assert values['map_version'] == start['map_version'] and values['map_points'] == start['map_points']
+    assert values['last_error'] and float(values['last_error_age_seconds']) >= 0
+    assert_accounts_add_up(values)
+    assert_answers_equal(answers_of(client.call(QueryPoints, 'query_points', query_request(xyz))), before)
+    log = mapped.log.read_text()
+    assert 'beyond node.max_coordinate' in log and 'is_bigendian' in log and 'translation' in log
+    assert mapped.alive()
+
+
+def test_get_map_serves_a_map_of_any_width(client, mapped, workdir):
+    """Two small blocks 300 m apart in x and y: at 0.1 m the 2D grid would need 9 M cells,
+    more than publish.grid_max_cells; get_map answers a coarser grid instead of killing
+    the node."""
+    from nav_msgs.srv import GetMap
+
+    from uncertain_facade_map.srv import LoadMap, SaveMap
+
+    assert client.call(SaveMap, 'save_map', SaveMap.Request(path=str(workdir / 'before_wide.npz'))).success
+    rng = np.random.default_rng(4)
+    blocks = []
+    for x0 in (0.0, 300.0):
+        n = 3000
+        blocks.append(np.c_[x0 + rng.uniform(0, 8, n), x0 + rng.normal(0, 0.01, n), rng.uniform(0, 6, n)])
+    wide = FacadeMap(map_params(scenario_config()), np.zeros(3))
+    wide.add_points(np.vstack(blocks), np.repeat([0, 1], 3000))
+    save_map(wide, workdir / 'wide.npz')
+    try:
+        loaded = client.call(LoadMap, 'load_map', LoadMap.Request(path=str(workdir / 'wide.npz')))
+        assert loaded.success and loaded.facades == 2, loaded.message
+        got = client.call(GetMap, 'get_map', GetMap.Request())
+        info = got.map.info
+        assert info.width * info.height <= 4_000_000 and info.resolution >= 0.2
+        assert min(info.width, info.height) * info.resolution > 300 and len(got.map.data) == info.width * info.height
+        assert (np.asarray(got.map.data) == 100).any()
+        assert mapped.alive() and 'served at' in mapped.log.read_text()
+    finally:
+        restored = client.call(LoadMap, 'load_map', LoadMap.Request(path=str(workdir / 'before_wide.npz')))
+        assert restored.success, restored.message
+
+
 def test_clouds_in_a_sensor_frame_are_moved_by_its_pose(client, mapped, scans):
     from geometry_msgs.msg import TransformStamped
 
@@ -545,6 +622,7 @@ def test_a_cloud_without_classes_is_mapped_as_its_selected_points(client, mapped
     answer = answers_of(client.call(QueryPoints, 'query_points', query_request(probe)))
     on = answer['facade'] >= 0
     assert on.mean() > 0.9 and np.median(np.abs(answer['signed_distance'][on])) < 0.05
+    assert 'has no field "class"' in mapped.log.read_text()  # said, not silent
     # The later tests compare the node's map with the street drive's alone.
     assert client.call(LoadMap, 'load_map', LoadMap.Request(path=str(before))).success
 
@@ -600,6 +678,13 @@ def test_save_reset_load_and_restart_answer_the_same(client, mapped, env, workdi
     assert client.call(Trigger, 'reset', Trigger.Request()).success
     empty = answers_of(client.call(QueryPoints, 'query_points', query_request(xyz)))
     assert np.all(empty['facade'] == -1) and np.all(empty['p_occupied'] == 0.5)
+    # A late subscriber gets no old mesh: only the marker that deletes all.
+    from visualization_msgs.msg import MarkerArray
+
+    deadline = time.monotonic() + 30
+    while len(client.wait_for_message(MarkerArray, 'surface_mesh').markers) != 1:
+        assert time.monotonic() < deadline, 'the old surface mesh is still published after reset'
+        time.sleep(1.0)
     loaded = client.call(LoadMap, 'load_map', LoadMap.Request(path=str(workdir / 'kept.npz')))
     assert loaded.success and loaded.facades == len(offline.facades)
     assert_answers_equal(answers_of(client.call(QueryPoints, 'query_points', query_request(xyz))), before)
@@ -641,3 +726,63 @@ def test_autosave_keeps_the_map_up_to_date(client, env, workdir, scans):
         assert_answers_equal(query_points(fmap.facades, xyz, 0.1, *band).as_dict(), expected)
     finally:
         node.stop()
+
+
+def test_saves_do_not_wait_for_the_queue_and_files_are_clean(client, env, workdir, scans):
+    """A stale temporary file of a killed save is removed at start; a save under load
+    answers at once with the map as it stands and says how many clouds still wait; the
+    file gets the process's umask, not 0600."""
+    from uncertain_facade_map.srv import SaveMap
+
+    path = workdir / 'busy.npz'
+    stale = workdir / '.busy.npz.abcd1234.tmp'
+    stale.write_bytes(b'half a map')
+    node = NodeProcess(node_config(workdir, **{'persistence.map_path': str(path), 'node.idle_flush': 30.0}), env,
+                       workdir / 'busy.log')
+    try:
+        node.wait_ready(client)
+        assert not stale.exists() and 'removed' in node.log.read_text()
+        for msg in scans:
+            client.pub.publish(msg)
+        diagnostics(client, until=lambda v: int(v['map_version']) >= 1, timeout=120)
+        started = time.monotonic()
+        saved = client.call(SaveMap, 'save_map', SaveMap.Request(path=''))
+        took = time.monotonic() - started
+        values = diagnostics(client)
+        assert saved.success, saved.message
+        assert took < 10.0, f'the save waited {took:.1f} s'
+        if int(values['clouds_waiting']) > 0:
+            assert 'still wait' in saved.message
+        umask = os.umask(0)
+        os.umask(umask)
+        assert (path.stat().st_mode & 0o777) == (0o666 & ~umask)
+        assert load_map(path).n_points > 0
+        assert_accounts_add_up(diagnostics(client, until=lambda v: v['clouds_waiting'] == '0', timeout=300))
+    finally:
+        node.stop()
+
+
+def test_a_second_mapper_is_warned_of_and_a_misspelt_parameter_refused(client, env, workdir):
+    """Two mappers in one domain without namespaces: the second says that the first offers
+    its services too. A misspelt parameter stops the node with one line naming it."""
+    first = NodeProcess(node_config(workdir), env, workdir / 'first.log')
+    second = None
+    try:
+        first.wait_ready(client)
+        second = NodeProcess(node_config(workdir), env, workdir / 'second.log')
+        deadline = time.monotonic() + 60
+        while 'same services' not in second.log.read_text():
+            assert second.alive() and time.monotonic() < deadline, second.log.read_text()
+            time.sleep(0.5)
+        assert '__ns:=' in second.log.read_text()
+    finally:
+        for node in (first, second):
+            if node is not None:
+                node.stop()
+    params = workdir / 'misspelt.yaml'
+    params.write_text('facade_mapper:\n  ros__parameters:\n    node:\n      queu_size: 5\n')
+    run = subprocess.run([sys.executable, '-m', 'uncertain_facade_map_node.node', '--ros-args', '--params-file',
+                          str(params)], env=env, cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert run.returncode == 2
+    assert 'unknown parameter node.queu_size; did you mean node.queue_size' in run.stderr
+    assert 'Traceback' not in run.stderr + run.stdout

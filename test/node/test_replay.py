@@ -107,7 +107,7 @@ def test_publish_mode_reaches_a_node_and_gives_the_same_map(recording, tmp_path)
         assert done.returncode == 0, done.stderr
         assert f'published {len(scans)} scans' in done.stdout
         assert time.monotonic() - started > (scans[-1][0] - scans[0][0]) / 1e9 / 4 * 0.9  # the recorded timing
-        values = diagnostics(client, until=lambda v: int(v['clouds_in']) >= len(scans) and v['settled'] == 'True',
+        values = diagnostics(client, until=lambda v: int(v['clouds_received']) >= len(scans) and v['settled'] == 'True',
                              timeout=120)
         assert int(values['clouds_dropped']) == 0 and int(values['flushes']) == 1
         saved = client.call(SaveMap, 'save_map', SaveMap.Request(path=str(tmp_path / 'node.npz')))

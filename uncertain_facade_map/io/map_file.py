@@ -68,8 +68,51 @@ def _facade_arrays(f: FacadeModel) -> dict[str, np.ndarray]:
     }
 
 
+def _umask() -> int:
+    """The process's umask (read from /proc where it can be, without changing it)."""
+    try:
+        with open('/proc/self/status', encoding='ascii') as f:
+            for line in f:
+                if line.startswith('Umask:'):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)  # elsewhere: read by setting it (briefly)
+    os.umask(mask)
+    return mask
+
+
+def _temporary_name(path: Path) -> tuple[str, str]:
+    """(prefix, suffix) of the temporary files :func:`save_map` writes next to ``path``."""
+    return f'.{path.name}.', '.tmp'
+
+
+def remove_stale_temporaries(path: str | Path) -> list[Path]:
+    """Delete the temporary files that saves of ``path`` left behind (a process killed while
+    saving leaves one: ``.NAME.XXXXXXXX.tmp`` next to ``path``). Call it when no save of
+    ``path`` is running.
+
+    Returns:
+        The files deleted.
+    """
+    path = Path(path)
+    prefix, suffix = _temporary_name(path)
+    removed = []
+    if path.parent.is_dir():
+        for stale in path.parent.glob(f'{prefix}*{suffix}'):
+            try:
+                stale.unlink()
+                removed.append(stale)
+            except OSError:
+                pass
+    return removed
+
+
 def save_map(fmap: FacadeMap, path: str | Path) -> Path:
-    """Write the map atomically to ``path`` (conventionally ``*.npz``).
+    """Write the map atomically to ``path`` (conventionally ``*.npz``): into a temporary
+    file next to it, then renamed; the file gets the permissions the process's umask
+    allows (as ``open`` would give it). A failure deletes the temporary file; a kill
+    leaves it, for :func:`remove_stale_temporaries`.
 
     Returns:
         The path written.
@@ -110,9 +153,11 @@ def save_map(fmap: FacadeMap, path: str | Path) -> Path:
                 [p[1] if p[1] is not None else np.full(len(p[0]), -1, np.int64) for p in fmap.pending])
         if all(p[2] is not None for p in fmap.pending):
             arrays['pending/sensor_origins'] = np.vstack([p[2] for p in fmap.pending])
-    fd, tmp = tempfile.mkstemp(prefix=f'.{path.name}.', suffix='.tmp', dir=path.parent)
+    prefix, suffix = _temporary_name(path)
+    fd, tmp = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=path.parent)
     try:
         with os.fdopen(fd, 'wb') as fh:
+            os.fchmod(fh.fileno(), 0o666 & ~_umask())
             np.savez(fh, **arrays)
             fh.flush()
             os.fsync(fh.fileno())

@@ -20,10 +20,16 @@ every block); otherwise only the blocks whose extended block received a new trai
 point, and the cells whose facet changed, are recomputed (:func:`update_facade`), so the
 cost of an update follows the new data. Whole refits at geometric steps cost a bounded
 multiple of one batch build in all.
+
+**Copies for free** (:meth:`FacadeMap.clone`): an array the map holds is never written
+again; an update replaces it (and the frozen façade models) by new ones. A clone copies
+only the containers, so it is cheap, stays as it was while the original maps on, and can
+be saved from another thread or put back when an update fails (the live worker does both).
 """
 
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import dataclass, field
 from typing import Callable
@@ -116,6 +122,15 @@ class FacadeMap:
             self.pending.append((xyz, building_id, sensor_origins))
             return self._map_pending(progress)
         return self._add(xyz, building_id, sensor_origins, progress)
+
+    def clone(self) -> FacadeMap:
+        """A copy that later updates of either map do not change (the containers are copied,
+        the arrays and frozen models shared: the map never writes an array it holds)."""
+        new = copy.copy(self)
+        for name, value in vars(self).items():
+            if isinstance(value, (dict, list)):
+                setattr(new, name, copy.copy(value))
+        return new
 
     @property
     def n_pending(self) -> int:

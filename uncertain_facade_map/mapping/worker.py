@@ -12,7 +12,21 @@ counted (:attr:`MapWorker.counters`). Commands (save, load, reset, any function 
 :meth:`MapWorker.call`) are never dropped and run in order with the clouds.
 
 Readers never wait for the worker: after every change the worker publishes an immutable
-:class:`MapSnapshot` (the façade models are frozen), which queries read.
+:class:`MapSnapshot` (the façade models are frozen), which queries read, and after every
+cloud or command a clone of the whole map (:meth:`MapWorker.committed`, points held back
+included), which a save writes at once, without waiting for the queue.
+
+**Failures change nothing.** A cloud or command that raises leaves the map exactly as it
+was before it (the worker puts the clone back: an update that fails half way, in a
+linear-algebra routine say, cannot leave a half-updated map); the cloud is counted as
+failed and handed to ``on_error``.
+
+**Accounts** (:meth:`MapWorker.accounts`, read under the worker's lock so that they add
+up at any moment): ``clouds_in = clouds_mapped + clouds_dropped + clouds_failed +
+clouds_waiting`` (queued or being mapped), and the same for points. A cloud held back for
+the next batch update (``defer``) counts as mapped; its points are in ``points_pending``
+until the update. Latency is measured from a cloud's arrival (:meth:`MapWorker.put`) to
+the update that brings its points into the snapshot.
 """
 
 from __future__ import annotations
@@ -28,6 +42,9 @@ import numpy as np
 from ..datatypes import FacadeModel
 from ..params import MapParams
 from .facade_map import FacadeMap
+
+#: Clouds whose arrival-to-map latency :attr:`MapWorker.latencies` keeps.
+LATENCY_WINDOW = 200
 
 
 @dataclass(frozen=True)
@@ -63,12 +80,14 @@ class Cloud:
         building_id: (N,) int64 building ids (negative: none), or None.
         sensor_origins: (N, 3) sensor positions, metres, map frame, or None.
         stamp_ns: acquisition stamp, nanoseconds.
+        arrived: ``time.monotonic()`` when it was queued (set by :meth:`MapWorker.put`).
     """
 
     xyz: np.ndarray
     building_id: np.ndarray | None = None
     sensor_origins: np.ndarray | None = None
     stamp_ns: int = 0
+    arrived: float = 0.0
 
 
 @dataclass
@@ -87,7 +106,7 @@ class MapWorker:
         queue_size: clouds waiting at most (>= 1); see the module's drop policy.
         on_change: called in the worker thread with each new snapshot.
         on_error: called in the worker thread with (cloud, exception) when a cloud cannot
-            be mapped; the cloud is skipped and the map is left as it was.
+            be mapped; the cloud is skipped and the map is left exactly as it was.
         idle_flush: once no cloud has arrived for this many seconds (the drive paused or
             ended) and none waits, the points held back are mapped and the façades updated
             block by block are fitted whole (:meth:`FacadeMap.flush`); <= 0: never.
@@ -114,9 +133,16 @@ class MapWorker:
         self._last_cloud = time.monotonic()
         self._idle_since = time.monotonic()
         self.counters = {'clouds_in': 0, 'clouds_dropped': 0, 'clouds_mapped': 0, 'clouds_failed': 0,
-                         'points_in': 0, 'points_dropped': 0, 'points_mapped': 0, 'flushes': 0}
+                         'points_in': 0, 'points_dropped': 0, 'points_mapped': 0, 'points_failed': 0,
+                         'flushes': 0, 'commands_failed': 0}
         self.last_update_seconds = 0.0
         self.pending_points = fmap.n_pending
+        self._working: Cloud | None = None
+        self._held: list[float] = []  # arrival times of the clouds whose points are held back
+        #: Seconds from arrival to map of the latest clouds (newest last).
+        self.latencies: deque[float] = deque(maxlen=LATENCY_WINDOW)
+        self._committed = fmap.clone()
+        self._committed_version = 0
         self.snapshot = self._snapshot(0)
         self._thread = threading.Thread(target=self._run, name='map_worker', daemon=True)
         self._thread.start()
@@ -128,6 +154,7 @@ class MapWorker:
         Returns:
             False if the queue was full and the oldest waiting cloud was dropped.
         """
+        cloud.arrived = cloud.arrived or time.monotonic()
         with self._cond:
             self.counters['clouds_in'] += 1
             self.counters['points_in'] += len(cloud.xyz)
@@ -193,6 +220,33 @@ class MapWorker:
         """Clouds waiting."""
         return self._clouds
 
+    def accounts(self) -> dict[str, int]:
+        """The counters, read at one moment, with ``clouds_waiting`` and ``points_waiting``
+        (queued or being mapped): ``clouds_in = clouds_mapped + clouds_dropped +
+        clouds_failed + clouds_waiting``, the same for points; ``points_pending``: mapped
+        points held back for the next batch update."""
+        with self._cond:
+            out = dict(self.counters)
+            waiting = [c for c in self._queue if isinstance(c, Cloud)]
+            if self._working is not None:
+                waiting.append(self._working)
+            out['clouds_waiting'] = len(waiting)
+            out['points_waiting'] = int(sum(len(c.xyz) for c in waiting))
+            out['points_pending'] = self.pending_points
+            return out
+
+    def committed(self) -> tuple[FacadeMap, int, int]:
+        """The map after the last cloud or command, for saving it while the worker maps on.
+
+        Returns:
+            (map, version, clouds waiting): a clone nobody changes (save it, do not map
+            into it), the snapshot version it holds, and the clouds queued or being mapped
+            that it does not hold yet.
+        """
+        with self._cond:
+            waiting = self._clouds + (self._working is not None)
+            return self._committed, self._committed_version, waiting
+
     def stop(self, timeout: float | None = 10.0) -> None:
         """Stop after the current item; queued items are discarded."""
         with self._cond:
@@ -233,6 +287,7 @@ class MapWorker:
                 item = self._queue.popleft() if self._queue else _Command(self._flush)
                 if isinstance(item, Cloud):
                     self._clouds -= 1
+                    self._working = item
                 self._busy = True
             try:
                 if isinstance(item, Cloud):
@@ -243,12 +298,15 @@ class MapWorker:
                 with self._cond:
                     self.pending_points = self._fmap.n_pending
                     self._idle_since = time.monotonic()
+                    self._working = None
                     self._busy = False
                     self._cond.notify_all()
 
     def _flush(self, fmap: FacadeMap) -> tuple[Any, bool]:
+        started = time.perf_counter()
         pending = fmap.n_pending
         refitted = fmap.flush()
+        self.last_update_seconds = time.perf_counter() - started
         self.counters['flushes'] += 1
         if self._on_flush is not None:
             self._on_flush(pending, refitted)
@@ -258,24 +316,46 @@ class MapWorker:
         fmap = self._fmap
         return bool(fmap.pending) or any(f.fitted_points != len(f.point_index) for f in fmap.facades)
 
+    def _commit(self) -> None:
+        """Keep a clone of the map as it stands (the state a failure goes back to)."""
+        committed = self._fmap.clone()
+        with self._cond:
+            self._committed, self._committed_version = committed, self.snapshot.version
+
+    def _roll_back(self) -> None:
+        """Put the map back as it was after the last cloud or command."""
+        self._fmap = self._committed.clone()
+
+    def _mapped(self) -> None:
+        """The held-back clouds are in the map now: their latencies."""
+        now = time.monotonic()
+        self.latencies.extend(now - t for t in self._held)
+        self._held = []
+
     def _map_cloud(self, cloud: Cloud) -> None:
         started = time.perf_counter()
         try:
-            if not self._fmap.add_points(cloud.xyz, cloud.building_id, cloud.sensor_origins, defer=True):
-                self.counters['clouds_mapped'] += 1
-                self._stamp = max(self._stamp, int(cloud.stamp_ns))
-                return  # held back for the next update
+            updated = self._fmap.add_points(cloud.xyz, cloud.building_id, cloud.sensor_origins, defer=True)
         except Exception as exc:  # noqa: BLE001 - reported, the node keeps running
-            # add_points checks its input before changing the map; nothing was added.
-            self.counters['clouds_failed'] += 1
+            self._roll_back()
+            with self._cond:
+                self.counters['clouds_failed'] += 1
+                self.counters['points_failed'] += len(cloud.xyz)
+                self._working = None
             if self._on_error is not None:
                 self._on_error(cloud, exc)
             return
-        self.last_update_seconds = time.perf_counter() - started
-        self.counters['clouds_mapped'] += 1
-        self.counters['points_mapped'] += len(cloud.xyz)
+        with self._cond:
+            self.counters['clouds_mapped'] += 1
+            self.counters['points_mapped'] += len(cloud.xyz)
+            self._working = None
+        self._held.append(cloud.arrived or time.monotonic())
         self._stamp = max(self._stamp, int(cloud.stamp_ns))
-        self._publish()
+        if updated or not self._fmap.pending:  # an update ran: the held-back points are mapped
+            self.last_update_seconds = time.perf_counter() - started
+            self._mapped()
+            self._publish()
+        self._commit()
 
     def _run_command(self, command: _Command) -> None:
         try:
@@ -283,11 +363,17 @@ class MapWorker:
             if isinstance(result, ReplaceMap):
                 self._fmap = result.fmap
                 self._stamp = 0
+                self._held = []
                 result = result.result
             command.result = result
             if changes:
+                if not self._fmap.pending:
+                    self._mapped()
                 self._publish()
+            self._commit()
         except BaseException as exc:  # noqa: BLE001 - handed to the caller
+            self._roll_back()
+            self.counters['commands_failed'] += 1
             command.error = exc
         finally:
             command.done.set()
