@@ -379,6 +379,13 @@ class UpdateParams(Section):
                                       'scans fall all over a façade, so small batches would solve the same blocks '
                                       'again and again (100 000: about 3 s of the street drive; 3x the throughput '
                                       'of 20 000 there)', allowed=_closed(1, 1_000_000_000))
+    store_voxel: float = param(0.1, "a building's points are stored at most store_per_voxel per cubic voxel of this "
+                                    'side (map frame); a new point whose voxel is full is counted but not stored, so '
+                                    'driving the same street again no longer grows the stored map, nor the cost of '
+                                    'an update', unit='m', allowed=_closed(1e-3, 100.0))
+    store_per_voxel: int = param(4, '... this many points at most, the first to arrive (4 per 0.1 m voxel: a few '
+                                    'per cell of the 0.1 m surface raster, about 2x the density of one drive of the '
+                                    'street scene)', allowed=_closed(1, 1_000_000_000))
 
 
 @dataclass(frozen=True)

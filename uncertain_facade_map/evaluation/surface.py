@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..mapping.facade_map import FacadeMap
+from ..mapping.facade_map import FacadeMap, stored_mask
 from ..pipeline.step7_queries import assign_facades, surface_at
 from ..simulation.scene import Scene
 
@@ -92,13 +92,16 @@ def outlier_removal(fmap: FacadeMap, points: np.ndarray) -> tuple[int, int, int,
             (any non-zero code is an outlier: clutter, glass or mixed returns).
 
     Returns:
-        ``(outliers rejected, outliers, inliers rejected, inliers)``; rejected means on no
+        ``(outliers rejected, outliers, inliers rejected, inliers)`` over the points the map
+        stored (the others were thinned, ``update.store_voxel``); rejected means on no
         façade or removed by the outlier test (:meth:`FacadeMap.rejected`).
     """
     removed = total = false_alarms = inliers = 0
     for b in fmap.buildings:
         rejected = fmap.rejected(b)
-        outlier = points['gt_outlier'][points['building_id'] == b] != 0
+        mine = points[points['building_id'] == b]
+        stored = stored_mask(np.stack([mine['x'], mine['y'], mine['z']], 1).astype(np.float64), fmap.params)
+        outlier = mine['gt_outlier'][stored] != 0
         removed += int(rejected[outlier].sum())
         total += int(outlier.sum())
         false_alarms += int(rejected[~outlier].sum())

@@ -9,7 +9,8 @@ An open format any numpy (or any zip + .npy reader) can read, no pickle. It hold
   received but held back for the next update (live mapping);
 - per building ``b``: ``building/<b>/points``, ``building/<b>/normals`` and, if known,
   ``building/<b>/sensor_origins`` (kept so that a loaded map goes on mapping exactly as
-  the map that was saved would have).
+  the map that was saved would have); ``meta`` counts per building the points thinned
+  (counted, not stored: see ``update.store_voxel``), 0 when absent.
 
 Version 2 added what incremental mapping needs (per façade the wall's ``plane_extent``,
 the block grid's ``anchor`` and the points at the last whole fit; per building the point
@@ -133,6 +134,7 @@ def save_map(fmap: FacadeMap, path: str | Path) -> Path:
                      'fitted_points': f.fitted_points, 'relief_spacing': f.relief.spacing,
                      'stats': f.stats} for f in fmap.facades],
         'pool_checked': {str(b): int(n) for b, n in fmap.pool_checked.items()},
+        'thinned': {str(b): int(n) for b, n in fmap.thinned.items()},
     }
     arrays: dict[str, np.ndarray] = {'meta': np.array(json.dumps(meta))}
     for f in fmap.facades:
@@ -235,11 +237,12 @@ def _from_records(meta: dict, arrays: dict[str, np.ndarray]) -> FacadeMap:
     origins = {int(b): arrays.get(f'building/{b}/sensor_origins') for b in meta['buildings']}
     normals = {int(b): arrays[f'building/{b}/normals'] for b in meta['buildings']}
     pool = {int(b): int(n) for b, n in meta['pool_checked'].items()}
+    thinned = {int(b): int(n) for b, n in meta.get('thinned', {}).items()}  # absent before issue 13
     pending = []
     if 'pending/xyz' in arrays:
         pending.append((arrays['pending/xyz'], arrays.get('pending/building_id'), arrays.get('pending/sensor_origins')))
     return FacadeMap(params, np.asarray(meta['map_origin'], dtype=np.float64), facades, points, origins, normals,
-                     pool, pending=pending)
+                     pool, pending=pending, thinned=thinned)
 
 
 def _upgrade_1(meta: dict, arrays: dict[str, np.ndarray]) -> tuple[dict, dict]:

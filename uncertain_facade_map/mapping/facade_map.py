@@ -25,6 +25,15 @@ multiple of one batch build in all.
 again; an update replaces it (and the frozen façade models) by new ones. A clone copies
 only the containers, so it is cheap, stays as it was while the original maps on, and can
 be saved from another thread or put back when an update fails (the live worker does both).
+
+**Bounded memory** (:meth:`FacadeMap._thin`): a building stores at most
+``update.store_per_voxel`` points per cubic voxel of side ``update.store_voxel`` (map
+frame), the first to arrive; a new point whose voxel is full is counted
+(:attr:`FacadeMap.thinned`) but not stored, and goes no further. Driving the same street
+again therefore stops growing the stored points, the per-building arrays, the façades'
+point indices and the work of an update, once the voxels are full. The rule depends only on
+the order of the points, not on how they are cut into calls, so the live map (many calls)
+and the offline build (one call) store the same points.
 """
 
 from __future__ import annotations
@@ -76,6 +85,8 @@ class FacadeMap:
             ``updated_cells`` and ``seconds``.
         pending: points held back by ``add_points(..., defer=True)``, in arrival order:
             (xyz, building_id or None, sensor_origins or None) per call.
+        thinned: per building label, the number of its points counted but not stored
+            (their voxel of ``update.store_voxel`` already held ``update.store_per_voxel``).
     """
 
     params: MapParams = field(default_factory=MapParams)
@@ -87,6 +98,10 @@ class FacadeMap:
     pool_checked: dict[int, int] = field(default_factory=dict)
     last_update: dict = field(default_factory=dict)
     pending: list[tuple[np.ndarray, np.ndarray | None, np.ndarray | None]] = field(default_factory=list)
+    thinned: dict[int, int] = field(default_factory=dict)
+    #: Per building label, its occupied storage voxels: (V,) sorted int64 keys and (V,) int32
+    #: counts of stored points (rebuilt from ``points`` when missing, e.g. after loading).
+    _voxels: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, init=False, repr=False)
 
     def add_points(self, xyz: np.ndarray, building_id: np.ndarray | None = None,
                    sensor_origins: np.ndarray | None = None,
@@ -194,11 +209,17 @@ class FacadeMap:
         # Every building's points first: without sensor origins the others' points turn a
         # building's walls (``_context``), whichever building comes first.
         firsts = {}
+        thinned = 0
         for b in changed:
-            sel = labels == b
-            firsts[b] = self._append(b, xyz[sel], None if sensor_origins is None else sensor_origins[sel])
+            sel = np.flatnonzero(labels == b)
+            sel = sel[self._thin(b, xyz[sel])]
+            thinned += int((labels == b).sum()) - len(sel)
+            if len(sel) or b not in self.points:
+                firsts[b] = self._append(b, xyz[sel], None if sensor_origins is None else sensor_origins[sel])
+        self.last_update['thinned'] = thinned
         for done, b in enumerate(changed, 1):
-            self._update_building(b, firsts[b])
+            if b in firsts:  # nothing to do for a building whose new points were all thinned
+                self._update_building(b, firsts[b])
             if progress is not None:
                 progress(done, len(changed))
         self.last_update['buildings'] = changed
@@ -247,9 +268,65 @@ class FacadeMap:
         """Per building, the sorted keys of its occupied clustering cells (cached)."""
         cache = self.__dict__.setdefault('_cell_cache', {})
         for b, pts in self.points.items():
-            if cache.get(b, (None, -1))[1] != len(pts):
-                cache[b] = (np.unique(self._cell_keys(pts)), len(pts))
+            keys, n = cache.get(b, (np.empty(0, np.int64), 0))
+            if n != len(pts):
+                # Points are only appended: the cells of the new ones join the cached cells.
+                cache[b] = (np.union1d(keys, self._cell_keys(pts[n:])), len(pts))
         return {b: keys for b, (keys, _) in cache.items() if b in self.points}
+
+    def _voxel_keys(self, xyz: np.ndarray) -> np.ndarray:
+        """(N,) int64 keys of the storage voxels (side ``update.store_voxel``) of (N, 3) points,
+        metres, map frame: 21 bits per axis, so keys repeat only 2^21 voxels apart (105 km at
+        0.05 m), further than the points of one building lie."""
+        c = np.floor(xyz / self.params.update.store_voxel).astype(np.int64) & 0x1FFFFF
+        return (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
+
+    def _voxel_index(self, b: int) -> tuple[np.ndarray, np.ndarray]:
+        """Building ``b``'s (V,) sorted voxel keys and (V,) int32 counts of stored points."""
+        if b not in self._voxels:
+            pts = self.points.get(b)
+            if pts is None or not len(pts):
+                self._voxels[b] = (np.empty(0, np.int64), np.empty(0, np.int32))
+            else:
+                keys, counts = np.unique(self._voxel_keys(pts), return_counts=True)
+                self._voxels[b] = (keys, counts.astype(np.int32))
+        return self._voxels[b]
+
+    def _thin(self, b: int, xyz: np.ndarray) -> np.ndarray:
+        """(N,) bool over building ``b``'s new (N, 3) points (metres, map frame, arrival
+        order): stored, because fewer than ``update.store_per_voxel`` stored points or earlier
+        new points lie in its voxel. Records the stored ones in the voxel index and counts
+        the others in :attr:`thinned`. Costs O(N log N + V) for the building's V voxels."""
+        cap = self.params.update.store_per_voxel
+        keys = self._voxel_keys(xyz)
+        order = np.argsort(keys, kind='stable')  # stable: arrival order within a voxel
+        sk = keys[order]
+        first = np.empty(len(sk), dtype=bool)
+        first[:1] = True
+        first[1:] = sk[1:] != sk[:-1]
+        starts = np.flatnonzero(first)
+        group = np.cumsum(first) - 1
+        rank = np.arange(len(sk)) - starts[group]
+        uk = sk[starts]
+        vk, vc = self._voxel_index(b)
+        pos = np.searchsorted(vk, uk)
+        found = np.zeros(len(uk), dtype=bool)
+        if len(vk):
+            found = vk[np.minimum(pos, len(vk) - 1)] == uk
+        have = np.zeros(len(uk), dtype=np.int64)
+        have[found] = vc[pos[found]]
+        kept_sorted = have[group] + rank < cap
+        keep = np.empty(len(keys), dtype=bool)
+        keep[order] = kept_sorted
+        added = np.bincount(group, weights=kept_sorted, minlength=len(uk)).astype(np.int32)
+        vc = vc.copy()  # the index may be shared with a copy of the map
+        vc[pos[found]] += added[found]
+        new = ~found & (added > 0)
+        self._voxels[b] = (np.insert(vk, pos[new], uk[new]), np.insert(vc, pos[new], added[new]))
+        dropped = int(len(keys) - kept_sorted.sum())
+        if dropped:
+            self.thinned[b] = self.thinned.get(b, 0) + dropped
+        return keep
 
     def _append(self, b: int, xyz: np.ndarray, origins: np.ndarray | None) -> int:
         """Append a building's new points (and their normals); returns the first new index."""
@@ -428,8 +505,18 @@ class FacadeMap:
 
     @property
     def n_points(self) -> int:
-        """Number of building points in the map."""
+        """Number of building points mapped: stored plus thinned (counted, not stored)."""
+        return self.n_stored + self.n_thinned
+
+    @property
+    def n_stored(self) -> int:
+        """Number of building points stored (see ``update.store_voxel``)."""
         return int(sum(len(p) for p in self.points.values()))
+
+    @property
+    def n_thinned(self) -> int:
+        """Number of building points counted but not stored (their voxel was full)."""
+        return int(sum(self.thinned.values()))
 
 
 def _plane_corners_in(e: ExtractedFacade, frame: FacadeFrame) -> np.ndarray:
@@ -442,6 +529,12 @@ def _plane_corners_in(e: ExtractedFacade, frame: FacadeFrame) -> np.ndarray:
 def _union(a: tuple[float, float, float, float], b: tuple[float, float, float, float]
            ) -> tuple[float, float, float, float]:
     return (min(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), max(a[3], b[3]))
+
+
+def stored_mask(xyz: np.ndarray, params: MapParams) -> np.ndarray:
+    """(N,) bool: which of one building's (N, 3) points (metres, map frame, in arrival
+    order) a map with ``params`` stores, the others being thinned (``update.store_voxel``)."""
+    return FacadeMap(params)._thin(0, np.asarray(xyz, dtype=np.float64))
 
 
 def build_map(xyz: np.ndarray, building_id: np.ndarray | None = None, sensor_origins: np.ndarray | None = None,
