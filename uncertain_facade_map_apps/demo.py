@@ -132,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
         t_replayed = time.monotonic()
         print('      waiting for the map to settle', flush=True)
         deadline = time.monotonic() + 900
-        while loc.values.get('settled') != 'True' or int(loc.values.get('clouds_queued', 1)):
+        while loc.values.get('settled') != 'True' or int(loc.values.get('clouds_waiting', 1)):
             if node.poll() is not None:
                 raise RuntimeError(f'facade_mapper exited with {node.returncode}; see {out / "facade_mapper.log"}')
             if time.monotonic() > deadline:
