@@ -80,6 +80,8 @@ COMMAND_TIMEOUT = 120.0
 SERVICE_CHECK_DELAY = 3.0
 #: Parameters every rclpy node has, besides the declared ones.
 _BUILTIN_PARAMETERS = frozenset({'use_sim_time', 'start_type_description_service'})
+#: A sensor_pose whose quaternion's squared norm is further than this from 1 is refused (as tf2 does).
+QUATERNION_TOLERANCE = 0.01
 #: Kinds of event that make the diagnostic level WARN while they are recent.
 _WARN_EVENTS = ('dropped', 'rejected', 'failed', 'callback_error')
 
@@ -306,6 +308,11 @@ class FacadeMapperNode(Node):
         except (InputError, ValueError) as exc:
             self._reject_pose(str(exc))
             return
+        q = msg.transform.rotation
+        norm2 = float(q.x) ** 2 + float(q.y) ** 2 + float(q.z) ** 2 + float(q.w) ** 2
+        if abs(norm2 - 1.0) > QUATERNION_TOLERANCE:
+            self._reject_pose(f'its quaternion has norm {norm2 ** 0.5:.4g}, not 1: not a rotation')
+            return
         bound = self.config.node.max_coordinate
         if not np.all(np.abs(rigid[1]) <= bound):
             self._reject_pose(f'translation {rigid[1].tolist()} beyond node.max_coordinate = {bound:g} m')
@@ -389,6 +396,8 @@ class FacadeMapperNode(Node):
             example = xyz[np.flatnonzero(far)[0]].tolist()
             return (f'{int(far.sum()):,} of {n:,} points lie beyond node.max_coordinate = {bound:g} m of the map '
                     f'origin, e.g. {example}{_byte_order_hint(points, msg, bound)}')
+        if origins is not None and not (np.abs(origins) <= bound).all():
+            return f'sensor origins (origin_x/y/z) lie beyond node.max_coordinate = {bound:g} m of the map origin'
         self.counters['points_not_building'] += scan.not_building
         if scan.nonfinite:
             self.counters['points_nonfinite'] += scan.nonfinite
