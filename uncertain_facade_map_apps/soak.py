@@ -707,10 +707,9 @@ class QueryLoop(threading.Thread):
                 'p95_ms': round(1e3 * float(np.percentile(ok, 95)), 1) if ok else None}
 
 
-SAMPLE_KEYS = ('clouds_received', 'clouds_in', 'clouds_mapped', 'clouds_dropped', 'clouds_rejected',
-               'clouds_failed', 'clouds_waiting', 'clouds_queued', 'clouds_missed_estimate', 'points_received',
-               'points_in', 'points_mapped', 'points_pending', 'map_points', 'facades', 'map_version',
-               'last_update_seconds', 'latency_seconds', 'settled')
+#: Diagnostics kept in the samples: the counters, the map's size, the timings.
+SAMPLE_PREFIXES = ('clouds_', 'points_', 'poses_', 'latency', 'last_update', 'map_', 'facades', 'buildings',
+                   'settled', 'flushes', 'queries', 'callback_errors', 'saves')
 
 
 def take_sample(session: Session, t0: float, last: float, queries: QueryLoop, published: int) -> dict:
@@ -724,7 +723,7 @@ def take_sample(session: Session, t0: float, last: float, queries: QueryLoop, pu
               'published': published, 'queue': waiting, 'alive': session.node.alive(),
               'diagnostics_age_s': round(now - session.client.diag_time, 1) if session.client.diag_time else None,
               'query': queries.window(last, now)}
-    sample['counters'] = {k: values[k] for k in SAMPLE_KEYS if k in values}
+    sample['counters'] = {k: v for k, v in values.items() if k.startswith(SAMPLE_PREFIXES)}
     return sample
 
 
