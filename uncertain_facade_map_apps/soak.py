@@ -110,6 +110,7 @@ class Options:
     settle_timeout: float = 180.0
     start_timeout: float = 120.0
     huge_query: int = 0
+    fuzz_map_points: int = 300_000
     quiet: bool = False
 
 
@@ -167,6 +168,8 @@ def parse_args(argv: list[str] | None = None) -> Options:
                    help='seconds a fuzz cloud or pose may take to show in the counters')
     p.add_argument('--huge-query', type=int, default=0,
                    help='points of the over-limit query (0: service.max_query_points + 1)')
+    p.add_argument('--fuzz-map-points', type=int, default=d.fuzz_map_points,
+                   help='the fuzz cases run on a fresh node fed the start of the drive when the map is larger')
     p.add_argument('--quick', action='store_true', help='the quick version (about a minute)')
     p.add_argument('--quiet', action='store_true', help='no progress lines')
     a = p.parse_args(argv)
@@ -179,7 +182,8 @@ def parse_args(argv: list[str] | None = None) -> Options:
         p.error(f'unknown section in --sections {a.sections!r}')
     values = {k: getattr(a, k) for k in ('rate', 'points', 'minutes', 'kills', 'out', 'params', 'sample_period',
                                          'query_points', 'query_period', 'drive_seconds', 'seed', 'domain',
-                                         'drain_timeout', 'case_timeout', 'huge_query', 'quiet')}
+                                         'drain_timeout', 'case_timeout', 'huge_query', 'fuzz_map_points',
+                                         'quiet')}
     values['sections'] = sections
     values['cases'] = tuple(c.strip() for c in a.cases.split(',') if c.strip())
     values['overrides'] = tuple(a.overrides)
@@ -503,8 +507,9 @@ def counter(values: dict, key: str) -> tuple[int | None, str | None]:
 
 
 def settled(values: dict) -> bool:
+    """Nothing waits: no cloud queued or in work, no point held back, the map fitted whole."""
     waiting, _ = counter(values, 'clouds_waiting')
-    return values.get('settled', 'True') == 'True' and not waiting
+    return values.get('settled', 'True') == 'True' and not waiting and not as_int(values, 'points_pending')
 
 
 # ------------------------------------------------------------------------------------------
@@ -738,8 +743,8 @@ def run_soak(session: Session) -> dict:
               f'({opts.minutes * 60:.0f} s), node pid {node.pid}')
     queries = QueryLoop(session, probe_points(session.drive, opts.query_points, opts.seed + 1), opts.query_period)
     queries.start()
-    samples: list[dict] = []
     t0 = time.monotonic()
+    samples: list[dict] = [take_sample(session, t0, t0, queries, 0)]
     stamp0 = time.time_ns()
     last_sample = t0
     late = 0.0
@@ -938,19 +943,19 @@ def check_file(path: Path, old_digest: str | None) -> tuple[str, str]:
     return state, f'{len(fmap.facades)} façades, {fmap.n_points} points'
 
 
-def change_map(session: Session, timeout: float) -> dict | None:
-    """Publish one more cloud of the drive and wait until it is mapped and the map settled."""
+def feed(session: Session, clouds: int, timeout: float, attempts: int = 3) -> dict | None:
+    """Publish ``clouds`` more clouds of the drive, each again (the next one) until the node
+    counts it (a cloud published just after a restart may go to the dead node's subscription),
+    then wait until the map settled; its diagnostics, None on timeout."""
     assert session.client is not None
-    before = dict(session.client.diag_values)
-    points = session.next_clouds(1)[0]
-    session.publish(points)
-    received0, _ = counter(before, 'clouds_received')
-
-    def mapped(v: dict) -> bool:
-        received, _ = counter(v, 'clouds_received')
-        return (received or 0) > (received0 or 0) and settled(v)
-
-    return session.client.diagnostics(after=time.monotonic(), until=mapped, timeout=timeout)
+    for _ in range(clouds):
+        for _ in range(attempts):
+            before = dict(session.client.diag_values)
+            t = time.monotonic()
+            session.publish(session.next_clouds(1)[0])
+            if wait_counted(session, before, t, 10.0) is not None:
+                break
+    return session.wait_settled(timeout)
 
 
 def run_kills(session: Session) -> dict:
@@ -967,10 +972,7 @@ def run_kills(session: Session) -> dict:
     seeded = session.wait_settled(opts.settle_timeout)
     if seeded is not None and not as_int(seeded, 'facades'):
         say(opts, 'kills: the map is empty; mapping a few clouds first')
-        for points in session.next_clouds(3):
-            session.publish(points)
-            time.sleep(1.0 / opts.rate)
-    session.wait_settled(opts.settle_timeout)
+        feed(session, 3, opts.settle_timeout)
     calibration = calibrate_save(session, path)
     say(opts, f'kills: a whole save takes {calibration["seconds"]} s (write {calibration["write_seconds"]} s)')
     results = []
@@ -991,7 +993,7 @@ def run_kills(session: Session) -> dict:
 def one_kill(session: Session, path: Path, index: int) -> dict:
     """Change the map, kill during a save, check the file, restart on it, check tmp files and answers."""
     opts = session.opts
-    change_map(session, opts.settle_timeout)
+    feed(session, 1, opts.settle_timeout)
     # The map grew by one cloud since the last save: about as many bytes again.
     expected = path.stat().st_size if path.exists() else 1
     result: dict[str, Any] = {'index': index,
@@ -1009,12 +1011,14 @@ def one_kill(session: Session, path: Path, index: int) -> dict:
     result['tmp_after_restart'] = temporary_files(path)
     for name in result['tmp_after_restart']:  # each kill is judged on its own leftovers
         (path.parent / name).unlink(missing_ok=True)
-    answers, version, response = session.query(session.probe)
+    probe = map_probe(path, 500, opts.seed + index) if path.exists() else session.probe
+    answers, version, response = session.query(probe)
     result['version_after_restart'] = version
     if answers is None:
         result['exception'] = f'query_points failed: {getattr(response, "message", "no answer")}'
     elif path.exists():
-        result['answers_identical'] = same_answers(answers, offline_answers(path, session.probe))
+        result['answers_identical'] = same_answers(answers, offline_answers(path, probe))
+        result['probe_on_facades'] = int((answers['facade'] >= 0).sum())
     else:
         result['answers_identical'] = bool(np.all(answers['facade'] == -1))
     return result
@@ -1052,9 +1056,11 @@ class FuzzContext:
         self.folder = folder
         self.baseline = baseline
         drive = session.drive
-        part = drive[:max(1, len(drive) // 2)]
+        # Points of the part of the drive the node was fed: valid clouds of them repeat the map.
+        part = drive[:max(1, min(len(drive), session.next_cloud * session.opts.points))]
         building = part[part['class'] == 1]
         self.points = building[np.random.default_rng(session.opts.seed).choice(len(building), 500)]
+        self.probe = map_probe(baseline, 500, session.opts.seed)
         self._stamp = time.time_ns()
 
     def stamp(self) -> int:
@@ -1258,7 +1264,7 @@ def query_cases() -> list[Case]:
                                                                    resolution))
 
     def probe(ctx: FuzzContext, n: int = 100) -> np.ndarray:
-        return ctx.session.probe[:n]
+        return ctx.probe[:n]
 
     def huge(ctx: FuzzContext) -> dict:
         n = ctx.session.opts.huge_query or int(ctx.session.max_query_points) + 1
@@ -1537,15 +1543,14 @@ def run_fuzz(session: Session) -> dict:
     shutil.rmtree(folder, ignore_errors=True)
     folder.mkdir(parents=True)
     baseline = folder / 'baseline.npz'
-    if not session.alive():
-        session.start_node(tag='fuzz')
     ensure_map(session)
+    save_baseline(session, baseline)
     ctx = FuzzContext(session, folder, baseline)
-    ref = make_baseline(session, baseline)
+    ref = baseline_answers(session, ctx)
     cases = [c for c in fuzz_cases() if not opts.cases or c.name in opts.cases]
     say(opts, f'fuzz: {len(cases)} cases against a map of {ref["facades"]} façades '
               f'(version {ref["version"]}); {int((ref["answers"]["facade"] >= 0).sum())} of '
-              f'{len(session.probe)} probe points on a façade')
+              f'{len(ctx.probe)} probe points on a façade')
     results: dict[str, dict] = {}
     previous: dict | None = None
     for case in cases:
@@ -1563,32 +1568,52 @@ def run_fuzz(session: Session) -> dict:
 
 
 def ensure_map(session: Session) -> None:
-    """A map with façades to check against (feeds the drive when it is empty), settled."""
-    assert session.client is not None
-    values = session.wait_settled(session.opts.settle_timeout) or {}
-    tries = 0
-    while not as_int(values, 'facades') and tries < 3:
-        for points in session.next_clouds(3):
-            session.publish(points)
-            time.sleep(0.2)
-        values = session.wait_settled(session.opts.settle_timeout) or {}
-        tries += 1
+    """A settled map with façades, of at most ``fuzz_map_points`` points (each case that
+    changes the map costs a reload and a refit): the running node's, else a fresh node's
+    fed the start of the drive."""
+    opts = session.opts
+    values = (session.wait_settled(opts.settle_timeout) or {}) if session.alive() else {}
+    if values and 0 < (as_int(values, 'map_points') or 0) <= opts.fuzz_map_points and as_int(values, 'facades'):
+        return
+    if session.alive():
+        say(opts, f'fuzz: a fresh node on a map of the drive\'s start (not the {as_int(values, "map_points")} '
+                  f'points of the running one)')
+    session.start_node(tag='fuzz')
+    session.next_cloud = 0
+    clouds = max(2, math.ceil(min(len(session.drive), opts.fuzz_map_points // 2) / opts.points))
+    values = feed(session, clouds, opts.settle_timeout) or {}
+    if not as_int(values, 'facades'):
+        raise RuntimeError(f'no façades after {clouds} clouds of the drive: {values}')
 
 
-def make_baseline(session: Session, baseline: Path) -> dict:
-    """Save the node's map as the baseline and take its answers to the probe points."""
+def save_baseline(session: Session, baseline: Path) -> None:
+    """Save the node's map as the baseline of the fuzz cases."""
     from uncertain_facade_map.srv import SaveMap
 
     assert session.client is not None
     response = session.client.call(SaveMap, 'save_map', SaveMap.Request(path=str(baseline)), 300.0)
     if response is None or not response.success:
         raise RuntimeError(f'the baseline could not be saved: {getattr(response, "message", "no answer")}')
-    answers, version, _ = session.query(session.probe)
-    if answers is None:
-        raise RuntimeError('the node does not answer query_points')
+
+
+def baseline_answers(session: Session, ctx: FuzzContext) -> dict:
+    """The node's answers to the probe points and its map version, before any case."""
     from uncertain_facade_map.io.map_file import load_map
 
-    return {'answers': answers, 'version': version, 'facades': len(load_map(baseline).facades)}
+    answers, version, _ = session.query(ctx.probe)
+    if answers is None:
+        raise RuntimeError('the node does not answer query_points')
+    return {'answers': answers, 'version': version, 'facades': len(load_map(ctx.baseline).facades)}
+
+
+def map_probe(path: Path, n: int, seed: int = 0) -> np.ndarray:
+    """(n, 3) query points: points of the map file's buildings with 0.3 m of noise."""
+    from uncertain_facade_map.io.map_file import load_map
+
+    fmap = load_map(path)
+    rng = np.random.default_rng(seed)
+    pts = np.vstack(list(fmap.points.values()))
+    return pts[rng.choice(len(pts), n, replace=len(pts) < n)] + rng.normal(0.0, 0.3, (n, 3))
 
 
 def wait_counted(session: Session, before: dict, after: float, timeout: float) -> dict | None:
@@ -1631,7 +1656,7 @@ def run_case(session: Session, ctx: FuzzContext, case: Case, ref: dict) -> dict:
     if after is None:
         after = session.client.diagnostics(after=time.monotonic(), timeout=2.0 if node.alive() else 0.0)
     result['counters'] = counter_changes(before, after)
-    answers, version, response = session.query(session.probe) if node.alive() else (None, None, None)
+    answers, version, response = session.query(ctx.probe) if node.alive() else (None, None, None)
     result['alive'] = node.alive()
     if not result['alive']:
         result['exit_code'] = node.proc.returncode
@@ -1689,7 +1714,7 @@ def restore(session: Session, ctx: FuzzContext, ref: dict, result: dict) -> None
     if session.alive():
         session.client.call(LoadMap, 'load_map', LoadMap.Request(path=str(ctx.baseline)), 300.0)
         session.wait_settled(session.opts.settle_timeout)
-        answers, version, _ = session.query(session.probe)
+        answers, version, _ = session.query(ctx.probe)
     else:
         answers = version = None
     if not same_answers(answers, ref['answers']):
@@ -1699,7 +1724,7 @@ def restore(session: Session, ctx: FuzzContext, ref: dict, result: dict) -> None
         except NodeDied as exc:
             result['restore_error'] = str(exc)[:300]
             raise
-        answers, version, _ = session.query(session.probe)
+        answers, version, _ = session.query(ctx.probe)
         result['restarted_after'] = True
     ref['version'] = version
     result['restore_seconds'] = round(time.monotonic() - t, 2)
