@@ -2,6 +2,7 @@
 #   make demo    the main job: simulate the street drive, map it with the node, query, save, draw
 #   make test    run every test
 #   make bench   print throughput and peak memory of the hot paths
+#   make soak    the node's soak and fault suite (not in make test), report in output/soak
 #   make evaluate  the occupancy evaluation against the baselines, report in output/evaluation/$(SCENE)
 #   make benchmark-real  the surface benchmark on the real samples in ../shared/data/real (if present)
 PYTHON ?= python3
@@ -29,7 +30,7 @@ IFC_PTH   := $(VENV)/lib/python3.11/site-packages/uncertain_facade_map_interface
 IFC_STAMP := $(VENV)/.interfaces
 IFC_SRC   := CMakeLists.txt package.xml $(wildcard msg/*.msg) $(wildcard srv/*.srv)
 
-.PHONY: venv demo test bench evaluate benchmark-real lock clean
+.PHONY: venv demo test bench soak evaluate benchmark-real lock clean
 
 venv: $(STAMP) $(IFC_STAMP)
 
@@ -71,6 +72,17 @@ test: $(STAMP) $(IFC_STAMP)
 
 bench: $(STAMP) $(IFC_STAMP)
 	$(PY) -m uncertain_facade_map_apps.bench
+
+# The soak and fault suite of the node (issue 13): 10 minutes of 100 000-point clouds at 10 Hz,
+# 20 SIGKILLs during save_map, the fuzz cases; report.json, report.txt and soak.png in
+# $(SOAK_OUT). Other settings through SOAK_ARGS, e.g.
+#   make soak SOAK_ARGS='--minutes 2 --kills 5'
+# Exits non-zero when a property of the issue fails. Its one-minute version runs in make test
+# (test/node/test_soak.py).
+SOAK_OUT  ?= output/soak
+SOAK_ARGS ?=
+soak: $(STAMP) $(IFC_STAMP)
+	$(PY) -m uncertain_facade_map_apps.soak --out $(SOAK_OUT) $(SOAK_ARGS)
 
 # Simulates two drives of $(SCENE) (street, zurich or small), maps one with every method
 # and scores them against the other; writes output/evaluation/$(SCENE)/report.md.
