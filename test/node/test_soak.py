@@ -6,8 +6,10 @@ its own process with the default parameter file, faster diagnostics and idle flu
 soak, SIGKILLs during ``save_map`` with restarts on the saved file, and the quick share of the
 fuzz cases. Each property the issue asks for is one test, each fuzz case one parameter.
 
-The node is being fixed for issue 13 in parallel; what today's node does not yet do is marked
-``xfail(strict=False)`` case by case below (an XPASS once the fix is merged: then drop the mark).
+Against the node before issue 13's fixes, 2 properties (points adding up, temporary files
+after a killed save) and 7 fuzz cases (1e30 m and 1e300 m coordinates, 1e30 m origins, x
+read as INT32, a non-unit quaternion, a pose 1e30 m away, get_map on a map 200 m wide)
+failed.
 """
 
 from __future__ import annotations
@@ -27,28 +29,6 @@ from uncertain_facade_map_apps import soak  # noqa: E402
 PROPERTIES = ('soak_node_alive', 'soak_published_equals_received', 'soak_clouds_add_up', 'soak_points_add_up',
               'soak_queries_answered', 'kills_file_whole', 'kills_no_tmp_after_restart', 'kills_answers_identical',
               'kills_restarted')
-
-#: What the node does not do yet (issue 13 fixes under way).
-FAILING_PROPERTIES = {
-    'soak_points_add_up': 'points_mapped leaves out the points mapped by a flush; no points_received, '
-                          'points_waiting, points_rejected, points_failed yet',
-    'kills_no_tmp_after_restart': 'the temporary file of a save killed mid-write stays next to the map',
-}
-FAILING_CASES = {
-    'x_as_int32': 'x read as INT32 over float bytes (about 1e9 m) is mapped',
-    'coords_1e30': 'coordinates of 1e30 m are mapped',
-    'coords_f64_1e300': 'coordinates of 1e300 m are mapped',
-    'origins_1e30': 'sensor origins 1e30 m away are mapped',
-    'pose_non_unit_quaternion': 'a quaternion of norm 2 is normalised and the cloud in its frame mapped',
-    'pose_huge_translation': 'a pose 1e30 m away is taken and the cloud in its frame mapped',
-    'get_map_wide_200m': 'get_map raises (more than 4 000 000 cells) in the service callback: the node dies',
-}
-
-
-def _params(names, failing):
-    return [pytest.param(n, marks=pytest.mark.xfail(strict=False, reason=failing[n])) if n in failing else n
-            for n in names]
-
 
 @pytest.fixture(scope='module')
 def report(tmp_path_factory):
@@ -73,13 +53,13 @@ def test_the_full_fuzz_list_is_long_enough():
     assert set(soak.QUICK_CASES) <= {c.name for c in cases}
 
 
-@pytest.mark.parametrize('prop', _params(PROPERTIES, FAILING_PROPERTIES))
+@pytest.mark.parametrize('prop', PROPERTIES)
 def test_property(report, prop):
     details = {'soak': report['soak'].get('accounting'), 'kills': report['kills'].get('kills')}
     assert report['summary'].get(prop) is True, details[prop.split('_')[0]]
 
 
-@pytest.mark.parametrize('name', _params(soak.QUICK_CASES, FAILING_CASES))
+@pytest.mark.parametrize('name', soak.QUICK_CASES)
 def test_fuzz_case(report, name):
     case = report['fuzz']['cases'][name]
     assert case['passed'], f'{case["outcome"]}: {case.get("exception") or case.get("detail")}'
