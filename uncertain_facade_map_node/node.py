@@ -199,7 +199,7 @@ class FacadeMapperNode(Node):
             self.get_logger().warning(f'removed {stale}, the temporary file of a save that did not finish')
         fmap = self._initial_map()
         self.worker = MapWorker(fmap, cfg.node.queue_size, on_error=self._cloud_failed, idle_flush=cfg.node.idle_flush,
-                               on_flush=self._flushed)
+                               on_flush=self._flushed, on_flush_error=self._flush_failed)
 
         latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                              reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
@@ -421,6 +421,11 @@ class FacadeMapperNode(Node):
     def _flushed(self, points: int, refitted: list[int]) -> None:
         self.get_logger().info(f'input idle: mapped the {points} points held back, fitted {len(refitted)} '
                                f'façades whole')
+
+    def _flush_failed(self, exc: BaseException) -> None:
+        self._event('failed', f'idle flush failed: {type(exc).__name__}: {exc}')
+        self.get_logger().error(f'the idle flush failed, the map is left as it was: {type(exc).__name__}: {exc}',
+                                throttle_duration_sec=30.0)
 
     def _cloud_failed(self, cloud: Cloud, exc: BaseException) -> None:
         self._event('failed', f'mapping failed: {type(exc).__name__}: {exc}')

@@ -194,3 +194,27 @@ def test_accounts_add_up_at_any_moment_and_latency_is_measured():
     assert a['points_mapped'] == 650 and a['points_pending'] == 0  # 250 + 400 >= 600: one update
     assert len(worker.latencies) == 2 and all(t >= 0 for t in worker.latencies)
     worker.stop()
+
+
+def test_a_failed_idle_flush_is_reported_and_the_map_kept(monkeypatch):
+    """Nobody waits for the idle flush: its failure goes to on_flush_error and is counted;
+    the map keeps the points held back, as before the flush."""
+    from uncertain_facade_map.mapping import facade_map as fm
+
+    def broken(self, consolidate=True):
+        self.pending = []
+        raise np.linalg.LinAlgError('Matrix is not positive definite')
+
+    monkeypatch.setattr(fm.FacadeMap, 'flush', broken)
+    errors = []
+    params = MapParams(update=UpdateParams(batch_points=10_000))
+    worker = MapWorker(FacadeMap(params), idle_flush=0.2, on_flush_error=errors.append)
+    worker.put(Cloud(wall(300), np.zeros(300, np.int64)))
+    deadline = time.monotonic() + 30
+    while not errors:
+        assert time.monotonic() < deadline, 'the idle flush never ran'
+        time.sleep(0.05)
+    assert isinstance(errors[0], np.linalg.LinAlgError)
+    assert worker.counters['flushes_failed'] >= 1
+    assert worker.committed()[0].n_pending == 300 and worker.snapshot.points == 0
+    worker.stop()

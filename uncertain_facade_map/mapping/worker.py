@@ -110,12 +110,17 @@ class MapWorker:
         idle_flush: once no cloud has arrived for this many seconds (the drive paused or
             ended) and none waits, the points held back are mapped and the façades updated
             block by block are fitted whole (:meth:`FacadeMap.flush`); <= 0: never.
+        on_flush: called in the worker thread with (points held back, façades fitted
+            whole) after an idle flush.
+        on_flush_error: called in the worker thread with the exception when an idle flush
+            fails (the map is left as before it, and the flush is tried again when idle).
     """
 
     def __init__(self, fmap: FacadeMap, queue_size: int = 20,
                  on_change: Callable[[MapSnapshot], None] | None = None,
                  on_error: Callable[[Cloud, BaseException], None] | None = None, idle_flush: float = 1.0,
-                 on_flush: Callable[[int, list[int]], None] | None = None) -> None:
+                 on_flush: Callable[[int, list[int]], None] | None = None,
+                 on_flush_error: Callable[[BaseException], None] | None = None) -> None:
         if queue_size < 1:
             raise ValueError(f'queue_size must be >= 1, got {queue_size}')
         self._fmap = fmap
@@ -126,6 +131,8 @@ class MapWorker:
         self._on_change = on_change
         self._on_error = on_error
         self._on_flush = on_flush
+        self._on_flush_error = on_flush_error
+        self._idle_flush_fn = self._flush  # one bound method, to tell the idle flush's command
         self._stop = False
         self._busy = False
         self._stamp = 0
@@ -134,7 +141,7 @@ class MapWorker:
         self._idle_since = time.monotonic()
         self.counters = {'clouds_in': 0, 'clouds_dropped': 0, 'clouds_mapped': 0, 'clouds_failed': 0,
                          'points_in': 0, 'points_dropped': 0, 'points_mapped': 0, 'points_failed': 0,
-                         'flushes': 0, 'commands_failed': 0}
+                         'flushes': 0, 'flushes_failed': 0, 'commands_failed': 0}
         self.last_update_seconds = 0.0
         self.pending_points = fmap.n_pending
         self._working: Cloud | None = None
@@ -284,7 +291,7 @@ class MapWorker:
                 if self._stop:
                     return
                 # An empty queue here means the idle time passed: flush.
-                item = self._queue.popleft() if self._queue else _Command(self._flush)
+                item = self._queue.popleft() if self._queue else _Command(self._idle_flush_fn)
                 if isinstance(item, Cloud):
                     self._clouds -= 1
                     self._working = item
@@ -294,6 +301,10 @@ class MapWorker:
                     self._map_cloud(item)
                 else:
                     self._run_command(item)
+                    if item.fn == self._idle_flush_fn and item.error is not None:
+                        self.counters['flushes_failed'] += 1
+                        if self._on_flush_error is not None:  # nobody waits for this command
+                            self._on_flush_error(item.error)
             finally:
                 with self._cond:
                     self.pending_points = self._fmap.n_pending
