@@ -161,7 +161,7 @@ def parse_args(argv: list[str] | None = None) -> Options:
     p.add_argument('--cases', default='', help='comma-separated fuzz case names (default: all; --list-cases)')
     p.add_argument('--list-cases', action='store_true', help='print the fuzz cases and exit')
     p.add_argument('--seed', type=int, default=d.seed, help='seed of the kill moments and the noise')
-    p.add_argument('--domain', type=int, default=None, help='ROS_DOMAIN_ID (default: 200 + pid % 32)')
+    p.add_argument('--domain', type=int, default=None, help='ROS_DOMAIN_ID (default: 200 + pid %% 32)')
     p.add_argument('--drain-timeout', type=float, default=d.drain_timeout,
                    help='seconds to wait for the queue to empty after publishing')
     p.add_argument('--case-timeout', type=float, default=d.case_timeout,
