@@ -152,6 +152,16 @@ def test_build_selects_the_walls_of_a_cloud_without_classes(tmp_path, capsys):
     assert 'read     41,000 points (41,000 building)' in out and 'selected' not in out
 
 
+def street_walls() -> np.ndarray:
+    """(12000, 3) points of two 30 m x 9 m walls at y = -9 and y = 11 m (1 cm noise), metres."""
+    rng = np.random.default_rng(2)
+    walls = []
+    for y in (-9.0, 11.0):
+        u, z = rng.uniform(-15, 15, 6000), rng.uniform(0, 9, 6000)
+        walls.append(np.c_[u, y + rng.normal(0, 0.01, 6000), z])
+    return np.vstack(walls)
+
+
 def test_build_turns_the_facades_to_a_given_sensor(tmp_path, capsys):
     """Two walls across a street in one cloud without origins or building ids, as one real
     sweep in its vehicle frame: from the shape alone each looks like the back of the other;
@@ -160,12 +170,7 @@ def test_build_turns_the_facades_to_a_given_sensor(tmp_path, capsys):
     from uncertain_facade_map.io.map_file import load_map
     from uncertain_facade_map.io.ply import write_ply
 
-    rng = np.random.default_rng(2)
-    walls = []
-    for y in (-9.0, 11.0):
-        u, z = rng.uniform(-15, 15, 6000), rng.uniform(0, 9, 6000)
-        walls.append(np.c_[u, y + rng.normal(0, 0.01, 6000), z])
-    xyz = np.vstack(walls)
+    xyz = street_walls()
     pts = np.zeros(len(xyz), dtype=[('x', 'f8'), ('y', 'f8'), ('z', 'f8')])
     pts['x'], pts['y'], pts['z'] = xyz.T
     write_ply(tmp_path / 'sweep.ply', Cloud(pts))
@@ -190,12 +195,7 @@ def test_build_turns_the_facades_to_a_trajectory(tmp_path, capsys):
     from uncertain_facade_map.io.map_file import load_map
     from uncertain_facade_map.io.ply import write_ply
 
-    rng = np.random.default_rng(2)
-    walls = []
-    for y in (-9.0, 11.0):
-        u, z = rng.uniform(-15, 15, 6000), rng.uniform(0, 9, 6000)
-        walls.append(np.c_[u, y + rng.normal(0, 0.01, 6000), z])
-    xyz = np.vstack(walls)
+    xyz = street_walls()
     pts = np.zeros(len(xyz), dtype=[('x', 'f8'), ('y', 'f8'), ('z', 'f8'), ('time', 'f8')])
     pts['x'], pts['y'], pts['z'] = xyz.T
     pts['time'] = 100.0 + (xyz[:, 0] + 15) / 3  # seen as the vehicle passes at 3 m/s
