@@ -79,8 +79,10 @@ from uncertain_facade_map.srv import GetFacades, LoadMap, QueryPoints, SaveMap
 COMMAND_TIMEOUT = 120.0
 #: Seconds between the interpreter's thread switches in the node (Python's default: 0.005).
 SWITCH_INTERVAL = 0.0005
-#: Seconds after start when the node looks for other nodes offering its services.
+#: Seconds between the node's looks for other nodes offering its services, after start.
 SERVICE_CHECK_DELAY = 3.0
+#: How many looks (discovery may take several seconds; a warning ends them).
+SERVICE_CHECKS = 20
 #: Parameters every rclpy node has, besides the declared ones.
 _BUILTIN_PARAMETERS = frozenset({'use_sim_time', 'start_type_description_service'})
 #: A sensor_pose whose quaternion's squared norm is further than this from 1 is refused (as tf2 does).
@@ -517,8 +519,11 @@ class FacadeMapperNode(Node):
         return msg
 
     def service_check_callback(self) -> None:
-        """Once, after start: warn when another node offers one of this node's services."""
-        self._service_check.cancel()
+        """For the first minute after start: warn (once) when another node offers one of
+        this node's services."""
+        self._service_checks = getattr(self, '_service_checks', 0) + 1
+        if self._service_checks >= SERVICE_CHECKS:
+            self._service_check.cancel()
         try:
             mine = {self.resolve_service_name(n) for n in self._service_names}
             me = (self.get_name(), self.get_namespace())
@@ -526,12 +531,14 @@ class FacadeMapperNode(Node):
                       '(--ros-args -r __ns:=/robot1) or remap the services')
             nodes = self.get_node_names_and_namespaces()
             if nodes.count(me) > 1:  # a twin: same name, hence the same services
+                self._service_check.cancel()
                 self.get_logger().warning(f'another node is called {self.get_fully_qualified_name()} and offers '
                                           f'the same services: {advice}')
             for name, namespace in set(nodes) - {me}:
                 offered = {s for s, _ in self.get_service_names_and_types_by_node(name, namespace)}
                 shared = sorted(mine & offered)
                 if shared:
+                    self._service_check.cancel()
                     full = namespace.rstrip('/') + '/' + name
                     self.get_logger().warning(f'node {full} offers {", ".join(shared)} too: {advice}')
         except Exception as exc:  # noqa: BLE001 - a check, not a duty
