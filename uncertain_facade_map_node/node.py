@@ -497,19 +497,11 @@ class FacadeMapperNode(Node):
         params = snap.params.extraction  # the map's own bands (a loaded map keeps its own)
         p, origin, resolution = np.full((1, 1), np.nan), np.zeros(2), cfg.grid_resolution
         if snap.facades:
-            for _ in range(40):
-                try:
-                    g = mp.height_band_grid(list(snap.facades), resolution, cfg.grid_z_min, cfg.grid_z_max,
-                                            band_back=params.band_back, band_front=params.band_front,
-                                            max_cells=cfg.grid_max_cells,
-                                            max_samples=max(50_000_000, 25 * cfg.grid_max_cells))
-                except InputError as exc:
-                    if 'more than max_' not in str(exc):
-                        raise
-                    resolution *= 2.0
-                    continue
-                p, origin = g.p, g.origin
-                break
+            g = mp.height_band_grid(list(snap.facades), resolution, cfg.grid_z_min, cfg.grid_z_max,
+                                    band_back=params.band_back, band_front=params.band_front,
+                                    max_cells=cfg.grid_max_cells, max_samples=max(50_000_000, 25 * cfg.grid_max_cells),
+                                    coarsen=True)
+            p, origin, resolution = g.p, g.origin, g.resolution
             if resolution != cfg.grid_resolution:
                 self._warn(f'the 2D grid of this map would have more than publish.grid_max_cells = '
                            f'{cfg.grid_max_cells:,} cells at {cfg.grid_resolution:g} m: served at {resolution:g} m '

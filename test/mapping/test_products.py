@@ -349,6 +349,20 @@ def test_height_band_grid_bad_input(corner):
     assert empty.p.shape == (0, 0)
 
 
+def test_height_band_grid_coarsens_to_its_limits(corner):
+    """With coarsen, a grid over either limit is the one at the first doubled resolution
+    within both; coarsen cannot reach a limit no grid meets."""
+    facades, _, _ = corner
+    for limits in ({'max_cells': 1000}, {'max_samples': 1000}):
+        grid = height_band_grid(facades, 0.1, 0.5, 2.0, coarsen=True, **limits)
+        assert grid.resolution > 0.1 and np.log2(grid.resolution / 0.1) % 1 == 0
+        np.testing.assert_array_equal(grid.p, height_band_grid(facades, grid.resolution, 0.5, 2.0, **limits).p)
+        with pytest.raises(InputError):
+            height_band_grid(facades, grid.resolution / 2, 0.5, 2.0, **limits)
+    with pytest.raises(InputError, match='max_cells'):
+        height_band_grid(facades, 0.1, 0.5, 2.0, max_cells=1, coarsen=True)
+
+
 def test_height_band_grid_air_at_the_corner(corner):
     facades, _, _ = corner
     grid = height_band_grid(facades, 0.1, 0.5, 2.0)

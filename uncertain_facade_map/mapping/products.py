@@ -627,54 +627,21 @@ def _slab_corners(f: FacadeModel, band_back: float, band_front: float) -> np.nda
     return f.frame.to_world(np.array([[uu, vv, d] for uu in u for vv in v for d in (-band_back, band_front)]))
 
 
-def height_band_grid(facades: Sequence[FacadeModel], resolution: float, z_min: float, z_max: float, *,
-                     margin: float = 1.0, band_back: float = BAND_BACK, band_front: float = BAND_FRONT,
-                     max_cells: int = 4_000_000, max_samples: int = 50_000_000) -> OccupancyGrid2D:
-    """2D occupancy grid of the height band ``z_min..z_max`` (map frame z).
-
-    Cells are the voxel columns of :func:`voxel_occupancy` (side ``resolution``, cell
-    (row, col) centred at ``((i0 + col + 0.5), (j0 + row + 0.5)) * resolution``). The band is
-    sampled at the voxel layers that overlap it, centres ``(k + 0.5) * resolution``; a
-    cell's probability is the largest :func:`~uncertain_facade_map.pipeline.step7_queries.query_points` probability (voxel side
-    ``resolution``) over the layers whose centre some façade's band covers, NaN where none
-    is. So the cell the wall passes through and those behind it (up to ``band_back``) are
-    occupied, those in front (up to ``band_front``) free. The grid covers the map-frame xy
-    box of every façade's query region (raster times band) grown by ``margin`` and snapped
-    outwards to the cells; with no façades it is empty (0 x 0, origin 0).
+def _band_grid_cells(boxes: np.ndarray, resolution: float, z_min: float, z_max: float, margin: float,
+                     max_cells: int, max_samples: int
+                     ) -> tuple[np.ndarray, tuple[int, int], np.ndarray, np.ndarray, np.ndarray]:
+    """The cells of :func:`height_band_grid` at one resolution.
 
     Args:
-        facades: the façade models (``facades[i].facade_id == i``).
-        resolution: cell side and vertical sampling step, metres.
-        z_min: lower end of the band, metres, map frame.
-        z_max: upper end of the band, metres, map frame (> ``z_min``).
-        margin: unknown border around the façades' footprints, metres.
-        band_back: query band behind a plane, metres (the map's ``extraction.band_back``).
-        band_front: query band in front of it, metres (the map's ``extraction.band_front``).
-        max_cells: most cells (H * W) of the grid.
-        max_samples: most query points (columns a façade's query box reaches, times layers).
+        boxes: (F, 8, 3) map-frame corners of each façade's query box (:func:`_slab_corners`).
 
     Returns:
-        The grid: p (H, W) float64 in [0, 1] or NaN, row = y, column = x; origin (2,) of the
-        lower-left corner, metres, map frame.
+        i0 (2,) int64 index of the lower-left cell; the grid's (H, W); (L,) layer centres,
+        metres; rows and cols (C,) of the columns some façade's box reaches.
 
     Raises:
-        InputError: a non-positive resolution, ``z_max <= z_min``, non-finite bounds, a
-            negative margin, a bad band, more than ``max_cells`` cells or more than
-            ``max_samples`` query points.
+        InputError: more than ``max_cells`` cells or ``max_samples`` query points.
     """
-    resolution = _positive('resolution', resolution)
-    z_min, z_max = float(z_min), float(z_max)
-    if not (np.isfinite(z_min) and np.isfinite(z_max) and z_max > z_min):
-        raise InputError(f'the height band needs finite z_min < z_max, got {z_min}, {z_max}')
-    margin = float(margin)
-    if not (np.isfinite(margin) and margin >= 0):
-        raise InputError(f'margin must be >= 0, got {margin}')
-    band_back, band_front = _band(band_back, band_front)
-    max_cells = _limit('max_cells', max_cells)
-    max_samples = _limit('max_samples', max_samples)
-    if not len(facades):
-        return OccupancyGrid2D(np.empty((0, 0)), np.zeros(2), resolution, z_min, z_max)
-    boxes = np.stack([_slab_corners(f, band_back, band_front) for f in facades])  # (F, 8, 3)
     lo_xy = boxes[:, :, :2].min(axis=(0, 1))
     hi_xy = boxes[:, :, :2].max(axis=(0, 1))
     i0 = np.floor((lo_xy - margin) / resolution).astype(np.int64)
@@ -701,6 +668,76 @@ def height_band_grid(facades: Sequence[FacadeModel], resolution: float, z_min: f
         raise InputError(f'the height band grid would query {len(rows):,} columns x {len(layers)} layers, more than '
                          f'max_samples={max_samples:,}: coarsen the resolution {resolution:g} m by a factor of '
                          f'{factor:.2f} or more (to at least {resolution * factor:.3g} m) or narrow the band')
+    return i0, (height, width), layers, rows, cols
+
+
+#: Doublings of the resolution :func:`height_band_grid` tries with ``coarsen``.
+MAX_COARSENING = 40
+
+
+def height_band_grid(facades: Sequence[FacadeModel], resolution: float, z_min: float, z_max: float, *,
+                     margin: float = 1.0, band_back: float = BAND_BACK, band_front: float = BAND_FRONT,
+                     max_cells: int = 4_000_000, max_samples: int = 50_000_000,
+                     coarsen: bool = False) -> OccupancyGrid2D:
+    """2D occupancy grid of the height band ``z_min..z_max`` (map frame z).
+
+    Cells are the voxel columns of :func:`voxel_occupancy` (side ``resolution``, cell
+    (row, col) centred at ``((i0 + col + 0.5), (j0 + row + 0.5)) * resolution``). The band is
+    sampled at the voxel layers that overlap it, centres ``(k + 0.5) * resolution``; a
+    cell's probability is the largest :func:`~uncertain_facade_map.pipeline.step7_queries.query_points` probability (voxel side
+    ``resolution``) over the layers whose centre some façade's band covers, NaN where none
+    is. So the cell the wall passes through and those behind it (up to ``band_back``) are
+    occupied, those in front (up to ``band_front``) free. The grid covers the map-frame xy
+    box of every façade's query region (raster times band) grown by ``margin`` and snapped
+    outwards to the cells; with no façades it is empty (0 x 0, origin 0).
+
+    Args:
+        facades: the façade models (``facades[i].facade_id == i``).
+        resolution: cell side and vertical sampling step, metres.
+        z_min: lower end of the band, metres, map frame.
+        z_max: upper end of the band, metres, map frame (> ``z_min``).
+        margin: unknown border around the façades' footprints, metres.
+        band_back: query band behind a plane, metres (the map's ``extraction.band_back``).
+        band_front: query band in front of it, metres (the map's ``extraction.band_front``).
+        max_cells: most cells (H * W) of the grid.
+        max_samples: most query points (columns a façade's query box reaches, times layers).
+        coarsen: over either limit, try 2, 4, 8, ... times ``resolution`` (up to
+            :data:`MAX_COARSENING` doublings) instead of raising; the grid's
+            ``resolution`` says which was taken.
+
+    Returns:
+        The grid: p (H, W) float64 in [0, 1] or NaN, row = y, column = x; origin (2,) of the
+        lower-left corner, metres, map frame; its resolution.
+
+    Raises:
+        InputError: a non-positive resolution, ``z_max <= z_min``, non-finite bounds, a
+            negative margin, a bad band, more than ``max_cells`` cells or more than
+            ``max_samples`` query points (with ``coarsen``: still so after
+            :data:`MAX_COARSENING` doublings).
+    """
+    resolution = _positive('resolution', resolution)
+    z_min, z_max = float(z_min), float(z_max)
+    if not (np.isfinite(z_min) and np.isfinite(z_max) and z_max > z_min):
+        raise InputError(f'the height band needs finite z_min < z_max, got {z_min}, {z_max}')
+    margin = float(margin)
+    if not (np.isfinite(margin) and margin >= 0):
+        raise InputError(f'margin must be >= 0, got {margin}')
+    band_back, band_front = _band(band_back, band_front)
+    max_cells = _limit('max_cells', max_cells)
+    max_samples = _limit('max_samples', max_samples)
+    if not len(facades):
+        return OccupancyGrid2D(np.empty((0, 0)), np.zeros(2), resolution, z_min, z_max)
+    boxes = np.stack([_slab_corners(f, band_back, band_front) for f in facades])  # (F, 8, 3)
+    doublings = MAX_COARSENING if coarsen else 0
+    for doubling in range(doublings + 1):
+        try:
+            i0, shape, layers, rows, cols = _band_grid_cells(boxes, resolution, z_min, z_max, margin, max_cells,
+                                                             max_samples)
+            break
+        except InputError:
+            if doubling == doublings:
+                raise
+            resolution *= 2.0
     x = (i0[0] + cols + 0.5) * resolution
     y = (i0[1] + rows + 0.5) * resolution
     best = np.full(len(rows), -np.inf)
@@ -710,6 +747,6 @@ def height_band_grid(facades: Sequence[FacadeModel], resolution: float, z_min: f
         for z in layers:
             res = query_points(facades, np.c_[xy, np.full(len(xy), z)], resolution, band_back, band_front)
             best[part] = np.where(res.facade >= 0, np.maximum(best[part], res.p_occupied), best[part])
-    p = np.full((height, width), np.nan)
+    p = np.full(shape, np.nan)
     p[rows, cols] = np.where(np.isfinite(best), best, np.nan)
     return OccupancyGrid2D(p, i0 * resolution, resolution, z_min, z_max)
