@@ -234,6 +234,7 @@ class FacadeMapperNode(Node):
             self.create_timer(cfg.persistence.autosave_period, self.autosave_callback,
                               callback_group=MutuallyExclusiveCallbackGroup())
         self._service_names = ('query_points', 'get_facades', 'save_map', 'load_map', 'reset', 'get_map')
+        self._service_checks = 0
         self._service_check = self.create_timer(SERVICE_CHECK_DELAY, self.service_check_callback,
                                                 callback_group=MutuallyExclusiveCallbackGroup())
         snap = self.worker.snapshot
@@ -513,7 +514,7 @@ class FacadeMapperNode(Node):
     def service_check_callback(self) -> None:
         """For the first minute after start: warn (once) when another node offers one of
         this node's services."""
-        self._service_checks = getattr(self, '_service_checks', 0) + 1
+        self._service_checks += 1
         if self._service_checks >= SERVICE_CHECKS:
             self._service_check.cancel()
         try:

@@ -132,7 +132,6 @@ class MapWorker:
         self._on_error = on_error
         self._on_flush = on_flush
         self._on_flush_error = on_flush_error
-        self._idle_flush_fn = self._flush  # one bound method, to tell the idle flush's command
         self._stop = False
         self._busy = False
         self._stamp = 0
@@ -291,7 +290,8 @@ class MapWorker:
                 if self._stop:
                     return
                 # An empty queue here means the idle time passed: flush.
-                item = self._queue.popleft() if self._queue else _Command(self._idle_flush_fn)
+                idle_flush = not self._queue
+                item = _Command(self._flush) if idle_flush else self._queue.popleft()
                 if isinstance(item, Cloud):
                     self._clouds -= 1
                     self._working = item
@@ -301,7 +301,7 @@ class MapWorker:
                     self._map_cloud(item)
                 else:
                     self._run_command(item)
-                    if item.fn == self._idle_flush_fn and item.error is not None:
+                    if idle_flush and item.error is not None:
                         self.counters['flushes_failed'] += 1
                         if self._on_flush_error is not None:  # nobody waits for this command
                             self._on_flush_error(item.error)
