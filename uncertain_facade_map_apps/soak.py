@@ -50,7 +50,6 @@ import hashlib
 import json
 import math
 import os
-import queue
 import re
 import shutil
 import signal
@@ -64,6 +63,8 @@ from typing import Any, Callable
 
 import numpy as np
 
+from .ros_client import ANSWER_KEYS, SpinningClient, answers_of, query_request
+
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_PARAMS = ROOT / 'config' / 'facade_mapper.yaml'
 SECTIONS = ('soak', 'kills', 'fuzz')
@@ -74,8 +75,6 @@ ESTIMATE_TOLERANCE = 0.01
 #: The point fields of the published clouds (float32 coordinates, as drivers send them).
 CLOUD_DTYPE = np.dtype([('x', 'f4'), ('y', 'f4'), ('z', 'f4'), ('origin_x', 'f4'), ('origin_y', 'f4'),
                         ('origin_z', 'f4'), ('building_id', 'i4'), ('class', 'u1')])
-#: Answers compared between the node and the offline core (QueryPoints response fields).
-ANSWER_KEYS = ('facade', 'mean_depth', 'variance', 'noise_variance', 'signed_distance', 'p_occupied')
 #: Counters whose change shows that the node took an input in (new keys and today's).
 INPUT_COUNTERS = ('clouds_received', 'clouds_in', 'clouds_rejected', 'clouds_dropped', 'clouds_failed',
                   'clouds_mapped', 'points_nonfinite', 'points_not_building', 'poses_rejected')
@@ -329,23 +328,16 @@ def exception_text(log: str) -> str:
 # ------------------------------------------------------------------------------------------
 # This process's ROS side
 # ------------------------------------------------------------------------------------------
-class Client:
+class Client(SpinningClient):
     """Publishes clouds and poses, listens to /diagnostics, calls the node's services."""
 
     def __init__(self, domain: int) -> None:
-        import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import TransformStamped
-        from rclpy.executors import MultiThreadedExecutor
         from rclpy.qos import QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import PointCloud2
 
-        self.rclpy = rclpy
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context, domain_id=domain)
-        self.node = rclpy.create_node('soak_client', context=self.context)
-        self.executor = MultiThreadedExecutor(num_threads=3, context=self.context)
-        self.executor.add_node(self.node)
+        super().__init__('soak_client', domain, num_threads=3)
         reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
         self.pub = self.node.create_publisher(PointCloud2, 'points', reliable)
         self.pose_pub = self.node.create_publisher(TransformStamped, 'sensor_pose', 100)
@@ -358,29 +350,7 @@ class Client:
         self._clients_lock = threading.Lock()
         #: Whether the server still runs: a call gives up as soon as it does not.
         self.server_alive: Callable[[], bool] = lambda: True
-        self._stopping = False
-        self._between_turns: queue.SimpleQueue = queue.SimpleQueue()
-        self.thread = threading.Thread(target=self._spin, daemon=True, name='soak_client')
-        self.thread.start()
-
-    def _spin(self) -> None:
-        while not self._stopping and self.context.ok():
-            self.executor.spin_once(timeout_sec=0.05)
-            while True:
-                try:
-                    fn, future = self._between_turns.get_nowait()
-                except queue.Empty:
-                    break
-                try:
-                    future.set_result(fn())
-                except Exception as exc:  # noqa: BLE001 - handed to the waiting thread
-                    future.set_exception(exc)
-
-    def on_spin_thread(self, fn: Callable[[], Any], timeout: float = 30.0) -> Any:
-        """Run ``fn`` between two executor turns (entities must not change while it waits)."""
-        future: concurrent.futures.Future = concurrent.futures.Future()
-        self._between_turns.put((fn, future))
-        return future.result(timeout)
+        self._start()
 
     def _on_diagnostics(self, msg: Any) -> None:
         from uncertain_facade_map.params import NODE_NAME
@@ -434,28 +404,6 @@ class Client:
         with self._clients_lock:
             clients, self.clients = list(self.clients.values()), {}
         self.on_spin_thread(lambda: [self.node.destroy_client(c) for c in clients])
-
-    def close(self) -> None:
-        self._stopping = True
-        self.thread.join(5)
-        self.executor.shutdown()
-        self.node.destroy_node()
-        self.rclpy.shutdown(context=self.context)
-
-
-def query_request(xyz: np.ndarray, resolution: float = 0.0) -> Any:
-    from geometry_msgs.msg import Point
-
-    from uncertain_facade_map.srv import QueryPoints
-
-    request = QueryPoints.Request()
-    request.points = [Point(x=float(x), y=float(y), z=float(z)) for x, y, z in np.asarray(xyz, dtype=np.float64)]
-    request.resolution = float(resolution)
-    return request
-
-
-def answers_of(response: Any) -> dict[str, np.ndarray]:
-    return {k: np.asarray(getattr(response, k)) for k in ANSWER_KEYS}
 
 
 def same_answers(a: dict | None, b: dict | None) -> bool:

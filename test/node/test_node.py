@@ -9,9 +9,7 @@ the same queries.
 
 from __future__ import annotations
 
-import concurrent.futures
 import os
-import queue
 import signal
 import subprocess
 import sys
@@ -39,6 +37,7 @@ from uncertain_facade_map.params import (  # noqa: E402
 )
 from uncertain_facade_map.pipeline.step7_queries import query_points  # noqa: E402
 from uncertain_facade_map.simulation.export import split_scans  # noqa: E402
+from uncertain_facade_map_apps.ros_client import SpinningClient, answers_of, query_request  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 #: Seconds of the street drive published (the whole drive takes minutes to map incrementally).
@@ -107,55 +106,22 @@ class NodeProcess:
                 self.kill()
 
 
-class Client:
+class Client(SpinningClient):
     """A localisation node: publishes scans, subscribes to the maps, calls the services."""
 
     def __init__(self, domain: int) -> None:
         from geometry_msgs.msg import TransformStamped
-        from rclpy.executors import MultiThreadedExecutor
         from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import PointCloud2
 
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context, domain_id=domain)
-        self.node = rclpy.create_node('localisation_client', context=self.context)
-        self.executor = MultiThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
+        super().__init__('localisation_client', domain)
         reliable = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
         self.pub = self.node.create_publisher(PointCloud2, 'points', reliable)
         self.pose_pub = self.node.create_publisher(TransformStamped, 'sensor_pose', 100)
         self.latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                                   reliability=ReliabilityPolicy.RELIABLE)
         self.clients = {}
-        self.stopping = False
-        self._between_turns = queue.SimpleQueue()
-        self.thread = threading.Thread(target=self._spin, daemon=True)
-        self.thread.start()
-
-    def _spin(self):
-        # A short timeout: entities created between turns join the wait set at the next turn.
-        while not self.stopping and self.context.ok():
-            self.executor.spin_once(timeout_sec=0.05)
-            while True:
-                try:
-                    fn, future = self._between_turns.get_nowait()
-                except queue.Empty:
-                    break
-                try:
-                    future.set_result(fn())
-                except Exception as exc:  # noqa: BLE001 - handed to the waiting test thread
-                    future.set_exception(exc)
-
-    def on_spin_thread(self, fn, timeout=30.0):
-        """Run fn on the executor's thread between two turns and return its result.
-
-        Entities (subscriptions, clients) must not be created or destroyed from another thread
-        while the executor builds its wait set: rclpy raises InvalidHandle in the spinning
-        thread, which then dies and the client hears nothing more.
-        """
-        future = concurrent.futures.Future()
-        self._between_turns.put((fn, future))
-        return future.result(timeout)
+        self._start()
 
     def call(self, srv_type, name, request, timeout=120.0):
         if name not in self.clients:
@@ -205,13 +171,6 @@ class Client:
             assert time.monotonic() < deadline, 'the node never subscribed to points'
             time.sleep(0.1)
 
-    def close(self):
-        self.stopping = True
-        self.thread.join(5)
-        self.executor.shutdown()
-        self.node.destroy_node()
-        rclpy.shutdown(context=self.context)
-
 
 def diagnostics(client: Client, key: str | None = None, until=None, timeout=120.0) -> dict:
     """The node's latest diagnostic values; with ``until``, wait until until(values) holds."""
@@ -224,22 +183,6 @@ def diagnostics(client: Client, key: str | None = None, until=None, timeout=120.
         if until is None or until(values):
             return values
         assert time.monotonic() < deadline, f'diagnostics never reached the condition: {values}'
-
-
-def query_request(xyz: np.ndarray, resolution: float = 0.0):
-    from geometry_msgs.msg import Point
-
-    from uncertain_facade_map.srv import QueryPoints
-
-    request = QueryPoints.Request()
-    request.points = [Point(x=float(x), y=float(y), z=float(z)) for x, y, z in xyz]
-    request.resolution = resolution
-    return request
-
-
-def answers_of(response) -> dict:
-    return {k: np.asarray(getattr(response, k)) for k in ('facade', 'mean_depth', 'variance', 'noise_variance',
-                                                           'signed_distance', 'p_occupied')}
 
 
 def assert_answers_equal(a: dict, b: dict) -> None:
