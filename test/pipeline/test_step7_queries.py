@@ -3,11 +3,17 @@
 import numpy as np
 import pytest
 
-from uncertain_facade_map.datatypes import ExtractedFacade, FacadeFrame
+from uncertain_facade_map.datatypes import SOURCE_GLOBAL, ExtractedFacade, FacadeFrame, SurfaceRaster
 from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.params import MapParams
 from uncertain_facade_map.pipeline.step6_surface import fit_facade
-from uncertain_facade_map.pipeline.step7_queries import query_points, surface_at
+from uncertain_facade_map.pipeline.step7_queries import (
+    STEP_REACH,
+    cached_step_depth_range,
+    nearer_step_faces,
+    query_points,
+    surface_at,
+)
 
 
 @pytest.fixture(scope='module')
@@ -68,3 +74,66 @@ def test_bad_query_points(model):
         query_points([model], np.zeros((4, 2)), 0.1, 1.0, 2.0)
     with pytest.raises(InputError, match='resolution'):
         query_points([model], np.zeros((1, 3)), 0.0, 1.0, 2.0)
+
+
+def _nearer_step_faces_one_face_at_a_time(raster, uvd, distance, var, reach):
+    """The search as first written, one candidate face per numpy pass: the reference the
+    vectorised :func:`nearer_step_faces` must equal exactly."""
+    distance, var = distance.copy(), var.copy()
+    cell = raster.cell
+    todo = np.flatnonzero(np.abs(distance) > 0.25 * cell)
+    h, w = raster.mean.shape
+    observed = raster.source != SOURCE_GLOBAL
+    k = int(np.ceil(reach / cell))
+    u = (uvd[todo, 0] - raster.origin[0]) / cell
+    v = (uvd[todo, 1] - raster.origin[1]) / cell
+    d = uvd[todo, 2]
+    row, col = np.floor(v).astype(np.int64), np.floor(u).astype(np.int64)
+    best, best_var = np.abs(distance[todo]) / cell, var[todo]
+    for dr in range(-k - 1, k + 1):
+        for dc in range(-k - 1, k + 1):
+            r, c = row + dr, col + dc
+            for across_u in (True, False):
+                r2, c2 = (r, c + 1) if across_u else (r + 1, c)
+                ok = (r >= 0) & (c >= 0) & (r2 < h) & (c2 < w)
+                ra, ca, rb, cb = (np.where(ok, x, 0) for x in (r, c, r2, c2))
+                ma, mb = raster.mean[ra, ca], raster.mean[rb, cb]
+                ok &= observed[ra, ca] & observed[rb, cb] & (np.minimum(ma, mb) <= d) & (d <= np.maximum(ma, mb))
+                if across_u:
+                    gap = np.hypot(u - (c + 1), v - np.clip(v, r, r + 1))
+                else:
+                    gap = np.hypot(v - (r + 1), u - np.clip(u, c, c + 1))
+                nearer = ok & (gap < best) & (gap * cell <= reach)
+                best = np.where(nearer, gap, best)
+                best_var = np.where(nearer, np.maximum(raster.var[ra, ca], raster.var[rb, cb]) + cell**2 / 12,
+                                    best_var)
+    moved = best < np.abs(distance[todo]) / cell
+    idx = todo[moved]
+    distance[idx] = np.where(distance[idx] < 0, -1.0, 1.0) * best[moved] * cell
+    var[idx] = best_var[moved]
+    return distance, var
+
+
+@pytest.mark.parametrize('seed', range(5))
+def test_step_face_search_equals_the_face_by_face_search(seed):
+    """Random stepped rasters (quantised depths, so that ties between faces occur, and some
+    global-prior cells) and points on, off and around them: the same distances and variances
+    to the last bit, the depth range cached or not."""
+    rng = np.random.default_rng(seed)
+    h, w, cell = rng.integers(3, 30), rng.integers(3, 30), float(rng.choice([0.05, 0.1, 0.2]))
+    mean = np.round(rng.normal(0, 0.3, (h, w)) * 4) / 4
+    source = np.where(rng.random((h, w)) < 0.1, SOURCE_GLOBAL, 2).astype(np.int8)
+    raster = SurfaceRaster(np.array([-1.0, 0.5]), cell, mean, rng.uniform(1e-4, 1e-2, (h, w)),
+                           np.zeros((h, w), np.int32), source)
+    n = 3000
+    uvd = np.column_stack([rng.uniform(-1.5, -1.0 + (w + 5) * cell, n), rng.uniform(0.0, 0.5 + (h + 5) * cell, n),
+                           rng.normal(0, 0.4, n)])
+    m, v = surface_at(raster, uvd[:, :2])
+    reach = float(rng.choice([0.1, STEP_REACH, 0.5]))
+    want = _nearer_step_faces_one_face_at_a_time(raster, uvd, uvd[:, 2] - m, v, reach)
+    assert (want[0] != uvd[:, 2] - m).sum() > 20  # the search moved points: the case is not empty
+    for depth_range in (None, cached_step_depth_range(raster, reach)):
+        got = nearer_step_faces(raster, uvd, uvd[:, 2] - m, v, reach, depth_range)
+        np.testing.assert_array_equal(got[0], want[0])
+        np.testing.assert_array_equal(got[1], want[1])
+    assert cached_step_depth_range(raster, reach) is cached_step_depth_range(raster, reach)

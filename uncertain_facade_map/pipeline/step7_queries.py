@@ -13,6 +13,7 @@ voxel centred there (:mod:`~uncertain_facade_map.pipeline.step8_occupancy`).
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -27,6 +28,8 @@ from .step8_occupancy import occupancy_probability
 CHUNK = 262_144
 #: Depth-step faces further than this within the plane are not searched (metres).
 STEP_REACH = 0.3
+#: (point, candidate face) pairs :func:`nearer_step_faces` tests at once (bounds its memory).
+_CANDIDATES = 1 << 20
 
 
 def surface_at(raster: SurfaceRaster, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -67,6 +70,26 @@ def step_depth_range(raster: SurfaceRaster, reach: float) -> tuple[np.ndarray, n
     lo = ndimage.minimum_filter(np.where(observed, raster.mean, np.inf), size=size, mode='constant', cval=np.inf)
     hi = ndimage.maximum_filter(np.where(observed, raster.mean, -np.inf), size=size, mode='constant', cval=-np.inf)
     return lo, hi
+
+
+#: Per raster (the rasters are immutable), its :func:`step_depth_range` per reach: queries
+#: of the same map reuse them (the filters cost more than a small query's search).
+_DEPTH_RANGES: weakref.WeakKeyDictionary[SurfaceRaster, dict[float, tuple[np.ndarray, np.ndarray]]] = \
+    weakref.WeakKeyDictionary()
+
+
+def cached_step_depth_range(raster: SurfaceRaster, reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`step_depth_range`, computed once per raster and reach (read-only arrays)."""
+    per_reach = _DEPTH_RANGES.get(raster)
+    if per_reach is None:
+        per_reach = _DEPTH_RANGES.setdefault(raster, {})
+    out = per_reach.get(reach)
+    if out is None:
+        lo, hi = step_depth_range(raster, reach)
+        lo.setflags(write=False)
+        hi.setflags(write=False)
+        out = per_reach.setdefault(reach, (lo, hi))
+    return out
 
 
 def nearer_step_faces(raster: SurfaceRaster, uvd: np.ndarray, distance: np.ndarray, var: np.ndarray,
@@ -123,26 +146,38 @@ def nearer_step_faces(raster: SurfaceRaster, uvd: np.ndarray, distance: np.ndarr
     d = uvd[todo, 2]
     row, col = np.floor(v).astype(np.int64), np.floor(u).astype(np.int64)
     best = np.abs(distance[todo]) / cell
-    best_var = var[todo]
-    for dr in range(-k - 1, k + 1):
-        for dc in range(-k - 1, k + 1):
-            r, c = row + dr, col + dc
-            for across_u in (True, False):
-                r2, c2 = (r, c + 1) if across_u else (r + 1, c)
-                ok = (r >= 0) & (c >= 0) & (r2 < h) & (c2 < w)
-                ra, ca = np.where(ok, r, 0), np.where(ok, c, 0)
-                rb, cb = np.where(ok, r2, 0), np.where(ok, c2, 0)
-                ma, mb = mean[ra, ca], mean[rb, cb]
-                ok &= observed[ra, ca] & observed[rb, cb] & (np.minimum(ma, mb) <= d) & (d <= np.maximum(ma, mb))
-                if not ok.any():
-                    continue
-                if across_u:  # the face at u = c + 1 (cell units), v from r to r + 1
-                    gap = np.hypot(u - (c + 1), v - np.clip(v, r, r + 1))
-                else:  # the face at v = r + 1, u from c to c + 1
-                    gap = np.hypot(v - (r + 1), u - np.clip(u, c, c + 1))
-                nearer = ok & (gap < best) & (gap * cell <= reach)
-                best = np.where(nearer, gap, best)
-                best_var = np.where(nearer, np.maximum(cell_var[ra, ca], cell_var[rb, cb]) + cell**2 / 12, best_var)
+    best_var = var[todo].copy()
+    # The candidate faces of every point at once: (K,) offsets of the face's first cell
+    # (dr, dc) and its direction (across u: the face at u = c + 1; else at v = r + 1).
+    dr, dc, across_u = (a.ravel() for a in np.meshgrid(np.arange(-k - 1, k + 1), np.arange(-k - 1, k + 1),
+                                                        [True, False], indexing='ij'))
+    step = max(1, _CANDIDATES // len(dr))
+    for s in range(0, len(todo), step):
+        p = slice(s, s + step)
+        r, c = row[p, None] + dr, col[p, None] + dc  # (B, K)
+        r2, c2 = r + ~across_u, c + across_u
+        ok = (r >= 0) & (c >= 0) & (r2 < h) & (c2 < w)
+        ra, ca = np.where(ok, r, 0), np.where(ok, c, 0)
+        rb, cb = np.where(ok, r2, 0), np.where(ok, c2, 0)
+        ma, mb = mean[ra, ca], mean[rb, cb]
+        dp = d[p, None]
+        ok &= observed[ra, ca] & observed[rb, cb] & (np.minimum(ma, mb) <= dp) & (dp <= np.maximum(ma, mb))
+        # Distances (cell units) to the faces that span the point's depth only.
+        i, j = np.nonzero(ok)
+        ui, vi, ri, ci = u[p][i], v[p][i], r[i, j], c[i, j]
+        g = np.where(across_u[j], np.hypot(ui - (ci + 1), vi - np.clip(vi, ri, ri + 1)),
+                     np.hypot(vi - (ri + 1), ui - np.clip(ui, ci, ci + 1)))
+        gap = np.full(ok.shape, np.inf)
+        gap[i, j] = np.where(g * cell <= reach, g, np.inf)
+        # The first nearest face in the order (dr, dc, across u first), as a search that
+        # takes a face only when it is strictly nearer than the best so far.
+        j = np.argmin(gap, axis=1)
+        rows = np.arange(len(j))
+        g = gap[rows, j]
+        nearer = g < best[p]
+        face_var = np.maximum(cell_var[ra[rows, j], ca[rows, j]], cell_var[rb[rows, j], cb[rows, j]]) + cell**2 / 12
+        best[p] = np.where(nearer, g, best[p])
+        best_var[p] = np.where(nearer, face_var, best_var[p])
     moved = best < np.abs(distance[todo]) / cell
     idx = todo[moved]
     distance[idx] = np.where(distance[idx] < 0, -1.0, 1.0) * best[moved] * cell
@@ -263,7 +298,6 @@ def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: fl
     var = np.full(n, np.nan)
     noise = np.full(n, np.nan)
     dist = np.full(n, np.nan)
-    depth_ranges: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # per façade, for every chunk
     for start in range(0, n, CHUNK):
         part = slice(start, min(start + CHUNK, n))
         which, uvd = assign_facades(facades, xyz[part], band_back, band_front)
@@ -273,9 +307,7 @@ def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: fl
             m, v = surface_at(facades[i].surface, uvd[sel - start, :2])
             mean[sel], var[sel] = m, v
             noise[sel] = facades[i].noise_var
-            if i not in depth_ranges:
-                depth_ranges[i] = step_depth_range(facades[i].surface, STEP_REACH)
             dist[sel], var[sel] = nearer_step_faces(facades[i].surface, uvd[sel - start], uvd[sel - start, 2] - m, v,
-                                                    STEP_REACH, depth_ranges[i])
+                                                    STEP_REACH, cached_step_depth_range(facades[i].surface, STEP_REACH))
     p = occupancy_probability(dist, var, np.where(np.isfinite(noise), noise, 0.0), resolution)
     return PointQuery(facade, mean, var, noise, dist, p)
