@@ -9,8 +9,8 @@ unless ``--params`` says otherwise), acts as the rest of the robot from this pro
     each, ``--rate`` per second, for ``--minutes``; after the first lap of the drive every
     lap is the drive again with 1 cm of fresh noise), calls ``query_points`` all along
     (``--query-period``) and every ``--sample-period`` seconds samples the node's memory
-    (VmRSS of /proc/PID/status), its queue and its ``/diagnostics`` counters, and the
-    query latencies (p50/p95). At the end every cloud must be accounted for: published =
+    (VmRSS of /proc/PID/status, summed over the node and its mapping process), its queue
+    and its ``/diagnostics`` counters, and the query latencies (p50/p95). At the end every cloud must be accounted for: published =
     received by the node, and received = mapped + dropped + rejected + failed + waiting
     (points: + not_building + nonfinite).
 ``kills``
@@ -253,6 +253,17 @@ def cloud_message(points: np.ndarray, stamp_ns: int, frame: str = 'map') -> Any:
 # ------------------------------------------------------------------------------------------
 # The node's process
 # ------------------------------------------------------------------------------------------
+def _children(pid: int) -> list[int]:
+    """The process ids of ``pid``'s children (from /proc/PID/task/*/children)."""
+    out: list[int] = []
+    for task in Path(f'/proc/{pid}/task').glob('*'):
+        try:
+            out.extend(int(c) for c in (task / 'children').read_text().split())
+        except (OSError, ValueError):
+            continue
+    return out
+
+
 class NodeDied(RuntimeError):
     """The node's process ended (or never came up)."""
 
@@ -275,13 +286,20 @@ class NodeProcess:
         return self.proc.poll() is None
 
     def memory_kb(self) -> tuple[int, int]:
-        """(VmRSS, VmHWM) in kB from /proc/PID/status; (0, 0) once the process is gone."""
-        try:
-            text = Path(f'/proc/{self.pid}/status').read_text()
-        except OSError:
-            return 0, 0
-        found = dict(re.findall(r'^(VmRSS|VmHWM):\s+(\d+)', text, re.M))
-        return int(found.get('VmRSS', 0)), int(found.get('VmHWM', 0))
+        """(VmRSS, VmHWM) in kB from /proc/PID/status, summed over the node and its child
+        processes (the mapping process); (0, 0) once the node is gone."""
+        rss = hwm = 0
+        for pid in [self.pid, *_children(self.pid)]:
+            try:
+                text = Path(f'/proc/{pid}/status').read_text()
+            except OSError:
+                if pid == self.pid:
+                    return 0, 0
+                continue
+            found = dict(re.findall(r'^(VmRSS|VmHWM):\s+(\d+)', text, re.M))
+            rss += int(found.get('VmRSS', 0))
+            hwm += int(found.get('VmHWM', 0))
+        return rss, hwm
 
     def log_size(self) -> int:
         try:
@@ -630,32 +648,69 @@ def accounting(values: dict, published: int, start: dict | None = None) -> dict:
 # ------------------------------------------------------------------------------------------
 # Soak
 # ------------------------------------------------------------------------------------------
+def _query_client_main(conn: Any, domain: int, xyz: np.ndarray, period: float) -> None:
+    """The query client's process: calls query_points every ``period`` seconds and sends
+    (end time, seconds, answered) per call until ``conn`` says stop (or closes)."""
+    import signal as _signal
+
+    from uncertain_facade_map.srv import QueryPoints
+
+    _signal.signal(_signal.SIGINT, _signal.SIG_IGN)
+    client = Client(domain)
+    request = query_request(xyz, 0.0)
+    try:
+        while not conn.poll(0):
+            t = time.monotonic()
+            response = client.call(QueryPoints, 'query_points', request, timeout=60.0)
+            done = time.monotonic()
+            conn.send((done, done - t, response is not None and response.success))
+            if conn.poll(max(0.0, period - (done - t))):
+                break
+    except (EOFError, OSError, BrokenPipeError):
+        pass
+    finally:
+        client.close()
+
+
 class QueryLoop(threading.Thread):
-    """Calls query_points every ``period`` seconds; keeps (end time, seconds, answered)."""
+    """Calls query_points every ``period`` seconds from a process of its own, as a
+    localisation node would (not from the publishing process, whose own load would count
+    in the latency); keeps (end time, seconds, answered) per call (monotonic clock, which
+    processes share)."""
 
     def __init__(self, session: Session, xyz: np.ndarray, period: float) -> None:
         super().__init__(daemon=True, name='soak_queries')
         self.session = session
-        self.request = query_request(xyz, 0.0)
+        self.xyz = xyz
         self.period = period
         self.records: list[tuple[float, float, bool]] = []
-        self._halt = threading.Event()
+        self._conn: Any = None
+        self._process: Any = None
 
     def run(self) -> None:
-        from uncertain_facade_map.srv import QueryPoints
+        import multiprocessing
 
-        client = self.session.client
-        assert client is not None
-        while not self._halt.is_set():
-            t = time.monotonic()
-            response = client.call(QueryPoints, 'query_points', self.request, timeout=60.0)
-            done = time.monotonic()
-            self.records.append((done, done - t, response is not None and response.success))
-            self._halt.wait(max(0.0, self.period - (done - t)))
+        ctx = multiprocessing.get_context('spawn')
+        self._conn, child = ctx.Pipe()
+        self._process = ctx.Process(target=_query_client_main, name='soak_queries', daemon=True,
+                                    args=(child, self.session.domain, self.xyz, self.period))
+        self._process.start()
+        child.close()
+        while True:
+            try:
+                self.records.append(self._conn.recv())
+            except (EOFError, OSError):
+                return
 
     def stop(self) -> None:
-        self._halt.set()
-        self.join(70)
+        if self._conn is not None:
+            with contextlib.suppress(OSError, BrokenPipeError):
+                self._conn.send('stop')
+        if self._process is not None:
+            self._process.join(70)
+            if self._process.is_alive():
+                self._process.kill()
+        self.join(10)
 
     def window(self, t0: float, t1: float) -> dict:
         """p50, p95 (ms), calls and failures of the calls ending in (t0, t1]."""
@@ -667,7 +722,7 @@ class QueryLoop(threading.Thread):
 
 
 #: Diagnostics kept in the samples: the counters, the map's size, the timings.
-SAMPLE_PREFIXES = ('clouds_', 'points_', 'poses_', 'latency', 'last_update', 'map_', 'facades', 'buildings',
+SAMPLE_PREFIXES = ('query_', 'clouds_', 'points_', 'poses_', 'latency', 'last_update', 'map_', 'facades', 'buildings',
                    'settled', 'flushes', 'queries', 'callback_errors', 'saves')
 
 
@@ -706,7 +761,7 @@ def run_soak(session: Session) -> dict:
     for k in range(total):
         due = t0 + k / opts.rate
         while time.monotonic() < due:
-            time.sleep(min(0.01, due - time.monotonic()) if due > time.monotonic() else 0)
+            time.sleep(max(0.0, min(0.01, due - time.monotonic())))
             if time.monotonic() - last_sample >= opts.sample_period:
                 samples.append(take_sample(session, t0, last_sample, queries, published))
                 last_sample = time.monotonic()
