@@ -508,6 +508,12 @@ class NodeConfig(Section):
                             allowed=_closed(1, 10000))
     max_cloud_points: int = param(5_000_000, 'a cloud with more points is refused with a warning',
                                   allowed=_closed(1, 1_000_000_000))
+    mapping_process: bool = param(True, 'update the map in a process of its own, so that queries and incoming '
+                                        'clouds never wait for the update\'s Python code (the interpreter lock); '
+                                        'false: in a thread of the node\'s process (one process, less memory)')
+    mapping_nice: int = param(10, 'niceness added to the mapping process and the process that computes the '
+                                  'published maps (node.mapping_process): queries and incoming clouds get the CPU '
+                                  'first when both want it; 0: the same priority', allowed=_closed(0, 19))
     idle_flush: float = param(2.0, 'when no cloud has come for this long, the points held back '
                                    '(update.batch_points) are mapped and the façades updated block by block are '
                                    'fitted whole (0: never)', unit='s', allowed=_closed(0.0, 3600.0))

@@ -58,12 +58,14 @@ from visualization_msgs.msg import MarkerArray
 import msg_adapters as ma
 from msg_adapters import map_messages as mm
 from msg_adapters import parameters as mp_params
+from msg_adapters.published_maps import published_map_messages
 from uncertain_facade_map.errors import FacadeMapError, InputError
 from uncertain_facade_map.io.inputs import select_scan_points
 from uncertain_facade_map.io.map_file import load_map, remove_stale_temporaries, save_map
 from uncertain_facade_map.mapping import products as mp
+from uncertain_facade_map.mapping.engine import HelperProcess
 from uncertain_facade_map.mapping.facade_map import FacadeMap
-from uncertain_facade_map.mapping.worker import Cloud, MapSnapshot, MapWorker, ReplaceMap
+from uncertain_facade_map.mapping.worker import Cloud, MapSnapshot, MapWorker, replace_with
 from uncertain_facade_map.msg import FacadeGridArray
 from uncertain_facade_map.params import (
     NODE_NAME,
@@ -191,6 +193,7 @@ class FacadeMapperNode(Node):
         self._poses: dict[str, tuple[list[int], list[tuple[np.ndarray, np.ndarray]]]] = {}
         self._pose_lock = threading.Lock()
         self._grid: tuple[int, Any] | None = None
+        self._query_seconds: deque[float] = deque(maxlen=200)  # time in the node of the latest queries
         self._published_version = -1
         self._saved_version = 0
         self._last_publish = 0.0
@@ -200,8 +203,12 @@ class FacadeMapperNode(Node):
         for stale in remove_stale_temporaries(cfg.persistence.map_path) if cfg.persistence.map_path else ():
             self.get_logger().warning(f'removed {stale}, the temporary file of a save that did not finish')
         fmap = self._initial_map()
+        # The published maps are computed in a helper process too: their numpy work would
+        # hold this process's interpreter lock for seconds on a large map.
+        self._helper = HelperProcess('facade_products', cfg.node.mapping_nice) if cfg.node.mapping_process else None
         self.worker = MapWorker(fmap, cfg.node.queue_size, on_error=self._cloud_failed, idle_flush=cfg.node.idle_flush,
-                               on_flush=self._flushed, on_flush_error=self._flush_failed)
+                               on_flush=self._flushed, on_flush_error=self._flush_failed,
+                               process=cfg.node.mapping_process, nice=cfg.node.mapping_nice)
 
         latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                              reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
@@ -453,33 +460,16 @@ class FacadeMapperNode(Node):
             stamp = snap.stamp_ns or self.get_clock().now().nanoseconds
             facades = list(snap.facades)
             started = time.perf_counter()
+            band = snap.params.extraction  # the map's own bands (a loaded map keeps its own)
             try:
-                surf = mp.surface_grid(facades, cfg.surface_step)
-                table = np.zeros(len(surf.xyz), dtype=[('x', 'f4'), ('y', 'f4'), ('z', 'f4'), ('std', 'f4'),
-                                                       ('facade', 'i4')])
-                table['x'], table['y'], table['z'] = surf.xyz.T
-                table['std'], table['facade'] = surf.std, surf.facade
-                self.pub_surface.publish(ma.pointcloud2_from_structured(table, stamp_ns=stamp, frame_id=self.frame_id,
-                                                                        msg_types=self.cloud_types))
-                if facades:
-                    mesh = mp.surface_mesh(facades, cfg.mesh_step)
-                    self.pub_mesh.publish(mm.triangle_marker_array(mesh.vertices, mesh.triangles, mesh.std,
-                                                                   mesh.facade, self.frame_id, stamp, self.types))
-                else:  # an empty map (after reset or load) clears the mesh a late subscriber gets
-                    self.pub_mesh.publish(mm.triangle_marker_array(np.empty((0, 3)), np.empty((0, 3), np.int64),
-                                                                   np.empty(0), np.empty(0, np.int64), self.frame_id,
-                                                                   stamp, self.types))
-                self.pub_grids.publish(mm.facade_grid_array(facades, self.frame_id, stamp, self.types))
-                band = snap.params.extraction
-                vox = mp.voxel_occupancy(facades, cfg.voxel_resolution, cfg.voxel_shell,
-                                         band_back=band.band_back, band_front=band.band_front)
-                vt = np.zeros(len(vox.centres), dtype=[('x', 'f4'), ('y', 'f4'), ('z', 'f4'),
-                                                       ('p_occupied', 'f4')])
-                vt['x'], vt['y'], vt['z'] = vox.centres.T
-                vt['p_occupied'] = vox.p_occupied
-                self.pub_voxels.publish(ma.pointcloud2_from_structured(vt, stamp_ns=stamp, frame_id=self.frame_id,
-                                                                       msg_types=self.cloud_types))
-                grid = self._grid_msg(snap, stamp)
+                # Built and serialized in the helper process: here only bytes are handed over.
+                maps = self._compute(published_map_messages, facades, cfg, band.band_back, band.band_front,
+                                     self.frame_id, stamp)
+                self.pub_surface.publish(maps.surface)
+                self.pub_mesh.publish(maps.mesh)
+                self.pub_grids.publish(maps.variance_grids)
+                self.pub_voxels.publish(maps.voxels)
+                grid = self._grid_msg(snap, stamp, maps.grid)
                 self.pub_grid.publish(grid)
             except FacadeMapError as exc:
                 self._event('failed', f'publishing failed: {exc}')
@@ -489,19 +479,21 @@ class FacadeMapperNode(Node):
             self.get_logger().debug(f'published map version {snap.version} in '
                                     f'{time.perf_counter() - started:.2f} s')
 
-    def _grid_msg(self, snap: MapSnapshot, stamp: int) -> Any:
-        """The 2D occupancy grid of a snapshot (cached per version), at ``grid_resolution`` or,
-        for a map too wide for ``grid_max_cells`` cells, at the finest of 2, 4, 8, ... times it."""
+    def _compute(self, fn: Callable[..., Any], *args: Any) -> Any:
+        """``fn(*args)`` in the helper process (``node.mapping_process``), else here."""
+        return fn(*args) if self._helper is None else self._helper.call(fn, *args)
+
+    def _grid_msg(self, snap: MapSnapshot, stamp: int, grid: mp.OccupancyGrid2D | None = None) -> Any:
+        """The 2D occupancy grid of a snapshot (cached per version; ``grid``: computed already),
+        at ``grid_resolution`` or, for a map too wide for ``grid_max_cells`` cells, at the
+        finest of 2, 4, 8, ... times it."""
         if self._grid is not None and self._grid[0] == snap.version:
             return self._grid[1]
         cfg = self.config.publish
         params = snap.params.extraction  # the map's own bands (a loaded map keeps its own)
         p, origin, resolution = np.full((1, 1), np.nan), np.zeros(2), cfg.grid_resolution
         if snap.facades:
-            g = mp.height_band_grid(list(snap.facades), resolution, cfg.grid_z_min, cfg.grid_z_max,
-                                    band_back=params.band_back, band_front=params.band_front,
-                                    max_cells=cfg.grid_max_cells, max_samples=max(50_000_000, 25 * cfg.grid_max_cells),
-                                    coarsen=True)
+            g = grid or self._compute(mp.band_grid, list(snap.facades), cfg, params.band_back, params.band_front)
             p, origin, resolution = g.p, g.origin, g.resolution
             if resolution != cfg.grid_resolution:
                 self._warn(f'the 2D grid of this map would have more than publish.grid_max_cells = '
@@ -567,6 +559,7 @@ class FacadeMapperNode(Node):
         now = time.monotonic()
         recent = [(t, kind, text) for t, kind, text in list(self._events) if now - t <= window]
         latencies = np.array(list(self.worker.latencies))
+        queries = np.array(list(self._query_seconds))
         values = dict(self.accounts())
         values.update({
             'map_points': snap.points, 'buildings': snap.buildings, 'facades': len(snap.facades),
@@ -574,6 +567,8 @@ class FacadeMapperNode(Node):
             'last_update_seconds': round(self.worker.last_update_seconds, 4),
             'latency_seconds': round(float(latencies[-1]), 3) if len(latencies) else 0.0,
             'latency_p95_seconds': round(float(np.percentile(latencies, 95)), 3) if len(latencies) else 0.0,
+            'query_p95_ms': round(1e3 * float(np.percentile(queries, 95)), 1) if len(queries) else 0.0,
+            'mapping_pid': self.worker.process_id or 0,
             'recent_window_seconds': window,
             **{f'recent_{kind}': sum(1 for _, k, _ in recent if k == kind) for kind in _WARN_EVENTS},
             'last_error': recent[-1][2] if recent else '',
@@ -589,6 +584,7 @@ class FacadeMapperNode(Node):
     @_guarded
     def query_callback(self, request: Any, response: Any) -> Any:
         """Answer a batch of 3D points from the latest snapshot (never waits for the worker)."""
+        started = time.perf_counter()
         with self._count_lock:
             self.counters['queries'] += 1
         try:
@@ -601,6 +597,7 @@ class FacadeMapperNode(Node):
             answers = query_points(list(snap.facades), xyz, resolution, params.band_back, params.band_front)
             mm.fill_query_response(response, answers, f'{len(xyz)} points, map version {snap.version}',
                                    msg_types=self.types)
+            self._query_seconds.append(time.perf_counter() - started)
         except FacadeMapError as exc:
             with self._count_lock:
                 self.counters['queries_failed'] += 1
@@ -661,7 +658,7 @@ class FacadeMapperNode(Node):
         try:
             path = self._path(request.path)
             loaded = load_map(path)
-            self.worker.call(lambda _: ReplaceMap(loaded), COMMAND_TIMEOUT)
+            self.worker.call(functools.partial(replace_with, loaded, None), COMMAND_TIMEOUT)
             response.success, response.facades = True, len(loaded.facades)
             response.message = f'loaded {path}: {len(loaded.facades)} façades, {loaded.n_points} points'
         except (FacadeMapError, OSError, TimeoutError) as exc:
@@ -673,7 +670,7 @@ class FacadeMapperNode(Node):
         """Start an empty map (clouds queued before the call are mapped first, then cleared)."""
         empty = FacadeMap(self.params, np.asarray(self.config.input.map_origin, dtype=np.float64))
         try:
-            self.worker.call(lambda _: ReplaceMap(empty), COMMAND_TIMEOUT)
+            self.worker.call(functools.partial(replace_with, empty, None), COMMAND_TIMEOUT)
             response.success, response.message = True, 'map cleared'
         except TimeoutError as exc:
             response.success, response.message = False, str(exc)
@@ -689,7 +686,7 @@ class FacadeMapperNode(Node):
     @_guarded
     def autosave_callback(self) -> None:
         """Save to persistence.map_path when the map changed since the last save."""
-        if not self.config.persistence.map_path or self.worker.committed()[1] == self._saved_version:
+        if not self.config.persistence.map_path or self.worker.committed_version == self._saved_version:
             return
         try:
             self._save(self.config.persistence.map_path)
@@ -702,6 +699,8 @@ class FacadeMapperNode(Node):
         if waiting:
             self.get_logger().warning(f'stopping: {waiting} received clouds were still waiting and are not mapped')
         self.worker.stop()
+        if self._helper is not None:
+            self._helper.close()
         super().destroy_node()
 
 

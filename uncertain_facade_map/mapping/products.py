@@ -54,7 +54,7 @@ height band 0.2 to 2 m at 0.1 m 2 to 3 s (449 x 1401 cells).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 from scipy.ndimage import maximum_filter, minimum_filter
@@ -750,3 +750,51 @@ def height_band_grid(facades: Sequence[FacadeModel], resolution: float, z_min: f
     p = np.full(shape, np.nan)
     p[rows, cols] = np.where(np.isfinite(best), best, np.nan)
     return OccupancyGrid2D(p, i0 * resolution, resolution, z_min, z_max)
+
+
+@dataclass(frozen=True, eq=False)
+class MapProducts:
+    """Everything the node publishes about a map, as arrays (:func:`map_products`).
+
+    Attributes:
+        surface: the mean-surface samples (:func:`surface_grid`).
+        mesh: the surface mesh (:func:`surface_mesh`), None for a map without façades.
+        voxels: the 3D occupancy shell (:func:`voxel_occupancy`).
+        grid: the 2D occupancy grid of the height band (:func:`height_band_grid`), None
+            for a map without façades.
+    """
+
+    surface: SurfaceGrid
+    mesh: SurfaceMesh | None
+    voxels: VoxelOccupancy
+    grid: OccupancyGrid2D | None
+
+
+def map_products(facades: Sequence[FacadeModel], publish: Any, band_back: float = BAND_BACK,
+                 band_front: float = BAND_FRONT) -> MapProducts:
+    """Every published product of a map at once (the node computes them in a helper process).
+
+    Args:
+        facades: the façade models.
+        publish: the node's publish settings (attributes ``surface_step``, ``mesh_step``,
+            ``voxel_resolution``, ``voxel_shell``, ``grid_resolution``, ``grid_z_min``,
+            ``grid_z_max``, ``grid_max_cells``; a :class:`~uncertain_facade_map.params.PublishConfig`).
+        band_back: the map's band behind a plane, metres.
+        band_front: the map's band in front of it, metres.
+    """
+    facades = list(facades)
+    return MapProducts(
+        surface=surface_grid(facades, publish.surface_step),
+        mesh=surface_mesh(facades, publish.mesh_step) if facades else None,
+        voxels=voxel_occupancy(facades, publish.voxel_resolution, publish.voxel_shell, band_back=band_back,
+                               band_front=band_front),
+        grid=band_grid(facades, publish, band_back, band_front) if facades else None)
+
+
+def band_grid(facades: Sequence[FacadeModel], publish: Any, band_back: float = BAND_BACK,
+              band_front: float = BAND_FRONT) -> OccupancyGrid2D:
+    """The node's 2D grid: :func:`height_band_grid` at ``publish.grid_resolution`` or, for a
+    map too wide for ``publish.grid_max_cells`` cells, at the finest of 2, 4, 8, ... times it."""
+    return height_band_grid(list(facades), publish.grid_resolution, publish.grid_z_min, publish.grid_z_max,
+                            band_back=band_back, band_front=band_front, max_cells=publish.grid_max_cells,
+                            max_samples=max(50_000_000, 25 * publish.grid_max_cells), coarsen=True)

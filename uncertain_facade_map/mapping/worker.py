@@ -41,7 +41,10 @@ import numpy as np
 
 from ..datatypes import FacadeModel
 from ..params import MapParams
+from .engine import LocalEngine, MapView, ProcessEngine, ReplaceMap, replace_with
 from .facade_map import FacadeMap
+
+__all__ = ['Cloud', 'MapSnapshot', 'MapWorker', 'ReplaceMap', 'ReplaySummary', 'map_scans', 'replace_with']
 
 #: Clouds whose arrival-to-map latency :attr:`MapWorker.latencies` keeps.
 LATENCY_WINDOW = 200
@@ -92,7 +95,8 @@ class Cloud:
 
 @dataclass
 class _Command:
-    fn: Callable[[FacadeMap], Any]
+    fn: Callable[[FacadeMap], Any] | None  # None: the idle flush
+    changes: bool = True
     done: threading.Event = field(default_factory=threading.Event)
     result: Any = None
     error: BaseException | None = None
@@ -114,16 +118,20 @@ class MapWorker:
             whole) after an idle flush.
         on_flush_error: called in the worker thread with the exception when an idle flush
             fails (the map is left as before it, and the flush is tried again when idle).
+        process: update the map in a child process (:class:`~uncertain_facade_map.mapping.engine.ProcessEngine`)
+            instead of this worker's thread; :meth:`call` functions must then pickle.
+        nice: niceness added to the child process's.
     """
 
     def __init__(self, fmap: FacadeMap, queue_size: int = 20,
                  on_change: Callable[[MapSnapshot], None] | None = None,
                  on_error: Callable[[Cloud, BaseException], None] | None = None, idle_flush: float = 1.0,
                  on_flush: Callable[[int, list[int]], None] | None = None,
-                 on_flush_error: Callable[[BaseException], None] | None = None) -> None:
+                 on_flush_error: Callable[[BaseException], None] | None = None, process: bool = False,
+                 nice: int = 0) -> None:
         if queue_size < 1:
             raise ValueError(f'queue_size must be >= 1, got {queue_size}')
-        self._fmap = fmap
+        self._engine: LocalEngine | ProcessEngine = ProcessEngine(fmap, nice) if process else LocalEngine(fmap)
         self._queue: deque[Cloud | _Command] = deque()
         self._clouds = 0
         self._size = queue_size
@@ -142,13 +150,13 @@ class MapWorker:
                          'points_in': 0, 'points_dropped': 0, 'points_mapped': 0, 'points_failed': 0,
                          'flushes': 0, 'flushes_failed': 0, 'commands_failed': 0}
         self.last_update_seconds = 0.0
-        self.pending_points = fmap.n_pending
+        self.pending_points = self._engine.view.pending
         self._working: Cloud | None = None
         self._held: list[float] = []  # arrival times of the clouds whose points are held back
         #: Seconds from arrival to map of the latest clouds (newest last).
         self.latencies: deque[float] = deque(maxlen=LATENCY_WINDOW)
-        self._committed = fmap.clone()
-        self._committed_version = 0
+        self._items = 0  # items (clouds, commands, flushes) the engine has done
+        self._versions = {0: 0}  # snapshot version after the latest items, by item count
         self.snapshot = self._snapshot(0)
         self._thread = threading.Thread(target=self._run, name='map_worker', daemon=True)
         self._thread.start()
@@ -192,7 +200,7 @@ class MapWorker:
             TimeoutError: the worker did not get to it in time (it still runs later).
             Exception: whatever ``fn`` raised.
         """
-        command = _Command(lambda m: (fn(m), changes))
+        command = _Command(fn, changes)
         with self._cond:
             if self._stop:
                 raise RuntimeError('the map worker has stopped')
@@ -249,24 +257,39 @@ class MapWorker:
             into it), the snapshot version it holds, and the clouds queued or being mapped
             that it does not hold yet.
         """
+        done, fmap = self._engine.committed()
         with self._cond:
+            # The engine answered item ``done`` already; its version follows at once.
+            while done not in self._versions and done > self._items and not self._stop:
+                self._cond.wait(1.0)
             waiting = self._clouds + (self._working is not None)
-            return self._committed, self._committed_version, waiting
+            return fmap, self._versions.get(done, self.snapshot.version), waiting
+
+    @property
+    def committed_version(self) -> int:
+        """The snapshot version of the map :meth:`committed` would hand out now."""
+        with self._cond:
+            return self._versions[self._items]
 
     def stop(self, timeout: float | None = 10.0) -> None:
-        """Stop after the current item; queued items are discarded."""
+        """Stop after the current item; queued items are discarded (a mapping process is
+        stopped too, killed if it does not end within ``timeout``)."""
         with self._cond:
             self._stop = True
             self._cond.notify_all()
         self._thread.join(timeout)
+        self._engine.close(10.0 if timeout is None else timeout)
+
+    @property
+    def process_id(self) -> int | None:
+        """The mapping process's id (None: the map is updated in this process)."""
+        return getattr(self._engine, 'pid', None)
 
     # -- the worker ---------------------------------------------------------------------
     def _snapshot(self, version: int) -> MapSnapshot:
-        fmap = self._fmap
-        origin = np.asarray(fmap.map_origin, dtype=np.float64).copy()
-        origin.setflags(write=False)  # the façade models' arrays are read-only already
-        return MapSnapshot(version, tuple(fmap.facades), origin, len(fmap.points), fmap.n_points, self._stamp,
-                           fmap.params)
+        view: MapView = self._engine.view
+        return MapSnapshot(version, view.facades, view.map_origin, view.buildings, view.points, self._stamp,
+                           view.params)
 
     def _publish(self) -> None:
         self.snapshot = self._snapshot(self.snapshot.version + 1)
@@ -291,7 +314,7 @@ class MapWorker:
                     return
                 # An empty queue here means the idle time passed: flush.
                 idle_flush = not self._queue
-                item = _Command(self._flush) if idle_flush else self._queue.popleft()
+                item = _Command(None) if idle_flush else self._queue.popleft()
                 if isinstance(item, Cloud):
                     self._clouds -= 1
                     self._working = item
@@ -307,35 +330,22 @@ class MapWorker:
                             self._on_flush_error(item.error)
             finally:
                 with self._cond:
-                    self.pending_points = self._fmap.n_pending
+                    self.pending_points = self._engine.view.pending
                     self._idle_since = time.monotonic()
                     self._working = None
                     self._busy = False
                     self._cond.notify_all()
 
-    def _flush(self, fmap: FacadeMap) -> tuple[Any, bool]:
-        started = time.perf_counter()
-        pending = fmap.n_pending
-        refitted = fmap.flush()
-        self.last_update_seconds = time.perf_counter() - started
-        self.counters['flushes'] += 1
-        if self._on_flush is not None:
-            self._on_flush(pending, refitted)
-        return refitted, True
-
     def _needs_flush(self) -> bool:
-        fmap = self._fmap
-        return bool(fmap.pending) or any(f.fitted_points != len(f.point_index) for f in fmap.facades)
+        return self._engine.view.needs_flush
 
-    def _commit(self) -> None:
-        """Keep a clone of the map as it stands (the state a failure goes back to)."""
-        committed = self._fmap.clone()
+    def _item_done(self) -> None:
+        """The engine finished an item (and kept its map, or the one before on failure)."""
         with self._cond:
-            self._committed, self._committed_version = committed, self.snapshot.version
-
-    def _roll_back(self) -> None:
-        """Put the map back as it was after the last cloud or command."""
-        self._fmap = self._committed.clone()
+            self._items += 1
+            self._versions[self._items] = self.snapshot.version
+            self._versions.pop(self._items - 16, None)
+            self._cond.notify_all()
 
     def _mapped(self) -> None:
         """The held-back clouds are in the map now: their latencies."""
@@ -346,9 +356,9 @@ class MapWorker:
     def _map_cloud(self, cloud: Cloud) -> None:
         started = time.perf_counter()
         try:
-            updated = self._fmap.add_points(cloud.xyz, cloud.building_id, cloud.sensor_origins, defer=True)
+            updated = self._engine.add_points(cloud.xyz, cloud.building_id, cloud.sensor_origins)
         except Exception as exc:  # noqa: BLE001 - reported, the node keeps running
-            self._roll_back()
+            self._item_done()
             with self._cond:
                 self.counters['clouds_failed'] += 1
                 self.counters['points_failed'] += len(cloud.xyz)
@@ -362,45 +372,39 @@ class MapWorker:
             self._working = None
         self._held.append(cloud.arrived or time.monotonic())
         self._stamp = max(self._stamp, int(cloud.stamp_ns))
-        if updated or not self._fmap.pending:  # an update ran: the held-back points are mapped
+        if updated:  # an update ran (or nothing is held back): the held-back points are mapped
             self.last_update_seconds = time.perf_counter() - started
             self._mapped()
             self._publish()
-        self._commit()
+        self._item_done()
 
     def _run_command(self, command: _Command) -> None:
         try:
-            result, changes = command.fn(self._fmap)
-            if isinstance(result, ReplaceMap):
-                self._fmap = result.fmap
+            if command.fn is None:  # the idle flush
+                started = time.perf_counter()
+                pending, refitted = self._engine.flush()
+                self.last_update_seconds = time.perf_counter() - started
+                self.counters['flushes'] += 1
+                if self._on_flush is not None:
+                    self._on_flush(pending, refitted)
+                result, replaced, changes = refitted, False, True
+            else:
+                result, replaced = self._engine.run(command.fn)
+                changes = command.changes
+            if replaced:
                 self._stamp = 0
                 self._held = []
-                result = result.result
             command.result = result
-            if changes:
-                if not self._fmap.pending:
+            if changes or replaced:
+                if not self._engine.view.pending:
                     self._mapped()
                 self._publish()
-            self._commit()
         except BaseException as exc:  # noqa: BLE001 - handed to the caller
-            self._roll_back()
             self.counters['commands_failed'] += 1
             command.error = exc
         finally:
+            self._item_done()
             command.done.set()
-
-
-@dataclass(frozen=True)
-class ReplaceMap:
-    """Returned by a :meth:`MapWorker.call` function to replace the worker's map.
-
-    Attributes:
-        fmap: the new map.
-        result: what :meth:`MapWorker.call` returns.
-    """
-
-    fmap: FacadeMap
-    result: Any = None
 
 
 @dataclass(frozen=True)

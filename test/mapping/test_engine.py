@@ -1,0 +1,162 @@
+"""The map updated in a child process: the same map as in a thread, commands that must
+pickle, saves that do not wait for an update, and a child that ends with its parent."""
+
+import functools
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+
+from uncertain_facade_map.mapping.engine import HelperProcess, MappingProcessError, ProcessEngine
+from uncertain_facade_map.mapping.facade_map import FacadeMap
+from uncertain_facade_map.mapping.worker import Cloud, MapWorker, replace_with
+from uncertain_facade_map.params import MapParams, UpdateParams
+
+
+def wall(n=400, seed=0, u0=0.0):
+    rng = np.random.default_rng(seed)
+    return np.c_[u0 + rng.uniform(0, 5, n), np.full(n, 10.0) + rng.normal(0, 0.02, n), rng.uniform(0, 5, n)]
+
+
+def _settle(worker, timeout=120):
+    deadline = time.monotonic() + timeout
+    while not worker.settled:
+        assert time.monotonic() < deadline, 'the worker did not settle'
+        time.sleep(0.05)
+
+
+def test_a_process_builds_the_same_map_as_a_thread_and_the_offline_core():
+    params = MapParams(update=UpdateParams(batch_points=1000))
+    workers = [MapWorker(FacadeMap(params), queue_size=100, idle_flush=0.3, process=p) for p in (False, True)]
+    assert workers[0].process_id is None and workers[1].process_id not in (None, os.getpid())
+    offline = FacadeMap(params)
+    for i in range(6):
+        xyz = wall(400, seed=i, u0=i * 2.0)
+        for w in workers:
+            w.put(Cloud(xyz, np.zeros(400, np.int64), None, i))
+        offline.add_points(xyz, np.zeros(400, np.int64), defer=True)
+    for w in workers:
+        _settle(w)
+    offline.flush()
+    for w in workers:
+        snap = w.snapshot
+        assert snap.points == offline.n_points == 2400 and len(snap.facades) == len(offline.facades) >= 1
+        for a, b in zip(snap.facades, offline.facades):
+            np.testing.assert_array_equal(a.surface.mean, b.surface.mean)
+            np.testing.assert_array_equal(a.surface.var, b.surface.var)
+            np.testing.assert_array_equal(a.point_index, b.point_index)
+        fmap, version, waiting = w.committed()
+        assert fmap.n_points == 2400 and version == snap.version == w.committed_version and waiting == 0
+        assert w.accounts()['clouds_mapped'] == 6
+        w.stop()
+
+
+def test_bad_clouds_and_commands_fail_with_the_map_kept():
+    errors = []
+    worker = MapWorker(FacadeMap(), idle_flush=0, on_error=lambda c, e: errors.append(e), process=True)
+    worker.put(Cloud(wall(50)))
+    worker.put(Cloud(np.full((5, 3), np.nan)))
+    assert worker.wait_idle(60)
+    assert len(errors) == 1 and 'NaN' in str(errors[0]) and type(errors[0]).__name__ == 'InputError'
+    assert worker.accounts()['clouds_failed'] == 1 and worker.committed()[0].n_pending == 50
+    with pytest.raises(MappingProcessError, match='must pickle'):
+        worker.call(lambda m: None)
+    with pytest.raises(TypeError):
+        worker.call(functools.partial(divmod, 1))  # divmod(1, map) raises in the child
+    assert worker.committed()[0].n_pending == 50
+    version = worker.snapshot.version
+    assert worker.call(functools.partial(replace_with, FacadeMap(), 'replaced')) == 'replaced'
+    assert worker.snapshot.version == version + 1 and worker.committed()[0].n_pending == 0
+    worker.stop()
+
+
+def test_a_save_gets_the_committed_map_while_the_process_maps():
+    params = MapParams(update=UpdateParams(batch_points=1))
+    worker = MapWorker(FacadeMap(params), idle_flush=0, process=True)
+    worker.put(Cloud(wall(400, seed=1), np.zeros(400, np.int64)))
+    assert worker.wait_idle(60)
+    version = worker.snapshot.version
+    big = np.vstack([wall(20_000, seed=s, u0=5.0 * s) for s in range(2, 6)])
+    worker.put(Cloud(big, np.zeros(len(big), np.int64)))
+    time.sleep(0.5)
+    assert worker.accounts()['clouds_waiting'] == 1  # being mapped
+    started = time.monotonic()
+    fmap, saved_version, waiting = worker.committed()
+    assert time.monotonic() - started < 2.0
+    assert worker.accounts()['clouds_waiting'] == 1, 'the update ended before the save: make the cloud bigger'
+    assert fmap.n_points == 400 and saved_version == version and waiting == 1
+    assert worker.wait_idle(120)
+    assert worker.committed()[0].n_points == 400 + len(big)
+    worker.stop()
+
+
+def test_a_dead_mapping_process_fails_clouds_with_a_clear_error():
+    errors = []
+    worker = MapWorker(FacadeMap(), idle_flush=0, on_error=lambda c, e: errors.append(e), process=True)
+    os.kill(worker.process_id, signal.SIGKILL)
+    time.sleep(0.5)
+    worker.put(Cloud(wall(50)))
+    assert worker.wait_idle(30)
+    assert len(errors) == 1 and isinstance(errors[0], MappingProcessError) and 'ended' in str(errors[0])
+    assert worker.accounts()['clouds_failed'] == 1
+    worker.stop(5)
+
+
+def test_the_mapping_process_ends_with_its_parent(tmp_path):
+    """A parent killed (SIGKILL) in the middle: its mapping process notices the closed pipes and ends."""
+    script = textwrap.dedent('''
+        import sys, time
+        from uncertain_facade_map.mapping.engine import ProcessEngine
+        from uncertain_facade_map.mapping.facade_map import FacadeMap
+        engine = ProcessEngine(FacadeMap())
+        engine.committed()  # the child is up
+        print(engine.pid, flush=True)
+        time.sleep(600)
+    ''')
+    parent = subprocess.Popen([sys.executable, '-c', script], stdout=subprocess.PIPE, text=True,
+                              cwd=os.path.dirname(os.path.dirname(os.path.dirname(__file__))))
+    child = int(parent.stdout.readline())
+    os.kill(child, 0)  # alive
+    parent.kill()
+    parent.wait(10)
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        try:
+            os.kill(child, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.1)
+    else:
+        os.kill(child, signal.SIGKILL)
+        pytest.fail('the mapping process outlived its parent')
+
+
+def test_engine_close_is_idempotent_enough():
+    engine = ProcessEngine(FacadeMap())
+    pid = engine.pid
+    engine.close()
+    with pytest.raises(ProcessLookupError):
+        os.kill(pid, 0)
+
+
+def test_a_helper_process_runs_functions_and_starts_again_after_dying():
+    helper = HelperProcess('test_helper')
+    assert helper.pid is None
+    assert helper.call(divmod, 7, 2) == (3, 1)
+    with pytest.raises(ZeroDivisionError):
+        helper.call(divmod, 1, 0)
+    pid = helper.pid
+    os.kill(pid, signal.SIGKILL)
+    time.sleep(0.3)
+    assert helper.call(divmod, 9, 4) == (2, 1) and helper.pid != pid  # started again
+    pid = helper.pid
+    helper.call(time.sleep, 0.0)
+    helper.close()
+    assert helper.pid is None
+    with pytest.raises(ProcessLookupError):
+        os.kill(pid, 0)

@@ -1,0 +1,427 @@
+"""Where the live map is updated: in the worker's thread, or in a process of its own.
+
+A :class:`~uncertain_facade_map.mapping.worker.MapWorker` hands every cloud, command and idle
+flush to an engine and waits for it. Both engines keep the same promises:
+
+- **Transactional.** After every item the engine keeps a clone of the map (:meth:`committed`);
+  an item that raises puts the clone back, so the map is exactly as before it.
+- **A view after every item** (:class:`MapView`): the façade models (frozen) and the few
+  numbers the worker's snapshot and idle flush need.
+
+:class:`LocalEngine` updates the map in the calling thread. :class:`ProcessEngine` updates it
+in a child process (``spawn``: no ROS state is inherited), so that the update's Python code
+never holds the interpreter lock of the node, whose callbacks answer queries and take in
+clouds meanwhile: a query then waits for CPU only, never for the map's update (issue 13). It
+sends each item down a pipe and waits for the answer (the wait releases the lock); the view
+comes back with the façade models that changed only. A second pipe, served by a thread of the
+child, hands out the committed map while the child maps on (saves never wait for an update).
+The child ends when the parent's pipes close (the parent stopped or died).
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import pickle
+import signal
+import threading
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+
+from ..datatypes import FacadeModel
+from ..errors import FacadeMapError
+from ..params import MapParams
+from .facade_map import FacadeMap
+
+
+class MappingProcessError(FacadeMapError):
+    """The mapping process ended or could not be reached."""
+
+
+@dataclass(frozen=True)
+class MapView:
+    """What the worker reads of the map after an item.
+
+    Attributes:
+        facades: the façade models (frozen), ``facades[i].facade_id == i``.
+        map_origin: (3,) georeference of the map frame, metres (read-only).
+        buildings: number of buildings.
+        points: number of building points mapped (stored and thinned).
+        params: the map's modelling parameters.
+        pending: points held back for the next batch update.
+        needs_flush: points are held back or a façade was updated block by block only.
+    """
+
+    facades: tuple[FacadeModel, ...]
+    map_origin: np.ndarray
+    buildings: int
+    points: int
+    params: MapParams
+    pending: int
+    needs_flush: bool
+
+
+def view_of(fmap: FacadeMap) -> MapView:
+    """The :class:`MapView` of a map as it stands."""
+    origin = np.asarray(fmap.map_origin, dtype=np.float64).copy()
+    origin.setflags(write=False)  # the façade models' arrays are read-only already
+    return MapView(tuple(fmap.facades), origin, len(fmap.points), fmap.n_points, fmap.params, fmap.n_pending,
+                   bool(fmap.pending) or any(f.fitted_points != len(f.point_index) for f in fmap.facades))
+
+
+@dataclass(frozen=True)
+class ReplaceMap:
+    """Returned by a :meth:`MapWorker.call` function to replace the worker's map.
+
+    Attributes:
+        fmap: the new map.
+        result: what :meth:`MapWorker.call` returns.
+    """
+
+    fmap: FacadeMap
+    result: Any = None
+
+
+def replace_with(new: FacadeMap, result: Any, _old: FacadeMap) -> ReplaceMap:
+    """A :meth:`MapWorker.call` function that replaces the map by ``new`` (picklable with
+    :func:`functools.partial`, so that it reaches a :class:`ProcessEngine` too)."""
+    return ReplaceMap(new, result)
+
+
+class LocalEngine:
+    """The map, updated in the calling thread.
+
+    Args:
+        fmap: the map (the engine owns it from now on).
+    """
+
+    def __init__(self, fmap: FacadeMap) -> None:
+        self._fmap = fmap
+        self._committed = fmap.clone()
+        self._done = 0
+        self.view = view_of(fmap)
+
+    def add_points(self, xyz: np.ndarray, building_id: np.ndarray | None, sensor_origins: np.ndarray | None) -> bool:
+        """Add a cloud (``FacadeMap.add_points(..., defer=True)``); True when an update ran or
+        nothing is held back. Raises what the map raised, the map rolled back."""
+        try:
+            updated = self._fmap.add_points(xyz, building_id, sensor_origins, defer=True)
+        except BaseException:
+            self._roll_back()
+            raise
+        self._commit()
+        return bool(updated) or not self._fmap.pending
+
+    def run(self, fn: Callable[[FacadeMap], Any]) -> tuple[Any, bool]:
+        """Run ``fn(map)``; returns (its result, whether the map was replaced)."""
+        try:
+            result = fn(self._fmap)
+            replaced = isinstance(result, ReplaceMap)
+            if replaced:
+                self._fmap, result = result.fmap, result.result
+        except BaseException:
+            self._roll_back()
+            raise
+        self._commit()
+        return result, replaced
+
+    def flush(self) -> tuple[int, list[int]]:
+        """Map the points held back and fit whole the façades updated block by block;
+        returns (points that were held back, façades fitted whole)."""
+        try:
+            pending = self._fmap.n_pending
+            refitted = self._fmap.flush()
+        except BaseException:
+            self._roll_back()
+            raise
+        self._commit()
+        return pending, refitted
+
+    def committed(self) -> tuple[int, FacadeMap]:
+        """(items done, a clone of the map after the last of them): nobody changes the clone
+        (save it, do not map into it)."""
+        return self._done, self._committed
+
+    def close(self, timeout: float = 0.0) -> None:
+        """Nothing to release."""
+
+    def _commit(self) -> None:
+        self._committed, self._done = self._fmap.clone(), self._done + 1
+        self.view = view_of(self._fmap)
+
+    def _roll_back(self) -> None:
+        self._fmap = self._committed.clone()
+        self._done += 1
+
+
+def _picklable(exc: BaseException) -> BaseException:
+    """``exc`` if it survives pickling, else a RuntimeError with its type and message."""
+    try:
+        pickle.loads(pickle.dumps(exc))
+        return exc
+    except Exception:  # noqa: BLE001 - any pickling failure
+        return RuntimeError(f'{type(exc).__name__}: {exc}')
+
+
+def _lower_priority(nice: int) -> None:
+    """Raise this process's niceness by ``nice`` (best effort): the parent's latency-bound
+    work (queries, input) then gets the CPU first when both want it."""
+    if nice > 0:
+        try:
+            os.nice(nice)
+        except OSError:
+            pass
+
+
+def _child_main(conn: Any, service: Any, nice: int = 0) -> None:
+    """The mapping process: items from ``conn`` (one at a time), committed maps from ``service``."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when to stop
+    _lower_priority(nice)
+    kind, fmap = conn.recv()
+    engine = LocalEngine(fmap)
+    lock = threading.Lock()  # a committed map is handed out only once its item's answer is sent
+    answered = engine.committed()
+
+    def serve() -> None:
+        while True:
+            try:
+                service.recv()
+            except (EOFError, OSError):
+                os._exit(0)  # the parent is gone: stop at once, mid-update or not
+            with lock:
+                held = answered
+            service.send(held)
+
+    threading.Thread(target=serve, name='committed_map', daemon=True).start()
+    sent: tuple[FacadeModel, ...] = engine.view.facades
+    while True:
+        try:
+            request = conn.recv()
+        except (EOFError, OSError):
+            os._exit(0)
+        kind, number = request[0], request[1]
+        if kind == 'stop':
+            conn.send(('stopped', number, None, None))
+            return
+        try:
+            if kind == 'add':
+                result: Any = engine.add_points(*request[2:])
+            elif kind == 'run':
+                result = engine.run(request[2])
+            elif kind == 'flush':
+                result = engine.flush()
+            else:
+                raise ValueError(f'unknown request {kind!r}')
+            error = None
+        except BaseException as exc:  # noqa: BLE001 - handed to the parent
+            result, error = None, _picklable(exc)
+        view = engine.view
+        # Only the façade models that changed travel back (the others are the same objects).
+        changed = {i: f for i, f in enumerate(view.facades) if i >= len(sent) or sent[i] is not f}
+        delta = (len(view.facades), changed, view.map_origin, view.buildings, view.points, view.params,
+                 view.pending, view.needs_flush)
+        with lock:
+            try:
+                answer = ('error', number, error, delta) if error is not None else ('ok', number, result, delta)
+                conn.send(answer)
+            except Exception as exc:  # noqa: BLE001 - e.g. a result that does not pickle
+                conn.send(('error', number, RuntimeError(f'the answer could not be sent: {exc}'), delta))
+            answered = engine.committed()
+        sent = view.facades
+
+
+class ProcessEngine:
+    """The map, updated in a child process (see the module's description).
+
+    Args:
+        fmap: the initial map (sent to the child; the caller must not change it).
+        nice: niceness added to the child's (0: the parent's priority).
+
+    Raises:
+        MappingProcessError: the child could not be reached.
+    """
+
+    def __init__(self, fmap: FacadeMap, nice: int = 0) -> None:
+        ctx = multiprocessing.get_context('spawn')
+        self._conn, child_conn = ctx.Pipe()
+        self._service, child_service = ctx.Pipe()
+        self._process = ctx.Process(target=_child_main, args=(child_conn, child_service, nice), name='facade_map',
+                                    daemon=True)
+        self._process.start()
+        child_conn.close()
+        child_service.close()
+        self._number = 0
+        self._service_lock = threading.Lock()
+        self._send(('init', fmap))
+        self.view = view_of(fmap)
+
+    @property
+    def pid(self) -> int | None:
+        """The child's process id."""
+        return self._process.pid
+
+    def add_points(self, xyz: np.ndarray, building_id: np.ndarray | None, sensor_origins: np.ndarray | None) -> bool:
+        """See :meth:`LocalEngine.add_points`."""
+        return bool(self._request('add', xyz, building_id, sensor_origins))
+
+    def run(self, fn: Callable[[FacadeMap], Any]) -> tuple[Any, bool]:
+        """See :meth:`LocalEngine.run` (``fn`` must pickle: a module-level function or a
+        :func:`functools.partial` of one, e.g. :func:`replace_with`)."""
+        try:
+            pickle.dumps(fn)
+        except Exception as exc:  # noqa: BLE001 - lambdas, local functions
+            raise MappingProcessError(f'a command for the mapping process must pickle: {exc}') from exc
+        result, replaced = self._request('run', fn)
+        return result, replaced
+
+    def flush(self) -> tuple[int, list[int]]:
+        """See :meth:`LocalEngine.flush`."""
+        pending, refitted = self._request('flush')
+        return pending, refitted
+
+    def committed(self) -> tuple[int, FacadeMap]:
+        """(items done, the child's map after the last of them), fetched now while the child
+        maps on; the answer to that item has been sent already."""
+        with self._service_lock:
+            try:
+                self._service.send('committed')
+                return self._service.recv()
+            except (EOFError, OSError) as exc:
+                self._process.join(1.0)
+                raise MappingProcessError(self._ended('handing out the committed map')) from exc
+
+    def close(self, timeout: float = 10.0) -> None:
+        """Stop the child (after its current item), killing it after ``timeout`` seconds."""
+        if self._process.is_alive():
+            try:
+                self._send(('stop', self._number + 1))
+                if self._conn.poll(timeout):
+                    self._conn.recv()
+            except (EOFError, OSError, BrokenPipeError):
+                pass
+        self._process.join(timeout)
+        if self._process.is_alive():
+            self._process.kill()
+            self._process.join(timeout)
+        for conn in (self._conn, self._service):
+            conn.close()
+
+    def _ended(self, doing: str) -> str:
+        return (f'the mapping process ended (exit code {self._process.exitcode}) while {doing}: the map it held '
+                f'since the last save is lost; restart the node')
+
+    def _send(self, message: Any) -> None:
+        try:
+            self._conn.send(message)
+        except (EOFError, OSError) as exc:
+            self._process.join(1.0)
+            raise MappingProcessError(self._ended(f'sending it a {message[0]!r} request')) from exc
+
+    def _request(self, kind: str, *args: Any) -> Any:
+        self._number += 1
+        self._send((kind, self._number, *args))
+        try:
+            status, number, result, delta = self._conn.recv()
+        except (EOFError, OSError) as exc:
+            self._process.join(1.0)
+            raise MappingProcessError(self._ended(f'working on a {kind!r} request')) from exc
+        n_facades, changed, origin, buildings, points, params, pending, needs_flush = delta
+        facades = list(self.view.facades[:n_facades])
+        facades.extend([None] * (n_facades - len(facades)))  # type: ignore[list-item]
+        for i, f in changed.items():
+            facades[i] = f
+        self.view = MapView(tuple(facades), origin, buildings, points, params, pending, needs_flush)
+        if status == 'error':
+            raise result  # the exception as the child raised it
+        return result
+
+
+def _helper_main(conn: Any, nice: int = 0) -> None:
+    """A helper process: ``(function, args, kwargs)`` from ``conn``, its result (or the
+    exception it raised) back; ends when the parent's pipe closes."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _lower_priority(nice)
+    while True:
+        try:
+            fn, args, kwargs = conn.recv()
+        except (EOFError, OSError):
+            os._exit(0)
+        try:
+            answer: tuple[str, Any] = ('ok', fn(*args, **kwargs))
+        except BaseException as exc:  # noqa: BLE001 - handed to the caller
+            answer = ('error', _picklable(exc))
+        try:
+            conn.send(answer)
+        except Exception as exc:  # noqa: BLE001 - a result that does not pickle
+            conn.send(('error', RuntimeError(f'the result could not be sent: {exc}')))
+
+
+class HelperProcess:
+    """Runs picklable functions in a child process, one call at a time (callers wait their
+    turn): heavy numpy work that would otherwise hold the caller's interpreter lock, such
+    as the node's published maps. The child is started on the first call (and again after
+    it died) and ends when this object is closed or its process ends.
+
+    Args:
+        name: the child's process name.
+        nice: niceness added to the child's (0: the parent's priority).
+    """
+
+    def __init__(self, name: str = 'helper', nice: int = 0) -> None:
+        self._name = name
+        self._nice = nice
+        self._lock = threading.Lock()
+        self._process: Any = None
+        self._conn: Any = None
+
+    @property
+    def pid(self) -> int | None:
+        """The child's process id (None before the first call)."""
+        return None if self._process is None else self._process.pid
+
+    def call(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+        """``fn(*args, **kwargs)`` in the child; raises what it raised there.
+
+        Raises:
+            MappingProcessError: the child ended during the call (it is started again on the
+                next one).
+        """
+        with self._lock:
+            if self._process is None or not self._process.is_alive():
+                self._start()
+            try:
+                self._conn.send((fn, args, kwargs))
+                status, result = self._conn.recv()
+            except (EOFError, OSError) as exc:
+                self._process.join(1.0)
+                code = self._process.exitcode
+                self._process = None
+                raise MappingProcessError(f'the {self._name} process ended (exit code {code}) during a call') from exc
+        if status == 'error':
+            raise result
+        return result
+
+    def close(self, timeout: float = 5.0) -> None:
+        """End the child (killed after ``timeout`` seconds if a call still runs)."""
+        got = self._lock.acquire(timeout=timeout)
+        try:
+            process, self._process = self._process, None
+            if process is None:
+                return
+            self._conn.close()  # the child sees the pipe close and ends
+            process.join(timeout)
+            if process.is_alive():
+                process.kill()
+                process.join(timeout)
+        finally:
+            if got:
+                self._lock.release()
+
+    def _start(self) -> None:
+        ctx = multiprocessing.get_context('spawn')
+        self._conn, child = ctx.Pipe()
+        self._process = ctx.Process(target=_helper_main, args=(child, self._nice), name=self._name, daemon=True)
+        self._process.start()
+        child.close()
