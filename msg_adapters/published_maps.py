@@ -2,7 +2,9 @@
 
 :func:`published_map_messages` computes every product of a map (core:
 :func:`~uncertain_facade_map.mapping.products.map_products`), builds the messages and
-serializes them (CDR, rclpy), so that the node only hands bytes to its publishers. The
+serializes them with the serializer it is given (the node passes rclpy's
+``serialize_message``; this package never imports rclpy), so that the node only hands bytes
+to its publishers. The
 facade_mapper node runs it in a helper process: building and converting a surface mesh of
 200 000 triangles holds an interpreter's lock for about 2 s (1.75 s of it in one call of
 rclpy's message conversion), and in the node's own interpreter every query would wait.
@@ -11,7 +13,7 @@ rclpy's message conversion), and in the node's own interpreter every query would
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -45,11 +47,11 @@ class PublishedMaps:
 
 
 def published_map_messages(facades: Sequence[Any], publish: Any, band_back: float, band_front: float,
-                           frame_id: str, stamp_ns: int) -> PublishedMaps:
+                           frame_id: str, stamp_ns: int, serialize_message: Callable[[Any], bytes]) -> PublishedMaps:
     """Every published map of ``facades`` (see :func:`~uncertain_facade_map.mapping.products.map_products`
-    for ``publish`` and the bands), serialized, in ``frame_id`` at ``stamp_ns``."""
-    from rclpy.serialization import serialize_message
-
+    for ``publish`` and the bands), in ``frame_id`` at ``stamp_ns``, serialized by
+    ``serialize_message`` (rclpy's ``rclpy.serialization.serialize_message``: a module-level
+    function, so that the call pickles to a helper process)."""
     types, cloud_types = rclpy_map_types(), rclpy_types()
     facades = list(facades)
     products = mp.map_products(facades, publish, band_back, band_front)

@@ -51,6 +51,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallb
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.serialization import serialize_message
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
@@ -464,7 +465,7 @@ class FacadeMapperNode(Node):
             try:
                 # Built and serialized in the helper process: here only bytes are handed over.
                 maps = self._compute(published_map_messages, facades, cfg, band.band_back, band.band_front,
-                                     self.frame_id, stamp)
+                                     self.frame_id, stamp, serialize_message)
                 self.pub_surface.publish(maps.surface)
                 self.pub_mesh.publish(maps.mesh)
                 self.pub_grids.publish(maps.variance_grids)

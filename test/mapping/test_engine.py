@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 
 import numpy as np
@@ -160,3 +161,27 @@ def test_a_helper_process_runs_functions_and_starts_again_after_dying():
     assert helper.pid is None
     with pytest.raises(ProcessLookupError):
         os.kill(pid, 0)
+
+
+def test_closing_a_helper_during_a_call_ends_the_call_with_a_clear_error():
+    """The node closes its helper at shutdown, maybe while it computes the published maps:
+    the waiting call ends at once with an error that says so, and later calls are refused."""
+    helper = HelperProcess('test_helper')
+    helper.call(divmod, 1, 1)
+    out = {}
+
+    def run():
+        try:
+            helper.call(time.sleep, 30)
+        except MappingProcessError as exc:
+            out['error'] = str(exc)
+
+    caller = threading.Thread(target=run)
+    caller.start()
+    time.sleep(0.5)
+    started = time.monotonic()
+    helper.close(timeout=1.0)
+    caller.join(10)
+    assert 'was closed' in out.get('error', '') and time.monotonic() - started < 8
+    with pytest.raises(MappingProcessError, match='closed'):
+        helper.call(divmod, 1, 1)

@@ -226,6 +226,8 @@ def _child_main(conn: Any, service: Any, nice: int = 0) -> None:
             try:
                 answer = ('error', number, error, delta) if error is not None else ('ok', number, result, delta)
                 conn.send(answer)
+            except (EOFError, OSError):
+                os._exit(0)  # the parent is gone or stopping
             except Exception as exc:  # noqa: BLE001 - e.g. a result that does not pickle
                 conn.send(('error', number, RuntimeError(f'the answer could not be sent: {exc}'), delta))
             answered = engine.committed()
@@ -354,6 +356,8 @@ def _helper_main(conn: Any, nice: int = 0) -> None:
             answer = ('error', _picklable(exc))
         try:
             conn.send(answer)
+        except (EOFError, OSError):
+            os._exit(0)  # the parent closed the pipe (it is stopping) during the call
         except Exception as exc:  # noqa: BLE001 - a result that does not pickle
             conn.send(('error', RuntimeError(f'the result could not be sent: {exc}')))
 
@@ -375,6 +379,7 @@ class HelperProcess:
         self._lock = threading.Lock()
         self._process: Any = None
         self._conn: Any = None
+        self._closed = False
 
     @property
     def pid(self) -> int | None:
@@ -389,22 +394,26 @@ class HelperProcess:
                 next one).
         """
         with self._lock:
+            if self._closed:
+                raise MappingProcessError(f'the {self._name} process was closed')
             if self._process is None or not self._process.is_alive():
                 self._start()
+            process, conn = self._process, self._conn
             try:
-                self._conn.send((fn, args, kwargs))
-                status, result = self._conn.recv()
-            except (EOFError, OSError) as exc:
-                self._process.join(1.0)
-                code = self._process.exitcode
+                conn.send((fn, args, kwargs))
+                status, result = conn.recv()
+            except (EOFError, OSError, TypeError) as exc:  # TypeError: closed by close() meanwhile
+                process.join(1.0)
                 self._process = None
-                raise MappingProcessError(f'the {self._name} process ended (exit code {code}) during a call') from exc
+                why = 'was closed' if self._closed else f'ended (exit code {process.exitcode})'
+                raise MappingProcessError(f'the {self._name} process {why} during a call') from exc
         if status == 'error':
             raise result
         return result
 
     def close(self, timeout: float = 5.0) -> None:
         """End the child (killed after ``timeout`` seconds if a call still runs)."""
+        self._closed = True
         got = self._lock.acquire(timeout=timeout)
         try:
             process, self._process = self._process, None
