@@ -711,9 +711,10 @@ def main(args: list[str] | None = None) -> None:
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 
     rclpy.init(args=args)
-    # Queries and input share the interpreter with the mapping worker: at the default 5 ms a
-    # query's numpy calls each wait up to a switch interval for the lock while the worker
-    # runs Python code (hundreds of ms per query under load); 0.5 ms shortens those waits.
+    # Queries and input share this interpreter with the worker thread (and, with
+    # node.mapping_process false, with the mapping itself): at the default 5 ms a query's
+    # numpy calls each wait up to a switch interval for the lock while another thread runs
+    # Python code; 0.5 ms shortens those waits.
     sys.setswitchinterval(SWITCH_INTERVAL)
     node = None
     try:

@@ -106,38 +106,29 @@ class LocalEngine:
     def add_points(self, xyz: np.ndarray, building_id: np.ndarray | None, sensor_origins: np.ndarray | None) -> bool:
         """Add a cloud (``FacadeMap.add_points(..., defer=True)``); True when an update ran or
         nothing is held back. Raises what the map raised, the map rolled back."""
-        try:
-            updated = self._fmap.add_points(xyz, building_id, sensor_origins, defer=True)
-        except BaseException:
-            self._roll_back()
-            raise
-        self._commit()
-        return bool(updated) or not self._fmap.pending
+        def add() -> bool:
+            return bool(self._fmap.add_points(xyz, building_id, sensor_origins, defer=True)) or not self._fmap.pending
+        return self._item(add)
 
     def run(self, fn: Callable[[FacadeMap], Any]) -> tuple[Any, bool]:
         """Run ``fn(map)``; returns (its result, whether the map was replaced)."""
-        try:
+        def call() -> tuple[Any, bool]:
             result = fn(self._fmap)
-            replaced = isinstance(result, ReplaceMap)
-            if replaced:
-                self._fmap, result = result.fmap, result.result
-        except BaseException:
-            self._roll_back()
-            raise
-        self._commit()
-        return result, replaced
+            if not isinstance(result, ReplaceMap):
+                return result, False
+            self._fmap = result.fmap
+            return result.result, True
+        return self._item(call)
 
     def flush(self) -> tuple[int, list[int]]:
         """Map the points held back and fit whole the façades updated block by block;
         returns (points that were held back, façades fitted whole)."""
-        try:
-            pending = self._fmap.n_pending
-            refitted = self._fmap.flush()
-        except BaseException:
-            self._roll_back()
-            raise
-        self._commit()
-        return pending, refitted
+        return self._item(lambda: (self._fmap.n_pending, self._fmap.flush()))
+
+    @property
+    def done(self) -> int:
+        """Items done (failed ones included)."""
+        return self._done
 
     def committed(self) -> tuple[int, FacadeMap]:
         """(items done, a clone of the map after the last of them): nobody changes the clone
@@ -147,13 +138,18 @@ class LocalEngine:
     def close(self, timeout: float = 0.0) -> None:
         """Nothing to release."""
 
-    def _commit(self) -> None:
+    def _item(self, work: Callable[[], Any]) -> Any:
+        """One item as a transaction: on success keep a clone of the map (and its view), on
+        failure put the last clone back and raise."""
+        try:
+            out = work()
+        except BaseException:
+            self._fmap = self._committed.clone()
+            self._done += 1
+            raise
         self._committed, self._done = self._fmap.clone(), self._done + 1
         self.view = view_of(self._fmap)
-
-    def _roll_back(self) -> None:
-        self._fmap = self._committed.clone()
-        self._done += 1
+        return out
 
 
 def _picklable(exc: BaseException) -> BaseException:
@@ -192,7 +188,10 @@ def _child_main(conn: Any, service: Any, nice: int = 0) -> None:
                 os._exit(0)  # the parent is gone: stop at once, mid-update or not
             with lock:
                 held = answered
-            service.send(held)
+            try:
+                service.send(held)
+            except (EOFError, OSError):
+                os._exit(0)
 
     threading.Thread(target=serve, name='committed_map', daemon=True).start()
     sent: tuple[FacadeModel, ...] = engine.view.facades
@@ -201,15 +200,15 @@ def _child_main(conn: Any, service: Any, nice: int = 0) -> None:
             request = conn.recv()
         except (EOFError, OSError):
             os._exit(0)
-        kind, number = request[0], request[1]
+        kind = request[0]
         if kind == 'stop':
-            conn.send(('stopped', number, None, None))
+            conn.send(('stopped', None, None))
             return
         try:
             if kind == 'add':
-                result: Any = engine.add_points(*request[2:])
+                result: Any = engine.add_points(*request[1:])
             elif kind == 'run':
-                result = engine.run(request[2])
+                result = engine.run(request[1])
             elif kind == 'flush':
                 result = engine.flush()
             else:
@@ -224,12 +223,11 @@ def _child_main(conn: Any, service: Any, nice: int = 0) -> None:
                  view.pending, view.needs_flush)
         with lock:
             try:
-                answer = ('error', number, error, delta) if error is not None else ('ok', number, result, delta)
-                conn.send(answer)
+                conn.send(('error', error, delta) if error is not None else ('ok', result, delta))
             except (EOFError, OSError):
                 os._exit(0)  # the parent is gone or stopping
             except Exception as exc:  # noqa: BLE001 - e.g. a result that does not pickle
-                conn.send(('error', number, RuntimeError(f'the answer could not be sent: {exc}'), delta))
+                conn.send(('error', RuntimeError(f'the answer could not be sent: {exc}'), delta))
             answered = engine.committed()
         sent = view.facades
 
@@ -254,7 +252,7 @@ class ProcessEngine:
         self._process.start()
         child_conn.close()
         child_service.close()
-        self._number = 0
+        self._done = 0  # requests the child answered (it counts the same)
         self._service_lock = threading.Lock()
         self._send(('init', fmap))
         self.view = view_of(fmap)
@@ -271,10 +269,6 @@ class ProcessEngine:
     def run(self, fn: Callable[[FacadeMap], Any]) -> tuple[Any, bool]:
         """See :meth:`LocalEngine.run` (``fn`` must pickle: a module-level function or a
         :func:`functools.partial` of one, e.g. :func:`replace_with`)."""
-        try:
-            pickle.dumps(fn)
-        except Exception as exc:  # noqa: BLE001 - lambdas, local functions
-            raise MappingProcessError(f'a command for the mapping process must pickle: {exc}') from exc
         result, replaced = self._request('run', fn)
         return result, replaced
 
@@ -282,6 +276,11 @@ class ProcessEngine:
         """See :meth:`LocalEngine.flush`."""
         pending, refitted = self._request('flush')
         return pending, refitted
+
+    @property
+    def done(self) -> int:
+        """Items the child has done (a request that never reached it is not one)."""
+        return self._done
 
     def committed(self) -> tuple[int, FacadeMap]:
         """(items done, the child's map after the last of them), fetched now while the child
@@ -298,11 +297,11 @@ class ProcessEngine:
         """Stop the child (after its current item), killing it after ``timeout`` seconds."""
         if self._process.is_alive():
             try:
-                self._send(('stop', self._number + 1))
+                self._send(('stop',))
                 if self._conn.poll(timeout):
                     self._conn.recv()
-            except (EOFError, OSError, BrokenPipeError):
-                pass
+            except (MappingProcessError, EOFError, OSError):
+                pass  # it ended meanwhile
         self._process.join(timeout)
         if self._process.is_alive():
             self._process.kill()
@@ -316,16 +315,17 @@ class ProcessEngine:
 
     def _send(self, message: Any) -> None:
         try:
-            self._conn.send(message)
+            self._conn.send(message)  # pickled whole before anything is written
+        except (pickle.PicklingError, AttributeError, TypeError) as exc:  # lambdas, local functions
+            raise MappingProcessError(f'a {message[0]!r} request for the mapping process must pickle: {exc}') from exc
         except (EOFError, OSError) as exc:
             self._process.join(1.0)
             raise MappingProcessError(self._ended(f'sending it a {message[0]!r} request')) from exc
 
     def _request(self, kind: str, *args: Any) -> Any:
-        self._number += 1
-        self._send((kind, self._number, *args))
+        self._send((kind, *args))
         try:
-            status, number, result, delta = self._conn.recv()
+            status, result, delta = self._conn.recv()
         except (EOFError, OSError) as exc:
             self._process.join(1.0)
             raise MappingProcessError(self._ended(f'working on a {kind!r} request')) from exc
@@ -335,6 +335,7 @@ class ProcessEngine:
         for i, f in changed.items():
             facades[i] = f
         self.view = MapView(tuple(facades), origin, buildings, points, params, pending, needs_flush)
+        self._done += 1
         if status == 'error':
             raise result  # the exception as the child raised it
         return result

@@ -155,8 +155,8 @@ class MapWorker:
         self._held: list[float] = []  # arrival times of the clouds whose points are held back
         #: Seconds from arrival to map of the latest clouds (newest last).
         self.latencies: deque[float] = deque(maxlen=LATENCY_WINDOW)
-        self._items = 0  # items (clouds, commands, flushes) the engine has done
-        self._versions = {0: 0}  # snapshot version after the latest items, by item count
+        self._items = 0  # the engine's count of items done, as of the last one this worker saw end
+        self._versions = {0: 0}  # snapshot version after the latest items, by that count
         self.snapshot = self._snapshot(0)
         self._thread = threading.Thread(target=self._run, name='map_worker', daemon=True)
         self._thread.start()
@@ -342,7 +342,7 @@ class MapWorker:
     def _item_done(self) -> None:
         """The engine finished an item (and kept its map, or the one before on failure)."""
         with self._cond:
-            self._items += 1
+            self._items = self._engine.done
             self._versions[self._items] = self.snapshot.version
             self._versions.pop(self._items - 16, None)
             self._cond.notify_all()

@@ -113,8 +113,8 @@ def nearer_step_faces(raster: SurfaceRaster, uvd: np.ndarray, distance: np.ndarr
         distance: (N,) signed distances along the normal, metres.
         var: (N,) surface variance there, m^2.
         reach: faces further than this within the plane are not searched, metres.
-        depth_range: :func:`step_depth_range` of ``raster`` and ``reach``, when the caller
-            keeps it for several calls; None computes it.
+        depth_range: :func:`step_depth_range` of ``raster`` and ``reach``; None: the cached
+            one (:func:`cached_step_depth_range`).
 
     Returns:
         ``(distance, var)``: (N,) signed distances (the sign of the distance along the
@@ -132,7 +132,7 @@ def nearer_step_faces(raster: SurfaceRaster, uvd: np.ndarray, distance: np.ndarr
     # A face within reach spans depths within the observed cells' range around the point
     # (the (2k + 3)^2 cells searched below): points outside it, most of them off steps,
     # need no search. Points off the raster are searched.
-    lo, hi = step_depth_range(raster, reach) if depth_range is None else depth_range
+    lo, hi = cached_step_depth_range(raster, reach) if depth_range is None else depth_range
     r0 = np.floor((uvd[todo, 1] - raster.origin[1]) / cell).astype(np.int64)
     c0 = np.floor((uvd[todo, 0] - raster.origin[0]) / cell).astype(np.int64)
     on = (r0 >= 0) & (r0 < h) & (c0 >= 0) & (c0 < w)
@@ -146,7 +146,7 @@ def nearer_step_faces(raster: SurfaceRaster, uvd: np.ndarray, distance: np.ndarr
     d = uvd[todo, 2]
     row, col = np.floor(v).astype(np.int64), np.floor(u).astype(np.int64)
     best = np.abs(distance[todo]) / cell
-    best_var = var[todo].copy()
+    best_var = var[todo]
     # The candidate faces of every point at once: (K,) offsets of the face's first cell
     # (dr, dc) and its direction (across u: the face at u = c + 1; else at v = r + 1).
     dr, dc, across_u = (a.ravel() for a in np.meshgrid(np.arange(-k - 1, k + 1), np.arange(-k - 1, k + 1),
@@ -171,11 +171,12 @@ def nearer_step_faces(raster: SurfaceRaster, uvd: np.ndarray, distance: np.ndarr
         gap[i, j] = np.where(g * cell <= reach, g, np.inf)
         # The first nearest face in the order (dr, dc, across u first), as a search that
         # takes a face only when it is strictly nearer than the best so far.
-        j = np.argmin(gap, axis=1)
-        rows = np.arange(len(j))
-        g = gap[rows, j]
+        first = np.argmin(gap, axis=1)
+        rows = np.arange(len(first))
+        g = gap[rows, first]
         nearer = g < best[p]
-        face_var = np.maximum(cell_var[ra[rows, j], ca[rows, j]], cell_var[rb[rows, j], cb[rows, j]]) + cell**2 / 12
+        face_var = np.maximum(cell_var[ra[rows, first], ca[rows, first]],
+                              cell_var[rb[rows, first], cb[rows, first]]) + cell**2 / 12
         best[p] = np.where(nearer, g, best[p])
         best_var[p] = np.where(nearer, face_var, best_var[p])
     moved = best < np.abs(distance[todo]) / cell
@@ -308,6 +309,6 @@ def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: fl
             mean[sel], var[sel] = m, v
             noise[sel] = facades[i].noise_var
             dist[sel], var[sel] = nearer_step_faces(facades[i].surface, uvd[sel - start], uvd[sel - start, 2] - m, v,
-                                                    STEP_REACH, cached_step_depth_range(facades[i].surface, STEP_REACH))
+                                                    STEP_REACH)
     p = occupancy_probability(dist, var, np.where(np.isfinite(noise), noise, 0.0), resolution)
     return PointQuery(facade, mean, var, noise, dist, p)
