@@ -9,6 +9,11 @@ received point. Ends with medians per range of received points.
 
     .venv/bin/python tools/update_scaling.py --campaigns 4
     .venv/bin/python tools/update_scaling.py --campaigns 2 --profile /tmp/update.prof
+    .venv/bin/python tools/update_scaling.py --campaigns 5 --shuffle
+
+``--shuffle`` feeds each campaign's batches (runs of scans of ``update.batch_points``
+points) in a random order, as the node maps clouds from all along the drive when it drops
+most of them under load (``make soak``): each update then touches another part of the street.
 
 The campaigns' building points are cached in ``--cache`` (simulating one takes ~15 s).
 """
@@ -65,6 +70,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument('--campaigns', type=int, default=4, help='drives of the same street, one after the other')
     ap.add_argument('--period', type=float, default=0.1, help='seconds per scan')
     ap.add_argument('--batch-points', type=int, default=UpdateParams().batch_points)
+    ap.add_argument('--shuffle', action='store_true', help="feed each campaign's batches in a random order")
     ap.add_argument('--no-ids', action='store_true', help='drop the building ids (clustering path)')
     ap.add_argument('--profile', type=Path, help='write a cProfile of the feeding here and print its top')
     ap.add_argument('--cache', type=Path, default=Path(os.environ.get('TMPDIR', '/tmp')) / 'ufm_update_scaling')
@@ -76,17 +82,24 @@ def main(argv: list[str] | None = None) -> None:
     profiler = cProfile.Profile() if args.profile else None
     rows = []
     received = 0
-    print(f'{"update":>6} {"received":>10} {"stored":>10} {"seconds":>8} {"rss_MB":>8} {"B/received":>10} '
-          f'{"B/stored":>9}', flush=True)
+    print(f'{"update":>6} {"received":>10} {"stored":>10} {"seconds":>8} {"cpu_s":>6} {"rss_MB":>8} '
+          f'{"B/received":>10} {"B/stored":>9}', flush=True)
+    rng = np.random.default_rng(0)
     base = rss_mb()
     for c in range(args.campaigns):
         scans = campaign_scans(args.scene, c, args.period, args.cache)
         if c == 0:
             base = rss_mb()  # the interpreter, numpy and one campaign's scans
+        if args.shuffle:
+            sizes = np.cumsum([len(s) for s in scans])
+            run = sizes // args.batch_points  # scans of one run fill one batch
+            starts = np.flatnonzero(np.r_[True, run[1:] != run[:-1]])
+            runs = np.split(np.arange(len(scans)), starts[1:])
+            scans = [scans[i] for k in rng.permutation(len(runs)) for i in runs[k]]
         for scan in scans:
             pts = select_scan_points(scan, config)
             received += len(pts.xyz)
-            t0 = time.perf_counter()
+            t0, cpu0 = time.perf_counter(), time.process_time()
             if profiler:
                 profiler.enable()
             done = fmap.add_points(pts.xyz, pts.building_id, pts.sensor_origins, defer=True)
@@ -94,11 +107,11 @@ def main(argv: list[str] | None = None) -> None:
                 profiler.disable()
             if not done:
                 continue
-            seconds = time.perf_counter() - t0
+            seconds, cpu = time.perf_counter() - t0, time.process_time() - cpu0
             stored = fmap.n_stored if hasattr(fmap, 'n_stored') else fmap.n_points
             rss = rss_mb()
-            rows.append((received, stored, seconds, rss))
-            print(f'{len(rows):6d} {received:10,d} {stored:10,d} {seconds:8.2f} {rss:8.0f} '
+            rows.append((received, stored, seconds, rss, cpu))
+            print(f'{len(rows):6d} {received:10,d} {stored:10,d} {seconds:8.2f} {cpu:6.2f} {rss:8.0f} '
                   f'{(rss - base) * 2**20 / received:10.0f} {(rss - base) * 2**20 / max(stored, 1):9.0f}', flush=True)
         del scans
     t0 = time.perf_counter()
@@ -112,6 +125,7 @@ def main(argv: list[str] | None = None) -> None:
         sel = (r[:, 0] > lo) & (r[:, 0] <= hi)
         if sel.any():
             print(f'  {lo / 1e6:3.1f}-{min(hi, r[:, 0].max()) / 1e6:3.1f} M: {np.median(r[sel, 2]):6.2f} s '
+                  f'(CPU {np.median(r[sel, 4]):6.2f} s) '
                   f'(max {r[sel, 2].max():5.2f}), stored {r[sel, 1].max():10,.0f}, RSS {r[sel, 3].max():6.0f} MB, '
                   f'{(r[sel, 3].max() - base) * 2**20 / r[sel, 0].max():4.0f} B/received point')
     if profiler:

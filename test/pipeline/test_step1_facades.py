@@ -412,6 +412,24 @@ def test_point_normals_are_exact_on_clean_surfaces():
     assert np.median(np.abs(np.einsum('ij,ij->i', est, radial))) > 0.999
 
 
+def test_point_normals_of_some_rows_equal_those_of_all():
+    """The incremental map asks only for its new points' normals (issue 13: the cost follows
+    the new points): each must be the one the whole computation gives (the same neighbours;
+    float32 sums in other batches may differ in the last bits)."""
+    from uncertain_facade_map.pipeline.step1_facades import _point_normals
+
+    rng = np.random.default_rng(13)
+    xyz = np.vstack([_plane(np.array([0.0, 1.0, 0.0]), np.zeros(3), (5.0, 5.0), 400.0, 0.01, rng),
+                     rng.normal(0.0, 1.0, (3000, 3))])
+    xyz -= xyz.mean(axis=0)
+    full = _point_normals(xyz, 10)
+    for rows in (np.arange(len(xyz) - 500, len(xyz)), np.sort(rng.choice(len(xyz), 4000, replace=False)),
+                 np.array([0]), np.arange(len(xyz))):
+        part = _point_normals(xyz, 10, rows)
+        assert part.shape == (len(rows), 3)
+        np.testing.assert_allclose(part, full[rows], rtol=0, atol=1e-6)
+
+
 # --------------------------------------------------------------------------------------
 # bad input
 

@@ -349,8 +349,9 @@ class FacadeMap:
             local = np.vstack([old[near], xyz])
             centre = local.mean(axis=0)
             normals = np.vstack([self.normals[b], np.zeros((len(xyz), 3))])
-            if len(local) >= 3:
-                normals[first:] = _point_normals(local - centre, min(k, len(local)))[len(near):]
+            if len(local) >= 3:  # the new points' normals only (the old ones keep theirs)
+                normals[first:] = _point_normals(local - centre, min(k, len(local)),
+                                                 np.arange(len(near), len(local)))
             else:
                 normals[first:] = [0.0, 0.0, 1.0]
         self.normals[b] = normals

@@ -243,18 +243,26 @@ def point_normals(xyz: np.ndarray, k: int) -> np.ndarray:
     return _point_normals(xyz, int(min(k, n)))
 
 
-def _point_normals(xyz: np.ndarray, k: int) -> np.ndarray:
-    """:func:`point_normals` of checked (N, 3) float64 points, 3 <= k <= N."""
+def _point_normals(xyz: np.ndarray, k: int, rows: np.ndarray | None = None) -> np.ndarray:
+    """:func:`point_normals` of checked (N, 3) float64 points, 3 <= k <= N.
+
+    ``rows``: (M,) sorted indices of the points whose normals are wanted (their neighbours
+    are still sought among all N points); None: all. Returns (M, 3), or (N, 3) for None;
+    a point's normal does not depend on which others are asked for."""
     n = xyz.shape[0]
     tree = cKDTree(xyz, balanced_tree=False, compact_nodes=False)
     # Query in the tree's own order so that consecutive queries touch the same memory.
     order = tree.indices
+    if rows is not None:
+        wanted = np.zeros(n, dtype=bool)
+        wanted[rows] = True
+        order = order[wanted[order]]
     # float32 relative coordinates: half the memory traffic; their round-off (micrometres
     # within kilometres of the centroid) is far below any scanner's noise.
     centred = xyz - xyz.mean(axis=0)
     columns = [centred[:, i].astype(np.float32) for i in range(3)]
     normals = np.empty((n, 3), dtype=np.float64)
-    for start in range(0, n, _NORMAL_CHUNK):
+    for start in range(0, len(order), _NORMAL_CHUNK):
         sel = order[start:start + _NORMAL_CHUNK]
         _, nb = tree.query(xyz[sel], k=k, workers=-1)
         # Column 0 is the point itself (relative position 0); the others as (k - 1, c)
@@ -265,7 +273,7 @@ def _point_normals(xyz: np.ndarray, k: int) -> np.ndarray:
         cov = [np.einsum('ji,ji->i', rel[a], rel[b]) / k - mean[a] * mean[b]
                for a, b in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))]
         normals[sel] = _smallest_eigenvectors(*cov)
-    return normals
+    return normals if rows is None else normals[rows]
 
 
 # ----------------------------------------------------------------------------------------
