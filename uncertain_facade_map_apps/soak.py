@@ -301,6 +301,19 @@ class NodeProcess:
             hwm += int(found.get('VmHWM', 0))
         return rss, hwm
 
+    def memory_parts_mb(self, mapping_pid: int | None = None) -> dict[str, float]:
+        """VmRSS in MB of each of the node's processes: ``node``, ``mapping`` (the child with
+        ``mapping_pid``, from the diagnostics) and ``other`` (the published maps' helper)."""
+        out: dict[str, float] = {}
+        for pid in [self.pid, *_children(self.pid)]:
+            try:
+                found = re.search(r'^VmRSS:\s+(\d+)', Path(f'/proc/{pid}/status').read_text(), re.M)
+            except OSError:
+                continue
+            name = 'node' if pid == self.pid else 'mapping' if pid == mapping_pid else 'other'
+            out[name] = round(out.get(name, 0.0) + (int(found.group(1)) if found else 0) / 1024, 1)
+        return out
+
     def log_size(self) -> int:
         try:
             return self.log.stat().st_size
@@ -356,8 +369,10 @@ class Client(SpinningClient):
         from sensor_msgs.msg import PointCloud2
 
         super().__init__('soak_client', domain, num_threads=3)
-        reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-        self.pub = self.node.create_publisher(PointCloud2, 'points', reliable)
+        self._cloud_args = (PointCloud2, 'points', QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+        self.pub = self.node.create_publisher(*self._cloud_args)
+        #: Times the clouds' publisher was created again (see :meth:`renew_publisher`).
+        self.publisher_renewals = 0
         self.pose_pub = self.node.create_publisher(TransformStamped, 'sensor_pose', 100)
         self._diag = threading.Condition()
         self.diag_values: dict[str, str] = {}
@@ -416,6 +431,16 @@ class Client(SpinningClient):
                     client.remove_pending_request(future)
                 return None
         return future.result()
+
+    def renew_publisher(self) -> None:
+        """Create the clouds' publisher again: once (in a full ``make soak``, after 20 kills)
+        a fresh node never received a cloud of the long-lived one, while it got the
+        diagnostics and services of the same client; a new writer is matched afresh."""
+        def renew() -> None:
+            old, self.pub = self.pub, self.node.create_publisher(*self._cloud_args)
+            self.node.destroy_publisher(old)
+        self.on_spin_thread(renew)
+        self.publisher_renewals += 1
 
     def forget_clients(self) -> None:
         """Drop the service clients (the node was restarted)."""
@@ -736,7 +761,8 @@ def take_sample(session: Session, t0: float, last: float, queries: QueryLoop, pu
     sample = {'t': round(now - t0, 1), 'rss_mb': round(rss / 1024, 1), 'hwm_mb': round(hwm / 1024, 1),
               'published': published, 'queue': waiting, 'alive': session.node.alive(),
               'diagnostics_age_s': round(now - session.client.diag_time, 1) if session.client.diag_time else None,
-              'query': queries.window(last, now)}
+              'query': queries.window(last, now),
+              'rss_parts_mb': session.node.memory_parts_mb(as_int(values, 'mapping_pid'))}
     sample['counters'] = {k: v for k, v in values.items() if k.startswith(SAMPLE_PREFIXES)}
     return sample
 
@@ -783,6 +809,7 @@ def run_soak(session: Session) -> dict:
                            'sample_period': opts.sample_period},
               'published': published, 'publish_seconds': round(publish_seconds, 1),
               'publish_late_max_s': round(late, 2), 'alive': node.alive(), 'samples': samples,
+              'growth': growth(samples),
               'queries': queries.window(0, float('inf')), 'final_counters': final,
               'drain_seconds': round(time.monotonic() - t0 - publish_seconds, 1)}
     report['accounting'] = accounting(final or {}, published, start)
@@ -829,7 +856,7 @@ def _sample_line(s: dict) -> str:
     return (f't={s["t"]:.0f}s rss={s["rss_mb"]:.0f}MB queue={s["queue"]} published={s["published"]} '
             f'received={c.get("clouds_received", c.get("clouds_in"))} mapped={c.get("clouds_mapped")} '
             f'dropped={c.get("clouds_dropped")} map_points={c.get("map_points")} '
-            f'update={c.get("last_update_seconds")}s query p95={s["query"]["p95_ms"]}ms')
+            f'update={c.get("last_update_seconds")}s cpu={c.get("last_update_cpu_seconds")}s query p95={s["query"]["p95_ms"]}ms')
 
 
 # ------------------------------------------------------------------------------------------
@@ -958,7 +985,10 @@ def feed(session: Session, clouds: int, timeout: float, attempts: int = 3) -> di
     then wait until the map settled; its diagnostics, None on timeout."""
     assert session.client is not None
     for _ in range(clouds):
-        for _ in range(attempts):
+        for attempt in range(attempts):
+            if attempt:
+                say(session.opts, 'a cloud was not counted by the node in 10 s: publishing it again on a new publisher')
+                session.client.renew_publisher()
             before = dict(session.client.diag_values)
             t = time.monotonic()
             session.publish(session.next_clouds(1)[0])
@@ -1773,6 +1803,9 @@ def table(report: dict) -> str:
     lines += ['Summary (the properties of issue 13):']
     lines += [f'  {"PASS" if v else "FAIL"}  {k}' for k, v in report['summary'].items()]
     lines += ['', 'Section seconds: ' + ', '.join(f'{k} {v}' for k, v in report['seconds'].items())]
+    if report.get('publisher_renewals'):
+        lines.append(f'The clouds\' publisher was created again {report["publisher_renewals"]} times (a cloud the '
+                     f'node did not count in 10 s)')
     return '\n'.join(lines) + '\n'
 
 
@@ -1782,14 +1815,17 @@ def soak_table(soak: dict) -> list[str]:
              f'({soak["publish_seconds"]} s, max {soak["publish_late_max_s"]} s late), '
              f'drained in {soak["drain_seconds"]} s: {"yes" if soak["drained"] else "NO"}; node alive: {soak["alive"]}',
              f'{"t s":>6} {"RSS MB":>7} {"HWM MB":>7} {"queue":>5} {"publ.":>6} {"recv.":>6} {"mapped":>6} '
-             f'{"dropped":>7} {"failed":>6} {"map pts":>9} {"update s":>8} {"lat. s":>7} {"q p50ms":>7} {"q p95ms":>7}']
+             f'{"dropped":>7} {"failed":>6} {"map pts":>9} {"stored":>9} {"update s":>8} {"cpu s":>6} {"lat. s":>7} '
+             f'{"q p50ms":>7} {"q p95ms":>7}']
     for row in soak['samples']:
         c = row['counters']
         lines.append(f'{row["t"]:6.0f} {row["rss_mb"]:7.0f} {row["hwm_mb"]:7.0f} {_s(row["queue"]):>5} '
                      f'{row["published"]:6d} {_s(c.get("clouds_received", c.get("clouds_in"))):>6} '
                      f'{_s(c.get("clouds_mapped")):>6} {_s(c.get("clouds_dropped")):>7} {_s(c.get("clouds_failed")):>6} '
-                     f'{_s(c.get("map_points")):>9} {_s(c.get("last_update_seconds")):>8} '
+                     f'{_s(c.get("map_points")):>9} {_s(c.get("map_points_stored")):>9} '
+                     f'{_s(c.get("last_update_seconds")):>8} {_s(c.get("last_update_cpu_seconds")):>6} '
                      f'{_s(c.get("latency_seconds")):>7} {_s(row["query"]["p50_ms"]):>7} {_s(row["query"]["p95_ms"]):>7}')
+    lines += growth_table(soak['samples'])
     q = soak['queries']
     lines.append(f'query_points ({s["query_points"]} points every {s["query_period"]} s): {q["calls"]} calls, '
                  f'{q["failed"]} failed, p50 {q["p50_ms"]} ms, p95 {q["p95_ms"]} ms')
@@ -1803,6 +1839,60 @@ def soak_table(soak: dict) -> list[str]:
     if a['missing_keys']:
         lines.append(f'  keys the node does not publish (stand-ins used or 0): {", ".join(sorted(set(a["missing_keys"])))}')
     return [*lines, '']
+
+
+#: Ranges of map points (stored and thinned) over which :func:`growth` takes medians.
+GROWTH_RANGES = ((0, 0.5e6), (0.5e6, 1e6), (1e6, 2e6), (2e6, 3e6), (3e6, 4e6), (4e6, 5e6), (5e6, math.inf))
+
+
+def growth(samples: list[dict]) -> list[dict]:
+    """Per range of map points (:data:`GROWTH_RANGES`): the medians of the update's wall and
+    CPU seconds (one value per update: samples that saw the same update count once), and the
+    largest memory (RSS of all the node's processes) and stored points, with the memory per
+    stored point above the first minute's."""
+    updates: dict[tuple, tuple[float, float | None, float]] = {}
+    for r in samples:
+        c = r['counters']
+        points, wall = as_int(c, 'map_points'), as_float(c, 'last_update_seconds')
+        if points and wall:
+            updates[(points, as_int(c, 'map_version'))] = (wall, as_float(c, 'last_update_cpu_seconds'), points)
+    base = next((r for r in samples if r['t'] >= 60.0), None)
+    out = []
+    for lo, hi in GROWTH_RANGES:
+        walls = [w for w, _, p in updates.values() if lo < p <= hi]
+        cpus = [c for _, c, p in updates.values() if lo < p <= hi and c is not None]
+        rows = [r for r in samples if lo < (as_int(r['counters'], 'map_points') or 0) <= hi]
+        if not walls and not rows:
+            continue
+        rss = max((r['rss_mb'] for r in rows), default=math.nan)
+        stored = max((as_int(r['counters'], 'map_points_stored') or 0 for r in rows), default=0)
+        per_point = math.nan
+        if base is not None and rows:
+            b_stored = as_int(base['counters'], 'map_points_stored') or 0
+            if stored > b_stored:
+                per_point = (rss - base['rss_mb']) * 2**20 / (stored - b_stored)
+        last = max(rows, key=lambda r: r['t'], default=None)
+        parts = (last or {}).get('rss_parts_mb') or {}
+        out.append({'from': lo, 'to': hi, 'updates': len(walls), 'rss_parts_mb': parts,
+                    'wall_median_s': round(float(np.median(walls)), 2) if walls else None,
+                    'cpu_median_s': round(float(np.median(cpus)), 2) if cpus else None,
+                    'rss_mb': round(rss), 'stored': stored,
+                    'bytes_per_stored_point_after_1_min': None if math.isnan(per_point) else round(per_point)})
+    return out
+
+
+def growth_table(samples: list[dict]) -> list[str]:
+    lines = ['Update time and memory by map points (medians over updates; memory: all the node\'s processes; '
+             'bytes per stored point added after the first minute)',
+             f'{"map points":>13} {"updates":>7} {"wall s":>7} {"cpu s":>6} {"RSS MB":>7} {"stored":>10} {"B/pt":>6} '
+             f'  RSS MB by process at the range\'s last sample']
+    for g in growth(samples):
+        hi = 'inf' if math.isinf(g['to']) else f'{g["to"] / 1e6:.1f}'
+        lines.append(f'{g["from"] / 1e6:5.1f}-{hi:>4} M {g["updates"]:7d} {_s(g["wall_median_s"]):>7} '
+                     f'{_s(g["cpu_median_s"]):>6} {g["rss_mb"]:7} {g["stored"]:10,d} '
+                     f'{_s(g["bytes_per_stored_point_after_1_min"]):>6}   '
+                     + ', '.join(f'{k} {v:.0f}' for k, v in g['rss_parts_mb'].items()))
+    return lines
 
 
 def kills_table(kills: dict) -> list[str]:
@@ -1855,11 +1945,13 @@ def plot(report: dict, path: Path) -> Path | None:
     ax[0, 0].plot(t, [r['rss_mb'] for r in rows], label='RSS')
     ax[0, 0].plot(t, [r['hwm_mb'] for r in rows], '--', label='peak (HWM)')
     ax[0, 0].set(title='node memory', ylabel='MB')
-    ax[0, 1].plot(t, series('map_points'))
+    ax[0, 1].plot(t, series('map_points'), label='mapped')
+    ax[0, 1].plot(t, series('map_points_stored'), label='stored')
     ax[0, 1].set(title='map points', ylabel='points')
     ax[0, 2].plot(t, [r['queue'] if r['queue'] is not None else math.nan for r in rows])
     ax[0, 2].set(title='clouds waiting (queue)', ylabel='clouds')
     ax[1, 0].plot(t, series('last_update_seconds'), label='last update')
+    ax[1, 0].plot(t, series('last_update_cpu_seconds'), label='its CPU time')
     ax[1, 0].plot(t, series('latency_seconds'), label='arrival to map')
     ax[1, 0].set(title='update latency', ylabel='s')
     ax[1, 1].plot(t, [r['query']['p50_ms'] if r['query']['p50_ms'] is not None else math.nan for r in rows],
@@ -1922,6 +2014,7 @@ def run(opts: Options) -> dict:
             t = time.monotonic()
             try:
                 report[name] = sections[name](session)
+                report['publisher_renewals'] = session.client.publisher_renewals if session.client else 0
             except (NodeDied, RuntimeError, TimeoutError, OSError) as exc:
                 report['errors'][name] = f'{type(exc).__name__}: {exc}'[:1000]
                 say(opts, f'{name}: stopped: {report["errors"][name]}')

@@ -563,9 +563,10 @@ class FacadeMapperNode(Node):
         queries = np.array(list(self._query_seconds))
         values = dict(self.accounts())
         values.update({
-            'map_points': snap.points, 'buildings': snap.buildings, 'facades': len(snap.facades),
+            'map_points': snap.points, 'map_points_stored': snap.stored, 'buildings': snap.buildings, 'facades': len(snap.facades),
             'map_version': snap.version, 'settled': self.worker.settled,
             'last_update_seconds': round(self.worker.last_update_seconds, 4),
+            'last_update_cpu_seconds': round(self.worker.last_update_cpu_seconds, 4),
             'latency_seconds': round(float(latencies[-1]), 3) if len(latencies) else 0.0,
             'latency_p95_seconds': round(float(np.percentile(latencies, 95)), 3) if len(latencies) else 0.0,
             'query_p95_ms': round(1e3 * float(np.percentile(queries, 95)), 1) if len(queries) else 0.0,

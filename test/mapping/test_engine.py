@@ -47,6 +47,9 @@ def test_a_process_builds_the_same_map_as_a_thread_and_the_offline_core():
     for w in workers:
         snap = w.snapshot
         assert snap.points == offline.n_points == 2400 and len(snap.facades) == len(offline.facades) >= 1
+        assert snap.stored == offline.n_stored > 0
+        # The CPU time of the last update, measured where it ran (the idle flush refits whole).
+        assert w.last_update_cpu_seconds > 0.0
         for a, b in zip(snap.facades, offline.facades):
             np.testing.assert_array_equal(a.surface.mean, b.surface.mean)
             np.testing.assert_array_equal(a.surface.var, b.surface.var)

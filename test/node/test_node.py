@@ -283,7 +283,8 @@ def test_every_scan_is_mapped_and_reported(client, mapped, scans):
     # One flush, after the stream: none in between (which would make another map).
     assert int(values['flushes']) == 1
     assert int(values['facades']) >= 3 and int(values['buildings']) >= 2
-    assert float(values['last_update_seconds']) > 0
+    assert float(values['last_update_seconds']) > 0 and float(values['last_update_cpu_seconds']) > 0
+    assert 0 < int(values['map_points_stored']) <= int(values['map_points'])
 
 
 def test_service_answers_equal_the_offline_core(client, mapped, scans, workdir):

@@ -25,6 +25,7 @@ import os
 import pickle
 import signal
 import threading
+import time
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -52,6 +53,11 @@ class MapView:
         params: the map's modelling parameters.
         pending: points held back for the next batch update.
         needs_flush: points are held back or a façade was updated block by block only.
+        stored: number of building points stored (the rest were thinned).
+        cpu_seconds: CPU time of the last item in the process that did it (all its threads;
+            in the node's own process, :class:`LocalEngine`, the node's other threads count
+            too), seconds: unlike its wall time, it does not grow when other processes take
+            the CPU.
     """
 
     facades: tuple[FacadeModel, ...]
@@ -61,14 +67,17 @@ class MapView:
     params: MapParams
     pending: int
     needs_flush: bool
+    stored: int = 0
+    cpu_seconds: float = 0.0
 
 
-def view_of(fmap: FacadeMap) -> MapView:
-    """The :class:`MapView` of a map as it stands."""
+def view_of(fmap: FacadeMap, cpu_seconds: float = 0.0) -> MapView:
+    """The :class:`MapView` of a map as it stands (``cpu_seconds``: of the item that made it)."""
     origin = np.asarray(fmap.map_origin, dtype=np.float64).copy()
     origin.setflags(write=False)  # the façade models' arrays are read-only already
     return MapView(tuple(fmap.facades), origin, len(fmap.points), fmap.n_points, fmap.params, fmap.n_pending,
-                   bool(fmap.pending) or any(f.fitted_points != len(f.point_index) for f in fmap.facades))
+                   bool(fmap.pending) or any(f.fitted_points != len(f.point_index) for f in fmap.facades),
+                   fmap.n_stored, cpu_seconds)
 
 
 @dataclass(frozen=True)
@@ -141,6 +150,7 @@ class LocalEngine:
     def _item(self, work: Callable[[], Any]) -> Any:
         """One item as a transaction: on success keep a clone of the map (and its view), on
         failure put the last clone back and raise."""
+        cpu = time.process_time()
         try:
             out = work()
         except BaseException:
@@ -148,7 +158,7 @@ class LocalEngine:
             self._done += 1
             raise
         self._committed, self._done = self._fmap.clone(), self._done + 1
-        self.view = view_of(self._fmap)
+        self.view = view_of(self._fmap, time.process_time() - cpu)
         return out
 
 
@@ -220,7 +230,7 @@ def _child_main(conn: Any, service: Any, nice: int = 0) -> None:
         # Only the façade models that changed travel back (the others are the same objects).
         changed = {i: f for i, f in enumerate(view.facades) if i >= len(sent) or sent[i] is not f}
         delta = (len(view.facades), changed, view.map_origin, view.buildings, view.points, view.params,
-                 view.pending, view.needs_flush)
+                 view.pending, view.needs_flush, view.stored, view.cpu_seconds)
         with lock:
             try:
                 conn.send(('error', error, delta) if error is not None else ('ok', result, delta))
@@ -329,12 +339,12 @@ class ProcessEngine:
         except (EOFError, OSError) as exc:
             self._process.join(1.0)
             raise MappingProcessError(self._ended(f'working on a {kind!r} request')) from exc
-        n_facades, changed, origin, buildings, points, params, pending, needs_flush = delta
+        n_facades, changed, origin, buildings, points, params, pending, needs_flush, stored, cpu = delta
         facades = list(self.view.facades[:n_facades])
         facades.extend([None] * (n_facades - len(facades)))  # type: ignore[list-item]
         for i, f in changed.items():
             facades[i] = f
-        self.view = MapView(tuple(facades), origin, buildings, points, params, pending, needs_flush)
+        self.view = MapView(tuple(facades), origin, buildings, points, params, pending, needs_flush, stored, cpu)
         self._done += 1
         if status == 'error':
             raise result  # the exception as the child raised it

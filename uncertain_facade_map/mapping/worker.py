@@ -63,6 +63,7 @@ class MapSnapshot:
         stamp_ns: stamp of the newest cloud in the map, nanoseconds (0 if unknown).
         params: the map's own modelling parameters (a loaded map keeps those it was built
             with): its façade bands answer its queries.
+        stored: number of building points stored (``points`` less those thinned).
     """
 
     version: int
@@ -72,6 +73,7 @@ class MapSnapshot:
     points: int
     stamp_ns: int = 0
     params: MapParams = field(default_factory=MapParams)
+    stored: int = 0
 
 
 @dataclass
@@ -150,6 +152,8 @@ class MapWorker:
                          'points_in': 0, 'points_dropped': 0, 'points_mapped': 0, 'points_failed': 0,
                          'flushes': 0, 'flushes_failed': 0, 'commands_failed': 0}
         self.last_update_seconds = 0.0
+        #: CPU seconds of the last update in the process that mapped (see ``MapView.cpu_seconds``).
+        self.last_update_cpu_seconds = 0.0
         self.pending_points = self._engine.view.pending
         self._working: Cloud | None = None
         self._held: list[float] = []  # arrival times of the clouds whose points are held back
@@ -289,7 +293,7 @@ class MapWorker:
     def _snapshot(self, version: int) -> MapSnapshot:
         view: MapView = self._engine.view
         return MapSnapshot(version, view.facades, view.map_origin, view.buildings, view.points, self._stamp,
-                           view.params)
+                           view.params, view.stored)
 
     def _publish(self) -> None:
         self.snapshot = self._snapshot(self.snapshot.version + 1)
@@ -374,6 +378,7 @@ class MapWorker:
         self._stamp = max(self._stamp, int(cloud.stamp_ns))
         if updated:  # an update ran (or nothing is held back): the held-back points are mapped
             self.last_update_seconds = time.perf_counter() - started
+            self.last_update_cpu_seconds = self._engine.view.cpu_seconds
             self._mapped()
             self._publish()
         self._item_done()
@@ -384,6 +389,7 @@ class MapWorker:
                 started = time.perf_counter()
                 pending, refitted = self._engine.flush()
                 self.last_update_seconds = time.perf_counter() - started
+                self.last_update_cpu_seconds = self._engine.view.cpu_seconds
                 self.counters['flushes'] += 1
                 if self._on_flush is not None:
                     self._on_flush(pending, refitted)
