@@ -36,6 +36,36 @@ def _read_only(obj: object, *names: str) -> None:
         object.__setattr__(obj, name, view)
 
 
+def array_bytes(*objects: object) -> int:
+    """Bytes of the numpy arrays reachable from ``objects``, each buffer counted once.
+
+    Followed: arrays (to the array that owns the buffer, so that a read-only view counts its
+    base once), dicts, lists, tuples, and the attributes of this package's objects (façade
+    models, maps and their caches). For the map's memory in the diagnostics (issue 13:
+    what of a process's memory is the map's own).
+    """
+    seen: set[int] = set()
+    total = 0
+    stack = list(objects)
+    while stack:
+        obj = stack.pop()
+        if isinstance(obj, np.ndarray):
+            while isinstance(obj.base, np.ndarray):
+                obj = obj.base
+            if id(obj) not in seen:
+                seen.add(id(obj))
+                total += obj.nbytes
+        elif isinstance(obj, dict):
+            stack.extend(obj.values())
+        elif isinstance(obj, (list, tuple)):
+            stack.extend(obj)
+        elif type(obj).__module__.startswith('uncertain_facade_map.') and hasattr(obj, '__dict__'):
+            if id(obj) not in seen:
+                seen.add(id(obj))
+                stack.extend(vars(obj).values())
+    return total
+
+
 @dataclass(frozen=True, eq=False)
 class FacadeFrame:
     """Orthonormal façade frame.

@@ -371,8 +371,6 @@ class Client(SpinningClient):
         super().__init__('soak_client', domain, num_threads=3)
         self._cloud_args = (PointCloud2, 'points', QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
         self.pub = self.node.create_publisher(*self._cloud_args)
-        #: Times the clouds' publisher was created again (see :meth:`renew_publisher`).
-        self.publisher_renewals = 0
         self.pose_pub = self.node.create_publisher(TransformStamped, 'sensor_pose', 100)
         self._diag = threading.Condition()
         self.diag_values: dict[str, str] = {}
@@ -432,6 +430,13 @@ class Client(SpinningClient):
                 return None
         return future.result()
 
+    def points_subscribers(self) -> set[tuple[int, ...]]:
+        """The endpoint ids of the subscriptions to ``points`` in the ROS graph (a killed node's
+        stay there until its lease ends, so a count would take them for the new node's)."""
+        def info() -> set[tuple[int, ...]]:
+            return {tuple(e.endpoint_gid) for e in self.node.get_subscriptions_info_by_topic(self.pub.topic_name)}
+        return self.on_spin_thread(info)
+
     def renew_publisher(self) -> None:
         """Create the clouds' publisher again: once (in a full ``make soak``, after 20 kills)
         a fresh node never received a cloud of the long-lived one, while it got the
@@ -440,7 +445,9 @@ class Client(SpinningClient):
             old, self.pub = self.pub, self.node.create_publisher(*self._cloud_args)
             self.node.destroy_publisher(old)
         self.on_spin_thread(renew)
-        self.publisher_renewals += 1
+        deadline = time.monotonic() + 5.0  # a cloud sent before the match would be lost
+        while self.pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
 
     def forget_clients(self) -> None:
         """Drop the service clients (the node was restarted)."""
@@ -526,6 +533,8 @@ class Session:
         self.next_cloud = 0
         self.rng = np.random.default_rng(opts.seed)
         self.start_seconds: list[float] = []
+        self.domains = [self.domain]  # every ROS domain used, in order (see new_domain)
+        self.renewals = 0  # clouds' publishers created again (see feed)
         self.max_query_points = _param_value(opts, 'service.max_query_points', 1_000_000)
 
     def open(self) -> None:
@@ -542,6 +551,20 @@ class Session:
         if self.client is not None:
             self.client.close()
 
+    def new_domain(self) -> None:
+        """Stop the node and the client and go on in the next ROS domain (a fresh node once
+        received none of the clouds of the long-lived client after 20 kills, while it answered
+        its services: the killed participants' leftovers are per domain)."""
+        if self.node is not None:
+            self.node.stop()
+        if self.client is not None:
+            self.client.close()
+        self.domain = 200 + (self.domain - 200 + 1) % 32
+        self.env['ROS_DOMAIN_ID'] = str(self.domain)
+        self.domains.append(self.domain)
+        self.client = Client(self.domain)
+        self.client.server_alive = self.alive
+
     def start_node(self, map_path: Path | None = None, tag: str = 'node') -> NodeProcess:
         """Start the node (on ``map_path`` when given) and wait until it is up; raises NodeDied."""
         if self.node is not None and self.node.alive():
@@ -553,13 +576,15 @@ class Session:
         log = self.out / 'logs' / f'{self.starts:03d}_{tag}.log'
         log.parent.mkdir(parents=True, exist_ok=True)
         t = time.monotonic()
+        known = self.client.points_subscribers() if self.client is not None else set()
         self.node = NodeProcess(Path(self.opts.params), overrides, log, self.env)
-        self.wait_ready(self.node)
+        self.wait_ready(self.node, known)
         self.start_seconds.append(time.monotonic() - t)
         return self.node
 
-    def wait_ready(self, node: NodeProcess) -> None:
-        """Up: its diagnostics come, it subscribes to points, query_points answers."""
+    def wait_ready(self, node: NodeProcess, known: set[tuple[int, ...]] | None = None) -> None:
+        """Up: its diagnostics come, a subscription to points not among ``known`` (those
+        before it started) is matched, query_points answers."""
         from uncertain_facade_map.srv import QueryPoints
 
         assert self.client is not None
@@ -571,7 +596,8 @@ class Session:
                                f'{exception_text(node.log_since(0)) or node.log_since(0)[-500:]}')
             if time.monotonic() > deadline:
                 raise NodeDied(f'the node did not come up within {self.opts.start_timeout} s')
-            if (self.client.diag_time > node.started and self.client.pub.get_subscription_count() > 0):
+            if (self.client.diag_time > node.started and self.client.pub.get_subscription_count() > 0
+                    and (known is None or self.client.points_subscribers() - known)):
                 break
             time.sleep(0.1)
         while self.client.call(QueryPoints, 'query_points', query_request(np.zeros((0, 3))), timeout=10.0) is None:
@@ -748,7 +774,7 @@ class QueryLoop(threading.Thread):
 
 #: Diagnostics kept in the samples: the counters, the map's size, the timings.
 SAMPLE_PREFIXES = ('query_', 'clouds_', 'points_', 'poses_', 'latency', 'last_update', 'map_', 'facades', 'buildings',
-                   'settled', 'flushes', 'queries', 'callback_errors', 'saves')
+                   'settled', 'flushes', 'queries', 'callback_errors', 'saves', 'published_')
 
 
 def take_sample(session: Session, t0: float, last: float, queries: QueryLoop, published: int) -> dict:
@@ -989,6 +1015,7 @@ def feed(session: Session, clouds: int, timeout: float, attempts: int = 3) -> di
             if attempt:
                 say(session.opts, 'a cloud was not counted by the node in 10 s: publishing it again on a new publisher')
                 session.client.renew_publisher()
+                session.renewals += 1
             before = dict(session.client.diag_values)
             t = time.monotonic()
             session.publish(session.next_clouds(1)[0])
@@ -1617,10 +1644,16 @@ def ensure_map(session: Session) -> None:
     if session.alive():
         say(opts, f'fuzz: a fresh node on a map of the drive\'s start (not the {as_int(values, "map_points")} '
                   f'points of the running one)')
-    session.start_node(tag='fuzz')
-    session.next_cloud = 0
     clouds = max(2, math.ceil(min(len(session.drive), opts.fuzz_map_points // 2) / opts.points))
-    values = feed(session, clouds, opts.settle_timeout) or {}
+    for attempt in range(2):
+        if attempt:
+            session.new_domain()
+            say(opts, f'fuzz: the fresh node received none of the clouds; again in ROS domain {session.domain}')
+        session.start_node(tag='fuzz')
+        session.next_cloud = 0
+        values = feed(session, clouds, opts.settle_timeout) or {}
+        if as_int(values, 'facades') or as_int(values, 'clouds_received'):
+            break
     if not as_int(values, 'facades'):
         raise RuntimeError(f'no façades after {clouds} clouds of the drive: {values}')
 
@@ -1806,6 +1839,8 @@ def table(report: dict) -> str:
     if report.get('publisher_renewals'):
         lines.append(f'The clouds\' publisher was created again {report["publisher_renewals"]} times (a cloud the '
                      f'node did not count in 10 s)')
+    if len(report.get('domains', [])) > 1:
+        lines.append(f'ROS domains used, in order: {", ".join(map(str, report["domains"]))} (see Session.new_domain)')
     return '\n'.join(lines) + '\n'
 
 
@@ -1873,7 +1908,12 @@ def growth(samples: list[dict]) -> list[dict]:
                 per_point = (rss - base['rss_mb']) * 2**20 / (stored - b_stored)
         last = max(rows, key=lambda r: r['t'], default=None)
         parts = (last or {}).get('rss_parts_mb') or {}
-        out.append({'from': lo, 'to': hi, 'updates': len(walls), 'rss_parts_mb': parts,
+        c = (last or {}).get('counters') or {}
+        map_mb, facades_mb, published_mb = (as_float(c, k) for k in ('map_mb', 'facades_mb', 'published_mb'))
+        other = (None if last is None or map_mb is None or facades_mb is None or published_mb is None
+                 else round(last['rss_mb'] - map_mb - facades_mb - published_mb))
+        out.append({'from': lo, 'to': hi, 'updates': len(walls), 'rss_parts_mb': parts, 'map_mb': map_mb,
+                    'facades_mb': facades_mb, 'published_mb': published_mb, 'rss_less_map_mb': other,
                     'wall_median_s': round(float(np.median(walls)), 2) if walls else None,
                     'cpu_median_s': round(float(np.median(cpus)), 2) if cpus else None,
                     'rss_mb': round(rss), 'stored': stored,
@@ -1885,12 +1925,16 @@ def growth_table(samples: list[dict]) -> list[str]:
     lines = ['Update time and memory by map points (medians over updates; memory: all the node\'s processes; '
              'bytes per stored point added after the first minute)',
              f'{"map points":>13} {"updates":>7} {"wall s":>7} {"cpu s":>6} {"RSS MB":>7} {"stored":>10} {"B/pt":>6} '
-             f'  RSS MB by process at the range\'s last sample']
+             f'{"map MB":>7} {"façades":>7} {"publ.":>6} {"rest MB":>7}   RSS MB by process at the range\'s last '
+             f'sample',
+             '  (map MB: the arrays of the map in the mapping process; façades: those of the node\'s copy of the '
+             'façade models; publ.: the latest published maps, serialized; rest: RSS less these)']
     for g in growth(samples):
         hi = 'inf' if math.isinf(g['to']) else f'{g["to"] / 1e6:.1f}'
         lines.append(f'{g["from"] / 1e6:5.1f}-{hi:>4} M {g["updates"]:7d} {_s(g["wall_median_s"]):>7} '
                      f'{_s(g["cpu_median_s"]):>6} {g["rss_mb"]:7} {g["stored"]:10,d} '
-                     f'{_s(g["bytes_per_stored_point_after_1_min"]):>6}   '
+                     f'{_s(g["bytes_per_stored_point_after_1_min"]):>6} {_s(g["map_mb"]):>7} '
+                     f'{_s(g["facades_mb"]):>7} {_s(g["published_mb"]):>6} {_s(g["rss_less_map_mb"]):>7}   '
                      + ', '.join(f'{k} {v:.0f}' for k, v in g['rss_parts_mb'].items()))
     return lines
 
@@ -2014,7 +2058,6 @@ def run(opts: Options) -> dict:
             t = time.monotonic()
             try:
                 report[name] = sections[name](session)
-                report['publisher_renewals'] = session.client.publisher_renewals if session.client else 0
             except (NodeDied, RuntimeError, TimeoutError, OSError) as exc:
                 report['errors'][name] = f'{type(exc).__name__}: {exc}'[:1000]
                 say(opts, f'{name}: stopped: {report["errors"][name]}')
@@ -2023,6 +2066,7 @@ def run(opts: Options) -> dict:
         session.close()
     report['seconds']['total'] = round(time.monotonic() - t_all, 1)
     report['node_start_seconds'] = [round(s, 1) for s in session.start_seconds]
+    report['publisher_renewals'], report['domains'] = session.renewals, session.domains
     report['summary'] = summary(report)
     report['files'] = write_report(report, Path(opts.out))
     return report

@@ -60,6 +60,7 @@ import msg_adapters as ma
 from msg_adapters import map_messages as mm
 from msg_adapters import parameters as mp_params
 from msg_adapters.published_maps import published_map_messages
+from uncertain_facade_map.datatypes import array_bytes
 from uncertain_facade_map.errors import FacadeMapError, InputError
 from uncertain_facade_map.io.inputs import select_scan_points
 from uncertain_facade_map.io.map_file import load_map, remove_stale_temporaries, save_map
@@ -194,6 +195,8 @@ class FacadeMapperNode(Node):
         self._poses: dict[str, tuple[list[int], list[tuple[np.ndarray, np.ndarray]]]] = {}
         self._pose_lock = threading.Lock()
         self._grid: tuple[int, Any] | None = None
+        self._facades_size: tuple[int, float] = (-1, 0.0)  # (snapshot version, MB of its façade arrays)
+        self._published_bytes = 0  # of the latest published maps (serialized; the grid's cells)
         self._query_seconds: deque[float] = deque(maxlen=200)  # time in the node of the latest queries
         self._published_version = -1
         self._saved_version = 0
@@ -466,6 +469,9 @@ class FacadeMapperNode(Node):
                 # Built and serialized in the helper process: here only bytes are handed over.
                 maps = self._compute(published_map_messages, facades, cfg, band.band_back, band.band_front,
                                      self.frame_id, stamp, serialize_message)
+                # The latched publishers keep these (and the grid) until the next ones.
+                self._published_bytes = (len(maps.surface) + len(maps.mesh) + len(maps.variance_grids)
+                                         + len(maps.voxels) + (maps.grid.p.size if maps.grid is not None else 0))
                 self.pub_surface.publish(maps.surface)
                 self.pub_mesh.publish(maps.mesh)
                 self.pub_grids.publish(maps.variance_grids)
@@ -563,7 +569,9 @@ class FacadeMapperNode(Node):
         queries = np.array(list(self._query_seconds))
         values = dict(self.accounts())
         values.update({
-            'map_points': snap.points, 'map_points_stored': snap.stored, 'buildings': snap.buildings, 'facades': len(snap.facades),
+            'map_points': snap.points, 'map_points_stored': snap.stored,
+            'map_mb': round(snap.map_bytes / 2**20, 1), 'facades_mb': self._facades_mb(snap),
+            'published_mb': round(self._published_bytes / 2**20, 1), 'buildings': snap.buildings, 'facades': len(snap.facades),
             'map_version': snap.version, 'settled': self.worker.settled,
             'last_update_seconds': round(self.worker.last_update_seconds, 4),
             'last_update_cpu_seconds': round(self.worker.last_update_cpu_seconds, 4),
@@ -581,6 +589,12 @@ class FacadeMapperNode(Node):
                    f'{len(recent)} drops, rejections or failures in the last {window:g} s (see values)')
         self.pub_diag.publish(mm.diagnostic_array(f'{NODE_NAME}: map', level, message, values, NODE_NAME,
                                                   self.get_clock().now().nanoseconds, self.types))
+
+    def _facades_mb(self, snap: MapSnapshot) -> float:
+        """MB of the arrays of the snapshot's façade models held here (cached per version)."""
+        if self._facades_size[0] != snap.version:
+            self._facades_size = (snap.version, round(array_bytes(snap.facades) / 2**20, 1))
+        return self._facades_size[1]
 
     # -- services -----------------------------------------------------------------------
     @_guarded

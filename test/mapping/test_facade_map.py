@@ -153,3 +153,21 @@ def test_street_scene_reaches_the_issue_figures(scenes):
     assert all(a < b for a, b in zip(shares, shares[1:])), shares
     removed, total, _, _ = outlier_removal(fmap, pts)
     assert removed / total >= 0.90, removed / total
+
+
+def test_array_bytes_counts_each_buffer_once_and_a_clone_adds_nothing():
+    """The diagnostics' map memory (issue 13): every array of the map, each buffer once."""
+    from uncertain_facade_map.datatypes import array_bytes
+
+    rng = np.random.default_rng(5)
+    a = rng.normal(size=(1000, 3))
+    view = a[:10].view()
+    view.setflags(write=False)
+    assert array_bytes(a, view, [a, {'x': a}], (view,)) == a.nbytes
+    assert array_bytes(1, 'text', None) == 0
+    xyz = np.c_[rng.uniform(0, 8, 3000), 10.0 + rng.normal(0, 0.02, 3000), rng.uniform(0, 6, 3000)]
+    fmap = build_map(xyz, np.zeros(3000, np.int64))
+    own = array_bytes(fmap)
+    # At least the stored points, their normals and the façade models' point indices.
+    assert own >= 3000 * (24 + 24 + 8) + sum(f.surface.mean.nbytes + f.surface.var.nbytes for f in fmap.facades)
+    assert array_bytes(fmap, fmap.clone()) == own  # a clone shares every array

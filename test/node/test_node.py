@@ -285,6 +285,9 @@ def test_every_scan_is_mapped_and_reported(client, mapped, scans):
     assert int(values['facades']) >= 3 and int(values['buildings']) >= 2
     assert float(values['last_update_seconds']) > 0 and float(values['last_update_cpu_seconds']) > 0
     assert 0 < int(values['map_points_stored']) <= int(values['map_points'])
+    # The map's arrays: its points alone (x, y, z and normals, float64) in the mapping process.
+    assert float(values['map_mb']) >= int(values['map_points_stored']) * 48 / 2**20
+    assert 0 < float(values['facades_mb']) < float(values['map_mb']) and float(values['published_mb']) > 0
 
 
 def test_service_answers_equal_the_offline_core(client, mapped, scans, workdir):

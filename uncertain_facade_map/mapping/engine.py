@@ -31,7 +31,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..datatypes import FacadeModel
+from ..datatypes import FacadeModel, array_bytes
 from ..errors import FacadeMapError
 from ..params import MapParams
 from .facade_map import FacadeMap
@@ -58,6 +58,9 @@ class MapView:
             in the node's own process, :class:`LocalEngine`, the node's other threads count
             too), seconds: unlike its wall time, it does not grow when other processes take
             the CPU.
+        map_bytes: bytes of the map's arrays in the process that holds it
+            (:func:`~uncertain_facade_map.datatypes.array_bytes`: points, normals, sensor
+            origins, voxel index, façade models).
     """
 
     facades: tuple[FacadeModel, ...]
@@ -69,6 +72,7 @@ class MapView:
     needs_flush: bool
     stored: int = 0
     cpu_seconds: float = 0.0
+    map_bytes: int = 0
 
 
 def view_of(fmap: FacadeMap, cpu_seconds: float = 0.0) -> MapView:
@@ -77,7 +81,7 @@ def view_of(fmap: FacadeMap, cpu_seconds: float = 0.0) -> MapView:
     origin.setflags(write=False)  # the façade models' arrays are read-only already
     return MapView(tuple(fmap.facades), origin, len(fmap.points), fmap.n_points, fmap.params, fmap.n_pending,
                    bool(fmap.pending) or any(f.fitted_points != len(f.point_index) for f in fmap.facades),
-                   fmap.n_stored, cpu_seconds)
+                   fmap.n_stored, cpu_seconds, array_bytes(fmap))
 
 
 @dataclass(frozen=True)
@@ -230,7 +234,7 @@ def _child_main(conn: Any, service: Any, nice: int = 0) -> None:
         # Only the façade models that changed travel back (the others are the same objects).
         changed = {i: f for i, f in enumerate(view.facades) if i >= len(sent) or sent[i] is not f}
         delta = (len(view.facades), changed, view.map_origin, view.buildings, view.points, view.params,
-                 view.pending, view.needs_flush, view.stored, view.cpu_seconds)
+                 view.pending, view.needs_flush, view.stored, view.cpu_seconds, view.map_bytes)
         with lock:
             try:
                 conn.send(('error', error, delta) if error is not None else ('ok', result, delta))
@@ -339,12 +343,13 @@ class ProcessEngine:
         except (EOFError, OSError) as exc:
             self._process.join(1.0)
             raise MappingProcessError(self._ended(f'working on a {kind!r} request')) from exc
-        n_facades, changed, origin, buildings, points, params, pending, needs_flush, stored, cpu = delta
+        n_facades, changed, origin, buildings, points, params, pending, needs_flush, stored, cpu, nbytes = delta
         facades = list(self.view.facades[:n_facades])
         facades.extend([None] * (n_facades - len(facades)))  # type: ignore[list-item]
         for i, f in changed.items():
             facades[i] = f
-        self.view = MapView(tuple(facades), origin, buildings, points, params, pending, needs_flush, stored, cpu)
+        self.view = MapView(tuple(facades), origin, buildings, points, params, pending, needs_flush, stored, cpu,
+                            nbytes)
         self._done += 1
         if status == 'error':
             raise result  # the exception as the child raised it

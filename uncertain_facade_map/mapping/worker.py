@@ -64,6 +64,7 @@ class MapSnapshot:
         params: the map's own modelling parameters (a loaded map keeps those it was built
             with): its façade bands answer its queries.
         stored: number of building points stored (``points`` less those thinned).
+        map_bytes: bytes of the map's arrays where it is updated (``MapView.map_bytes``).
     """
 
     version: int
@@ -74,6 +75,7 @@ class MapSnapshot:
     stamp_ns: int = 0
     params: MapParams = field(default_factory=MapParams)
     stored: int = 0
+    map_bytes: int = 0
 
 
 @dataclass
@@ -293,7 +295,7 @@ class MapWorker:
     def _snapshot(self, version: int) -> MapSnapshot:
         view: MapView = self._engine.view
         return MapSnapshot(version, view.facades, view.map_origin, view.buildings, view.points, self._stamp,
-                           view.params, view.stored)
+                           view.params, view.stored, view.map_bytes)
 
     def _publish(self) -> None:
         self.snapshot = self._snapshot(self.snapshot.version + 1)
