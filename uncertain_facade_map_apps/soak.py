@@ -67,6 +67,9 @@ from .ros_client import ANSWER_KEYS, SpinningClient, answers_of, query_request
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_PARAMS = ROOT / 'config' / 'facade_mapper.yaml'
+#: Fast DDS transports for large clouds: without it a fresh node lost every cloud above
+#: ~116 KB published to it once (see the file).
+DEFAULT_DDS_PROFILE = ROOT / 'config' / 'fastdds_large_clouds.xml'
 SECTIONS = ('soak', 'kills', 'fuzz')
 
 #: Share of the published clouds the node's estimate of lost clouds may miss (plus 10).
@@ -114,6 +117,7 @@ class Options:
     huge_query: int = 0
     fuzz_map_points: int = 300_000
     quiet: bool = False
+    dds_profile: Path | None = DEFAULT_DDS_PROFILE
 
 
 #: The quick version (the pytest test in test/node/test_soak.py, ``--quick``): about a minute.
@@ -172,6 +176,9 @@ def parse_args(argv: list[str] | None = None) -> Options:
                    help='points of the over-limit query (0: service.max_query_points + 1)')
     p.add_argument('--fuzz-map-points', type=int, default=d.fuzz_map_points,
                    help='the fuzz cases run on a fresh node fed the start of the drive when the map is larger')
+    p.add_argument('--dds-profile', default=str(d.dds_profile),
+                   help='Fast DDS XML profile for the node and the clients (FASTRTPS_DEFAULT_PROFILES_FILE; '
+                        '"none": Fast DDS\'s defaults, with which large clouds sent once are lost)')
     p.add_argument('--quick', action='store_true', help='the quick version (about a minute)')
     p.add_argument('--quiet', action='store_true', help='no progress lines')
     a = p.parse_args(argv)
@@ -189,6 +196,7 @@ def parse_args(argv: list[str] | None = None) -> Options:
     values['sections'] = sections
     values['cases'] = tuple(c.strip() for c in a.cases.split(',') if c.strip())
     values['overrides'] = tuple(a.overrides)
+    values['dds_profile'] = None if a.dds_profile.lower() == 'none' else Path(a.dds_profile)
     if a.quick:
         explicit = {k for k in values if f'--{k.replace("_", "-")}' in (argv if argv is not None else sys.argv)}
         values.update({k: v for k, v in QUICK.items() if k not in explicit})
@@ -525,6 +533,13 @@ class Session:
         self.out.mkdir(parents=True, exist_ok=True)
         self.domain = opts.domain if opts.domain is not None else 200 + os.getpid() % 32
         self.env = dict(os.environ, ROS_DOMAIN_ID=str(self.domain), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+        if opts.dds_profile is not None:
+            if not Path(opts.dds_profile).is_file():
+                raise FileNotFoundError(f'the Fast DDS profile {opts.dds_profile} does not exist')
+            # For the node (env) and for this process's clients and the query process (os.environ,
+            # read when their participants are created).
+            self.env['FASTRTPS_DEFAULT_PROFILES_FILE'] = os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = \
+                str(Path(opts.dds_profile).resolve())
         self.client: Client | None = None
         self.node: NodeProcess | None = None
         self.starts = 0
@@ -1828,6 +1843,8 @@ def table(report: dict) -> str:
     lines = [f'Soak and fault suite, {report["started"]}; parameters {report["params"]}'
              + (f' with {" ".join(report["overrides"])}' if report['overrides'] else ''), '']
     if report.get('soak'):
+        lines += [f'Fast DDS profile: {report.get("options", {}).get("dds_profile") or "none (Fast DDS defaults)"}',
+                  '']
         lines += soak_table(report['soak'])
     if report.get('kills'):
         lines += kills_table(report['kills'])
