@@ -20,6 +20,7 @@ The child ends when the parent's pipes close (the parent stopped or died).
 
 from __future__ import annotations
 
+import dataclasses
 import multiprocessing
 import os
 import pickle
@@ -233,8 +234,7 @@ def _child_main(conn: Any, service: Any, nice: int = 0) -> None:
         view = engine.view
         # Only the façade models that changed travel back (the others are the same objects).
         changed = {i: f for i, f in enumerate(view.facades) if i >= len(sent) or sent[i] is not f}
-        delta = (len(view.facades), changed, view.map_origin, view.buildings, view.points, view.params,
-                 view.pending, view.needs_flush, view.stored, view.cpu_seconds, view.map_bytes)
+        delta = (len(view.facades), changed, dataclasses.replace(view, facades=()))
         with lock:
             try:
                 conn.send(('error', error, delta) if error is not None else ('ok', result, delta))
@@ -343,13 +343,12 @@ class ProcessEngine:
         except (EOFError, OSError) as exc:
             self._process.join(1.0)
             raise MappingProcessError(self._ended(f'working on a {kind!r} request')) from exc
-        n_facades, changed, origin, buildings, points, params, pending, needs_flush, stored, cpu, nbytes = delta
+        n_facades, changed, rest = delta
         facades = list(self.view.facades[:n_facades])
         facades.extend([None] * (n_facades - len(facades)))  # type: ignore[list-item]
         for i, f in changed.items():
             facades[i] = f
-        self.view = MapView(tuple(facades), origin, buildings, points, params, pending, needs_flush, stored, cpu,
-                            nbytes)
+        self.view = dataclasses.replace(rest, facades=tuple(facades))
         self._done += 1
         if status == 'error':
             raise result  # the exception as the child raised it
