@@ -293,34 +293,19 @@ class NodeProcess:
     def alive(self) -> bool:
         return self.proc.poll() is None
 
-    def memory_kb(self) -> tuple[int, int]:
-        """(VmRSS, VmHWM) in kB from /proc/PID/status, summed over the node and its child
-        processes (the mapping process); (0, 0) once the node is gone."""
-        rss = hwm = 0
+    def memory_by_process(self) -> dict[int, tuple[int, int]]:
+        """(VmRSS, VmHWM) in kB from /proc/PID/status of the node and of each of its child
+        processes (the mapping process, the published maps' helper), by pid; empty once the
+        node is gone."""
+        out: dict[int, tuple[int, int]] = {}
         for pid in [self.pid, *_children(self.pid)]:
             try:
                 text = Path(f'/proc/{pid}/status').read_text()
             except OSError:
-                if pid == self.pid:
-                    return 0, 0
                 continue
             found = dict(re.findall(r'^(VmRSS|VmHWM):\s+(\d+)', text, re.M))
-            rss += int(found.get('VmRSS', 0))
-            hwm += int(found.get('VmHWM', 0))
-        return rss, hwm
-
-    def memory_parts_mb(self, mapping_pid: int | None = None) -> dict[str, float]:
-        """VmRSS in MB of each of the node's processes: ``node``, ``mapping`` (the child with
-        ``mapping_pid``, from the diagnostics) and ``other`` (the published maps' helper)."""
-        out: dict[str, float] = {}
-        for pid in [self.pid, *_children(self.pid)]:
-            try:
-                found = re.search(r'^VmRSS:\s+(\d+)', Path(f'/proc/{pid}/status').read_text(), re.M)
-            except OSError:
-                continue
-            name = 'node' if pid == self.pid else 'mapping' if pid == mapping_pid else 'other'
-            out[name] = round(out.get(name, 0.0) + (int(found.group(1)) if found else 0) / 1024, 1)
-        return out
+            out[pid] = (int(found.get('VmRSS', 0)), int(found.get('VmHWM', 0)))
+        return out if self.pid in out else {}
 
     def log_size(self) -> int:
         try:
@@ -377,8 +362,8 @@ class Client(SpinningClient):
         from sensor_msgs.msg import PointCloud2
 
         super().__init__('soak_client', domain, num_threads=3)
-        self._cloud_args = (PointCloud2, 'points', QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
-        self.pub = self.node.create_publisher(*self._cloud_args)
+        reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+        self.pub = self.node.create_publisher(PointCloud2, 'points', reliable)
         self.pose_pub = self.node.create_publisher(TransformStamped, 'sensor_pose', 100)
         self._diag = threading.Condition()
         self.diag_values: dict[str, str] = {}
@@ -444,18 +429,6 @@ class Client(SpinningClient):
         def info() -> set[tuple[int, ...]]:
             return {tuple(e.endpoint_gid) for e in self.node.get_subscriptions_info_by_topic(self.pub.topic_name)}
         return self.on_spin_thread(info)
-
-    def renew_publisher(self) -> None:
-        """Create the clouds' publisher again: once (in a full ``make soak``, after 20 kills)
-        a fresh node never received a cloud of the long-lived one, while it got the
-        diagnostics and services of the same client; a new writer is matched afresh."""
-        def renew() -> None:
-            old, self.pub = self.pub, self.node.create_publisher(*self._cloud_args)
-            self.node.destroy_publisher(old)
-        self.on_spin_thread(renew)
-        deadline = time.monotonic() + 5.0  # a cloud sent before the match would be lost
-        while self.pub.get_subscription_count() == 0 and time.monotonic() < deadline:
-            time.sleep(0.05)
 
     def forget_clients(self) -> None:
         """Drop the service clients (the node was restarted)."""
@@ -548,8 +521,6 @@ class Session:
         self.next_cloud = 0
         self.rng = np.random.default_rng(opts.seed)
         self.start_seconds: list[float] = []
-        self.domains = [self.domain]  # every ROS domain used, in order (see new_domain)
-        self.renewals = 0  # clouds' publishers created again (see feed)
         self.max_query_points = _param_value(opts, 'service.max_query_points', 1_000_000)
 
     def open(self) -> None:
@@ -565,20 +536,6 @@ class Session:
             self.node.stop()
         if self.client is not None:
             self.client.close()
-
-    def new_domain(self) -> None:
-        """Stop the node and the client and go on in the next ROS domain (a fresh node once
-        received none of the clouds of the long-lived client after 20 kills, while it answered
-        its services: the killed participants' leftovers are per domain)."""
-        if self.node is not None:
-            self.node.stop()
-        if self.client is not None:
-            self.client.close()
-        self.domain = 200 + (self.domain - 200 + 1) % 32
-        self.env['ROS_DOMAIN_ID'] = str(self.domain)
-        self.domains.append(self.domain)
-        self.client = Client(self.domain)
-        self.client.server_alive = self.alive
 
     def start_node(self, map_path: Path | None = None, tag: str = 'node') -> NodeProcess:
         """Start the node (on ``map_path`` when given) and wait until it is up; raises NodeDied."""
@@ -796,14 +753,20 @@ def take_sample(session: Session, t0: float, last: float, queries: QueryLoop, pu
     """One sample: memory, queue, counters, query latencies since the last sample."""
     assert session.client is not None and session.node is not None
     now = time.monotonic()
-    rss, hwm = session.node.memory_kb()
+    per = session.node.memory_by_process()
+    rss, hwm = sum(r for r, _ in per.values()), sum(h for _, h in per.values())
     values = dict(session.client.diag_values)
+    mapping_pid = as_int(values, 'mapping_pid')
+    parts: dict[str, float] = {}  # RSS MB of the node, its mapping process and the other (published maps)
+    for pid, (kb, _) in per.items():
+        name = 'node' if pid == session.node.pid else 'mapping' if pid == mapping_pid else 'other'
+        parts[name] = round(parts.get(name, 0.0) + kb / 1024, 1)
     waiting, _ = counter(values, 'clouds_waiting')
     sample = {'t': round(now - t0, 1), 'rss_mb': round(rss / 1024, 1), 'hwm_mb': round(hwm / 1024, 1),
               'published': published, 'queue': waiting, 'alive': session.node.alive(),
               'diagnostics_age_s': round(now - session.client.diag_time, 1) if session.client.diag_time else None,
               'query': queries.window(last, now),
-              'rss_parts_mb': session.node.memory_parts_mb(as_int(values, 'mapping_pid'))}
+              'rss_parts_mb': parts}
     sample['counters'] = {k: v for k, v in values.items() if k.startswith(SAMPLE_PREFIXES)}
     return sample
 
@@ -1026,11 +989,7 @@ def feed(session: Session, clouds: int, timeout: float, attempts: int = 3) -> di
     then wait until the map settled; its diagnostics, None on timeout."""
     assert session.client is not None
     for _ in range(clouds):
-        for attempt in range(attempts):
-            if attempt:
-                say(session.opts, 'a cloud was not counted by the node in 10 s: publishing it again on a new publisher')
-                session.client.renew_publisher()
-                session.renewals += 1
+        for _ in range(attempts):
             before = dict(session.client.diag_values)
             t = time.monotonic()
             session.publish(session.next_clouds(1)[0])
@@ -1660,15 +1619,9 @@ def ensure_map(session: Session) -> None:
         say(opts, f'fuzz: a fresh node on a map of the drive\'s start (not the {as_int(values, "map_points")} '
                   f'points of the running one)')
     clouds = max(2, math.ceil(min(len(session.drive), opts.fuzz_map_points // 2) / opts.points))
-    for attempt in range(2):
-        if attempt:
-            session.new_domain()
-            say(opts, f'fuzz: the fresh node received none of the clouds; again in ROS domain {session.domain}')
-        session.start_node(tag='fuzz')
-        session.next_cloud = 0
-        values = feed(session, clouds, opts.settle_timeout) or {}
-        if as_int(values, 'facades') or as_int(values, 'clouds_received'):
-            break
+    session.start_node(tag='fuzz')
+    session.next_cloud = 0
+    values = feed(session, clouds, opts.settle_timeout) or {}
     if not as_int(values, 'facades'):
         raise RuntimeError(f'no façades after {clouds} clouds of the drive: {values}')
 
@@ -1853,11 +1806,6 @@ def table(report: dict) -> str:
     lines += ['Summary (the properties of issue 13):']
     lines += [f'  {"PASS" if v else "FAIL"}  {k}' for k, v in report['summary'].items()]
     lines += ['', 'Section seconds: ' + ', '.join(f'{k} {v}' for k, v in report['seconds'].items())]
-    if report.get('publisher_renewals'):
-        lines.append(f'The clouds\' publisher was created again {report["publisher_renewals"]} times (a cloud the '
-                     f'node did not count in 10 s)')
-    if len(report.get('domains', [])) > 1:
-        lines.append(f'ROS domains used, in order: {", ".join(map(str, report["domains"]))} (see Session.new_domain)')
     return '\n'.join(lines) + '\n'
 
 
@@ -2083,7 +2031,6 @@ def run(opts: Options) -> dict:
         session.close()
     report['seconds']['total'] = round(time.monotonic() - t_all, 1)
     report['node_start_seconds'] = [round(s, 1) for s in session.start_seconds]
-    report['publisher_renewals'], report['domains'] = session.renewals, session.domains
     report['summary'] = summary(report)
     report['files'] = write_report(report, Path(opts.out))
     return report
