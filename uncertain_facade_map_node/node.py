@@ -65,6 +65,7 @@ from uncertain_facade_map.errors import FacadeMapError, InputError
 from uncertain_facade_map.io.inputs import select_scan_points
 from uncertain_facade_map.io.map_file import load_map, remove_stale_temporaries, save_map
 from uncertain_facade_map.mapping import products as mp
+from uncertain_facade_map.mapping.allocator import limit_heap_growth, release_free_memory
 from uncertain_facade_map.mapping.engine import HelperProcess
 from uncertain_facade_map.mapping.facade_map import FacadeMap
 from uncertain_facade_map.mapping.worker import Cloud, MapSnapshot, MapWorker, replace_with
@@ -589,6 +590,7 @@ class FacadeMapperNode(Node):
                    f'{len(recent)} drops, rejections or failures in the last {window:g} s (see values)')
         self.pub_diag.publish(mm.diagnostic_array(f'{NODE_NAME}: map', level, message, values, NODE_NAME,
                                                   self.get_clock().now().nanoseconds, self.types))
+        release_free_memory()  # the dropped clouds' and answered queries' buffers, back to the system
 
     def _facades_mb(self, snap: MapSnapshot) -> float:
         """MB of the arrays of the snapshot's façade models held here (cached per version)."""
@@ -725,6 +727,7 @@ def main(args: list[str] | None = None) -> None:
     import rclpy
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 
+    limit_heap_growth()  # before rclpy starts its threads
     rclpy.init(args=args)
     # Queries and input share this interpreter with the worker thread (and, with
     # node.mapping_process false, with the mapping itself): at the default 5 ms a query's

@@ -35,6 +35,7 @@ import numpy as np
 from ..datatypes import FacadeModel, array_bytes
 from ..errors import FacadeMapError
 from ..params import MapParams
+from .allocator import limit_heap_growth, release_free_memory
 from .facade_map import FacadeMap
 
 
@@ -190,6 +191,7 @@ def _child_main(conn: Any, service: Any, nice: int = 0) -> None:
     """The mapping process: items from ``conn`` (one at a time), committed maps from ``service``."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when to stop
     _lower_priority(nice)
+    limit_heap_growth()
     kind, fmap = conn.recv()
     engine = LocalEngine(fmap)
     lock = threading.Lock()  # a committed map is handed out only once its item's answer is sent
@@ -244,6 +246,8 @@ def _child_main(conn: Any, service: Any, nice: int = 0) -> None:
                 conn.send(('error', RuntimeError(f'the answer could not be sent: {exc}'), delta))
             answered = engine.committed()
         sent = view.facades
+        del request, result, delta
+        release_free_memory()  # the item's temporary arrays, back to the system
 
 
 class ProcessEngine:
@@ -360,6 +364,7 @@ def _helper_main(conn: Any, nice: int = 0) -> None:
     exception it raised) back; ends when the parent's pipe closes."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _lower_priority(nice)
+    limit_heap_growth()
     while True:
         try:
             fn, args, kwargs = conn.recv()
@@ -375,6 +380,8 @@ def _helper_main(conn: Any, nice: int = 0) -> None:
             os._exit(0)  # the parent closed the pipe (it is stopping) during the call
         except Exception as exc:  # noqa: BLE001 - a result that does not pickle
             conn.send(('error', RuntimeError(f'the result could not be sent: {exc}')))
+        del fn, args, kwargs, answer
+        release_free_memory()
 
 
 class HelperProcess:
