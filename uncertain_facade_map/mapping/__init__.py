@@ -8,4 +8,6 @@
   node does;
 - ``products``: the maps the node publishes, as arrays: surface grid and mesh, voxel and
   2D occupancy.
+- ``engine``: where the map is updated, in the worker's thread or a child process;
+- ``allocator``: freed memory given back to the system by the long-running processes.
 """
