@@ -84,8 +84,9 @@ SOAK_ARGS ?=
 soak: $(STAMP) $(IFC_STAMP)
 	$(PY) -m uncertain_facade_map_apps.soak --out $(SOAK_OUT) $(SOAK_ARGS)
 
-# Simulates two drives of $(SCENE) (street, zurich or small), maps one with every method
-# and scores them against the other; writes output/evaluation/$(SCENE)/report.md.
+# Simulates five drives of $(SCENE) (street, zurich or small), maps one with every method
+# and scores them against the four others (the paper's protocol), beside the scene's exact
+# geometry read as a map (the ceiling); writes output/evaluation/$(SCENE)/report.md.
 evaluate: $(STAMP) $(IFC_STAMP)
 	mkdir -p output/evaluation
 	$(PY) -m uncertain_facade_map_apps.cli evaluate --scene $(SCENE) --report output/evaluation/$(SCENE)

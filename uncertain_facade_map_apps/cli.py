@@ -360,9 +360,17 @@ def _float_list(text: str) -> tuple[float, ...]:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     """Evaluate every method's occupancy against a reference scan (see ``evaluate --help``)."""
+    import numpy as np
+
     from msg_adapters.bag_io import load_inputs
     from uncertain_facade_map.evaluation.baselines import METHODS, make_method
-    from uncertain_facade_map.evaluation.occupancy import distance_to_points, evaluate, subset_auc
+    from uncertain_facade_map.evaluation.occupancy import (
+        PROTOCOLS,
+        distance_to_points,
+        evaluate,
+        protocol_label,
+        subset_auc,
+    )
     from uncertain_facade_map.evaluation.report import OURS, accurate_label, write_report
     from uncertain_facade_map.io.parameter_file import load_config
 
@@ -374,27 +382,46 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.report is not None and not Path(args.report).parent.exists():
         raise CliError(f'output folder {Path(args.report).parent} does not exist')
     started = time.perf_counter()
+    say = (lambda line: None) if args.quiet else (lambda line: print(line, file=sys.stderr, flush=True))
     if args.scene is not None:
         if args.clouds:
             raise CliError('give either --scene or MAPPED REFERENCE, not both')
         from uncertain_facade_map.simulation.campaign import simulate_campaign
         from uncertain_facade_map.simulation.scenes import build_scene
 
+        n_ref = PROTOCOLS[args.protocol]
         scene = build_scene(args.scene, args.seed)
-        mapped, reference = simulate_campaign(scene, 0), simulate_campaign(scene, 1)
-        what = f'scene {args.scene} (seed {args.seed}): campaign 0 mapped, campaign 1 as reference'
+        clouds = []
+        for i in range(n_ref + 1):
+            t0 = time.perf_counter()
+            clouds.append(simulate_campaign(scene, i))
+            say(f'campaign {i} of {args.scene} ({"mapped" if i == 0 else "reference"}): {len(clouds[-1]):,} points '
+                f'simulated in {time.perf_counter() - t0:.1f} s')
+        mapped, references = clouds[0], clouds[1:]
+        del clouds
+        what = (f'scene {args.scene} (seed {args.seed}), {protocol_label(n_ref)}: campaign 0 mapped, '
+                f'{"campaign 1" if n_ref == 1 else f"campaigns 1-{n_ref}"} as the reference')
     else:
-        if len(args.clouds) != 2:
-            raise CliError('give MAPPED and REFERENCE clouds, or --scene')
-        mapped, reference = load_inputs([args.clouds[0]]), load_inputs([args.clouds[1]])
-        what = f'{args.clouds[0]} mapped, {args.clouds[1]} as reference'
+        if len(args.clouds) < 2:
+            raise CliError('give the MAPPED cloud and one or more REFERENCE clouds, or --scene')
+        mapped, references = load_inputs([args.clouds[0]]), [load_inputs([c]) for c in args.clouds[1:]]
+        what = (f'{protocol_label(len(references))}: {args.clouds[0]} mapped, '
+                f'{", ".join(args.clouds[1:])} as the reference')
     pts, org = _evaluation_points(mapped, config, 'mapped', drop_outliers=False)
-    ref_pts, ref_org = _evaluation_points(reference, config, 'reference', drop_outliers=True)
-    say = (lambda line: None) if args.quiet else (lambda line: print(line, file=sys.stderr, flush=True))
+    parts = [_evaluation_points(c, config, 'reference', drop_outliers=True) for c in references]
+    ref_pts, ref_org = np.concatenate([a for a, _ in parts]), np.concatenate([b for _, b in parts])
+    del mapped, references, parts  # only the arrays are needed from here (OctoMap at 0.05 m takes GBs)
     say(f'{what}: {len(pts):,} mapped and {len(ref_pts):,} reference building points')
     factories = [lambda r, m=m: make_method(m, r) for m in methods]
+    if args.scene is not None and not args.no_truth:  # the ceiling: the scene's exact geometry as a map
+        from uncertain_facade_map.evaluation.truth_map import TruthMethod
+        from uncertain_facade_map.simulation.presets import SCENE_SENSORS
+        from uncertain_facade_map.simulation.sensor import SensorConfig
+
+        noise_sd = SCENE_SENSORS.get(scene.name, SensorConfig()).range_noise
+        factories += [lambda r, how=how: TruthMethod(r, scene, noise_sd, how) for how in ('surface', 'solid')]
     refs, results = evaluate(factories, pts, org, ref_pts, ref_org, args.resolutions, args.rays, args.negatives,
-                             args.seed, progress=say)
+                             args.seed, progress=say, max_positives=args.positives)
     by = {(r.name, r.resolution): r for r in results}
     print(f'{"method":<14}' + ''.join(f'  PR AUC {res:<5g}  ROC AUC {res:<5g}  train s  test s'
                                       for res in args.resolutions))
@@ -510,6 +537,7 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of all sub-commands."""
     from uncertain_facade_map.evaluation.baselines import METHODS
+    from uncertain_facade_map.evaluation.occupancy import PROTOCOLS
     from uncertain_facade_map.simulation.presets import SENSOR_PRESETS
     from uncertain_facade_map.simulation.scenes import SCENES
 
@@ -622,9 +650,13 @@ def build_parser() -> argparse.ArgumentParser:
                                     'holding reference points, negatives voxels its rays passed through. Prints PR '
                                     'and ROC AUC and training/testing times per method and resolution, and the '
                                     'accurate-inference AUC of our map; --report writes report.md with figures.')
-    ev.add_argument('clouds', nargs='*', metavar='CLOUD', help='MAPPED and REFERENCE clouds (with origin_x/y/z)')
+    ev.add_argument('clouds', nargs='*', metavar='CLOUD',
+                    help='the MAPPED cloud, then one or more REFERENCE clouds (with origin_x/y/z)')
     ev.add_argument('--scene', choices=tuple(SCENES),
-                    help='simulate this scene instead: campaign 0 mapped, campaign 1 as reference')
+                    help='simulate this scene instead: campaign 0 mapped, the next ones as the reference')
+    ev.add_argument('--protocol', choices=tuple(PROTOCOLS), default='paper',
+                    help="with --scene: 'paper' takes campaigns 1-4 as the reference (the paper's protocol, "
+                         "default), 'one-campaign' campaign 1 only")
     ev.add_argument('--seed', type=int, default=0, help='scene seed and seed of the voxel subsets (default 0)')
     ev.add_argument('--methods', default=','.join(METHODS),
                     help=f'comma-separated from {",".join(METHODS)} (default: all)')
@@ -634,6 +666,10 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument('--rays', type=int, default=50_000, help='reference rays traced (default 50000)')
     ev.add_argument('--negatives', type=int, default=400_000,
                     help='free voxels kept at most, a weighted subset (default 400000)')
+    ev.add_argument('--positives', type=int, default=400_000,
+                    help='occupied voxels kept at most, a weighted subset (default 400000)')
+    ev.add_argument('--no-truth', action='store_true',
+                    help="with --scene: leave out the ceiling (the scene's exact geometry read as a map)")
     ev.add_argument('--report', metavar='DIR', help='write DIR/report.md and its figures')
     ev.add_argument('--config', metavar='YAML', help='ROS 2 parameter file (input section)')
     ev.add_argument('--quiet', action='store_true', help='no progress lines')

@@ -19,7 +19,7 @@ def _ours_auc(text: str) -> float:
 @pytest.fixture(scope='module')
 def small_files(tmp_path_factory):
     out = tmp_path_factory.mktemp('sim')
-    assert main(['simulate', '--scene', 'small', '--campaigns', '2', '--formats', 'npz', '--out', str(out),
+    assert main(['simulate', '--scene', 'small', '--campaigns', '5', '--formats', 'npz', '--out', str(out),
                  '--quiet']) == 0
     return out
 
@@ -28,14 +28,17 @@ def test_scene_and_files_give_the_same_figures_and_a_report(small_files, tmp_pat
     assert main(['evaluate', '--scene', 'small', '--resolutions', '0.1', '--report', str(tmp_path / 'rep'),
                  '--quiet']) == 0
     from_scene = capsys.readouterr().out
-    assert main(['evaluate', str(small_files / 'campaign0.npz'), str(small_files / 'campaign1.npz'),
+    assert main(['evaluate', *(str(small_files / f'campaign{i}.npz') for i in range(5)),
                  '--resolutions', '0.1', '--quiet']) == 0
     from_files = capsys.readouterr().out
-    # Small scene at 0.1 m: PR AUC 0.514 (see test_occupancy_evaluation).
-    assert _ours_auc(from_scene) == _ours_auc(from_files) == pytest.approx(0.514, abs=0.01)
-    assert re.search(r'Ours, variance <= 0.01 at 0.1 m: PR AUC 0\.5[0-9]{2}', from_scene)
+    # Small scene at 0.1 m, the paper's protocol (campaigns 1-4 as the reference): PR AUC
+    # 0.713 (0.514 with one reference campaign, see test_occupancy_evaluation).
+    assert _ours_auc(from_scene) == _ours_auc(from_files) == pytest.approx(0.713, abs=0.01)
+    assert re.search(r'Ours, variance <= 0.01 at 0.1 m: PR AUC 0\.7[0-9]{2}', from_scene)
+    assert re.search(r'^Truth\s+0\.[0-9]{3}', from_scene, re.M) and not re.search(r'^Truth', from_files, re.M)
     report = (tmp_path / 'rep' / 'report.md').read_text()
-    assert re.search(r'^\| Ours \| 0\.5[0-9]{2} \|$', report, re.M)
+    assert "the paper's protocol" in report.splitlines()[2]
+    assert re.search(r'^\| Ours \| 0\.7[0-9]{2} \|$', report, re.M) and '## Against the ceiling' in report
     assert '| Ours, variance <= 0.01 |' in report and '## Where a baseline wins' in report
     for name in ('pr_curves.png', 'auc_uncertainty.png', 'auc_distance.png', 'timing.png'):
         assert (tmp_path / 'rep' / name).stat().st_size > 10_000
@@ -44,7 +47,7 @@ def test_scene_and_files_give_the_same_figures_and_a_report(small_files, tmp_pat
 @pytest.mark.parametrize('args, message', [
     (['--scene', 'small', '--methods', 'nope'], 'unknown method nope'),
     (['a.npz', '--scene', 'small'], 'either --scene or'),
-    (['only_one.npz'], 'MAPPED and REFERENCE'),
+    (['only_one.npz'], 'one or more REFERENCE clouds'),
     (['--scene', 'small', '--report', '/no/such/folder/rep'], 'does not exist'),
 ])
 def test_bad_arguments_end_in_one_line(args, message, capsys):

@@ -93,12 +93,27 @@ def test_a_voxel_holding_a_point_is_never_free_and_negatives_are_subsampled_with
     assert np.array_equal(chunked.centres, ref.centres) and np.array_equal(chunked.positive, ref.positive)
 
 
+def test_every_reference_point_makes_a_positive_though_only_some_rays_are_traced():
+    # 30 points in 30 voxels along y, one ray traced: all 30 voxels are positive, and the
+    # traced ray's free voxels exclude every one of them.
+    pts = np.c_[np.full(30, 1.05), 0.05 + 0.1 * np.arange(30), np.full(30, 0.05)]
+    org = np.tile([0.05, 0.05, 0.05], (30, 1))
+    ref = reference_voxels(pts, org, 0.1, max_rays=1, seed=1)
+    assert ref.n_rays == 1 and ref.n_positives == 30 and ref.positive.sum() == 30
+    free = {tuple(i) for i in voxel_index(ref.centres[~ref.positive], 0.1).tolist()}
+    assert free and not free & {(10, j, 0) for j in range(30)}
+    few = reference_voxels(pts, org, 0.1, max_rays=1, seed=1, max_positives=6)
+    assert few.positive.sum() == 6 and few.n_positives == 30
+    np.testing.assert_allclose(few.weight[few.positive], 30 / 6)
+
+
 @pytest.mark.parametrize('kwargs, match', [
     ({'points': np.zeros((0, 3)), 'origins': np.zeros((0, 3))}, 'non-empty'),
     ({'points': np.zeros((2, 3)), 'origins': np.zeros((3, 3))}, 'shape'),
     ({'points': np.full((2, 3), np.nan), 'origins': np.zeros((2, 3))}, 'finite'),
     ({'points': np.ones((2, 3)), 'origins': np.zeros((2, 3)), 'resolution': 0.0}, 'resolution'),
     ({'points': np.ones((2, 3)), 'origins': np.zeros((2, 3)), 'max_rays': 0}, 'max_rays'),
+    ({'points': np.ones((2, 3)), 'origins': np.zeros((2, 3)), 'max_positives': 0}, 'max_positives'),
 ])
 def test_bad_reference_input_is_refused(kwargs, match):
     kwargs.setdefault('resolution', 0.1)
@@ -150,7 +165,7 @@ def test_the_surface_breakdown_counts_every_voxel_once_and_averages_each_method(
     s = np.array([-0.3, -0.1, 0.0, 0.02, 0.1, 0.5, np.nan, np.nan])
     positive = np.array([1, 1, 1, 0, 0, 0, 0, 0], bool)
     weight = np.where(positive, 1.0, 2.0)
-    ref = ReferenceVoxels(r, np.zeros((8, 3)), positive, weight, 8, 5)
+    ref = ReferenceVoxels(r, np.zeros((8, 3)), positive, weight, 8, 5, 3)
     p = np.linspace(0.9, 0.2, 8)
     res = MethodResult('M', r, p, None, 0.0, 0.0, 0.0, 0.0)
     bins = surface_breakdown(ref, [res], s)
@@ -168,7 +183,7 @@ def test_the_decisive_bin_is_where_the_other_method_gains_its_lead():
     r = 0.1
     s = rng.choice([-0.1, 0.0, 0.3], 3000)
     positive = (s <= 0.0) & (rng.random(3000) < np.where(s < 0, 0.8, 0.5))
-    ref = ReferenceVoxels(r, np.zeros((3000, 3)), positive, np.ones(3000), 3000, 0)
+    ref = ReferenceVoxels(r, np.zeros((3000, 3)), positive, np.ones(3000), 3000, 0, int(positive.sum()))
     # Both rank the surface and the free space alike; only 'other' puts the voxels behind first.
     base = np.where(s == 0.0, 0.6, 0.0) + 0.01 * rng.random(3000)
     ours = MethodResult('Ours', r, np.where(s < 0, 0.3, base), None, 0, 0, 0, 0)

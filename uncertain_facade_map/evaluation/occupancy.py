@@ -14,12 +14,19 @@ mapped points (Fig. 6).
 Choices where the paper is silent:
 
 - Voxels form a grid aligned with the map frame's origin (voxel ``floor(x / r)``).
+- Positives are the voxels holding *any* reference point (all of them, as the paper's
+  11.7 M ground-truth points); a voxel some ray crossed but another ray's point lies in is
+  positive.
 - Rays are a seeded subset of the reference (``max_rays``); a ray marks the voxels of
   samples every ``r / 3`` from the origin to ``r / 2`` before its point.
 - Free voxels far outnumber the occupied ones (that skew is why the paper uses PR, not
   ROC). When there are more than ``max_negatives``, a seeded subset is kept and each kept
   negative weighs ``n_negatives / max_negatives`` in every curve and area, so the figures
-  estimate those of all the negatives without asking every method for millions of voxels.
+  estimate those of all the negatives without asking every method for millions of voxels;
+  the same for more than ``max_positives`` positives.
+
+Protocols (:data:`PROTOCOLS`; the report names the one used): the paper's maps one campaign
+and takes the four others as the reference; the one-campaign protocol takes one other.
 """
 
 from __future__ import annotations
@@ -35,6 +42,18 @@ from ..errors import InputError
 #: Bits per axis of a packed voxel key (voxel indices within +-2^20 of the origin).
 _BITS = 21
 _OFFSET = 1 << (_BITS - 1)
+
+#: Reference campaigns by protocol name (campaign 0 is the mapped one).
+PROTOCOLS = {'paper': 4, 'one-campaign': 1}
+
+
+def protocol_label(n_reference: int) -> str:
+    """How the report names the protocol of ``n_reference`` reference campaigns."""
+    if n_reference == PROTOCOLS['paper']:
+        return "the paper's protocol (one campaign mapped, four others as the reference)"
+    if n_reference == 1:
+        return 'the one-campaign protocol (one campaign mapped, one other as the reference)'
+    return f'one campaign mapped, {n_reference} others as the reference'
 
 
 def voxel_index(xyz: np.ndarray, resolution: float) -> np.ndarray:
@@ -77,6 +96,7 @@ class ReferenceVoxels:
             negatives when they were subsampled).
         n_rays: reference rays used.
         n_negatives: free voxels found along those rays (before subsampling).
+        n_positives: voxels holding reference points (before subsampling).
     """
 
     resolution: float
@@ -85,15 +105,12 @@ class ReferenceVoxels:
     weight: np.ndarray
     n_rays: int
     n_negatives: int
-
-    @property
-    def n_positives(self) -> int:
-        return int(self.positive.sum())
+    n_positives: int
 
 
 def reference_voxels(points: np.ndarray, origins: np.ndarray, resolution: float, max_rays: int = 50_000,
-                     max_negatives: int = 400_000, seed: int = 0, samples_per_chunk: int = 4_000_000
-                     ) -> ReferenceVoxels:
+                     max_negatives: int = 400_000, seed: int = 0, samples_per_chunk: int = 4_000_000,
+                     max_positives: int = 400_000) -> ReferenceVoxels:
     """Label voxels by a reference scan.
 
     Args:
@@ -102,8 +119,9 @@ def reference_voxels(points: np.ndarray, origins: np.ndarray, resolution: float,
         resolution: voxel side, metres.
         max_rays: at most this many rays (a seeded subset) are traced.
         max_negatives: at most this many free voxels are kept (a seeded subset, weighted).
-        seed: seed of both subsets.
+        seed: seed of the subsets.
         samples_per_chunk: ray samples handled at once (bounds memory).
+        max_positives: at most this many occupied voxels are kept (a seeded subset, weighted).
 
     Returns:
         The labelled voxels.
@@ -121,13 +139,14 @@ def reference_voxels(points: np.ndarray, origins: np.ndarray, resolution: float,
         raise InputError('reference points and origins must be finite (the reference needs sensor origins)')
     if not (np.isfinite(resolution) and resolution > 0):
         raise InputError(f'resolution must be positive, got {resolution!r}')
-    if max_rays < 1 or max_negatives < 1:
-        raise InputError(f'max_rays and max_negatives must be >= 1, got {max_rays} and {max_negatives}')
+    if min(max_rays, max_negatives, max_positives) < 1:
+        raise InputError(f'max_rays, max_negatives and max_positives must be >= 1, got {max_rays}, '
+                         f'{max_negatives} and {max_positives}')
     rng = np.random.default_rng(seed)
+    pos_keys = np.unique(pack_keys(voxel_index(points, resolution)))  # every point's voxel
     if len(points) > max_rays:
         pick = np.sort(rng.choice(len(points), max_rays, replace=False))
         points, origins = points[pick], origins[pick]
-    pos_keys = np.unique(pack_keys(voxel_index(points, resolution)))
 
     # Free space: samples every r/3 along each ray, up to r/2 before its point.
     step = resolution / 3.0
@@ -149,16 +168,21 @@ def reference_voxels(points: np.ndarray, origins: np.ndarray, resolution: float,
         start = stop
     free = np.unique(np.concatenate(free_parts)) if free_parts else np.empty(0, np.int64)
     free = free[~np.isin(free, pos_keys, assume_unique=True)]
-    n_negatives = len(free)
-    weight_negative = 1.0
-    if n_negatives > max_negatives:
-        free = np.sort(rng.choice(free, max_negatives, replace=False))
-        weight_negative = n_negatives / max_negatives
+    n_negatives, n_positives = len(free), len(pos_keys)
+    free, weight_negative = _subsample(rng, free, max_negatives)
+    pos_keys, weight_positive = _subsample(rng, pos_keys, max_positives)
     keys = np.concatenate([pos_keys, free])
     centres = (unpack_keys(keys) + 0.5) * resolution
     positive = np.r_[np.ones(len(pos_keys), bool), np.zeros(len(free), bool)]
-    weight = np.where(positive, 1.0, weight_negative)
-    return ReferenceVoxels(float(resolution), centres, positive, weight, len(points), n_negatives)
+    weight = np.where(positive, weight_positive, weight_negative)
+    return ReferenceVoxels(float(resolution), centres, positive, weight, len(points), n_negatives, n_positives)
+
+
+def _subsample(rng: np.random.Generator, keys: np.ndarray, limit: int) -> tuple[np.ndarray, float]:
+    """At most ``limit`` of (K,) sorted keys (a seeded subset, sorted) and the weight of each."""
+    if len(keys) <= limit:
+        return keys, 1.0
+    return np.sort(rng.choice(keys, limit, replace=False)), len(keys) / limit
 
 
 def pr_auc(positive: np.ndarray, score: np.ndarray, weight: np.ndarray | None = None) -> float:
@@ -386,7 +410,7 @@ def decisive_bin(ref: ReferenceVoxels, ours: MethodResult, other: MethodResult, 
 def evaluate(methods: Sequence[Callable[[float], object]], points: np.ndarray, origins: np.ndarray,
              ref_points: np.ndarray, ref_origins: np.ndarray, resolutions: Sequence[float] = (0.1, 0.05),
              max_rays: int = 50_000, max_negatives: int = 400_000, seed: int = 0,
-             progress: Callable[[str], None] | None = None
+             progress: Callable[[str], None] | None = None, max_positives: int = 400_000
              ) -> tuple[dict[float, ReferenceVoxels], list[MethodResult]]:
     """Run every method at every resolution on the same points and reference voxels.
 
@@ -397,7 +421,7 @@ def evaluate(methods: Sequence[Callable[[float], object]], points: np.ndarray, o
         ref_points: (M, 3) reference points.
         ref_origins: (M, 3) their sensor origins.
         resolutions: voxel sides, metres.
-        max_rays, max_negatives, seed: see :func:`reference_voxels`.
+        max_rays, max_negatives, seed, max_positives: see :func:`reference_voxels`.
         progress: called with a line of text after each step.
 
     Returns:
@@ -407,7 +431,8 @@ def evaluate(methods: Sequence[Callable[[float], object]], points: np.ndarray, o
     refs, results = {}, []
     for r in resolutions:
         t0 = time.perf_counter()
-        ref = reference_voxels(ref_points, ref_origins, r, max_rays, max_negatives, seed)
+        ref = reference_voxels(ref_points, ref_origins, r, max_rays, max_negatives, seed,
+                               max_positives=max_positives)
         refs[r] = ref
         if progress is not None:
             progress(f'{r:g} m: {ref.n_positives:,} occupied and {ref.n_negatives:,} free reference voxels '

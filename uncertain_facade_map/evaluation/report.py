@@ -27,6 +27,8 @@ VARIANCE_THRESHOLDS = tuple(float(x) for x in np.geomspace(1e-4, 1.0, 13))
 #: Distance limits of the AUC-against-distance figure, metres.
 DISTANCE_LIMITS = (0.05, 0.1, 0.2, 0.3, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 5.0)
 OURS = 'Ours'
+#: The ceiling's rows (:mod:`~uncertain_facade_map.evaluation.truth_map`): not a baseline.
+TRUTH = 'Truth'
 #: The methods of the uncertainty figures (paper Figs. 5, 6: our map beside GPIS).
 UNCERTAINTY_PAIR = (OURS, 'GPIS')
 
@@ -154,8 +156,9 @@ def write_report(out: str | Path, refs: dict[float, ReferenceVoxels], results: S
     lines += [f'- {n}' for n in notes]
     lines += [f'- {res:g} m: {refs[res].n_positives:,} occupied and {refs[res].n_negatives:,} free reference '
               f'voxels from {refs[res].n_rays:,} rays; {len(refs[res].centres):,} voxels asked'
-              + (f' (free ones subsampled, each weighing {refs[res].weight[~refs[res].positive][0]:.2f})'
-                 if (~refs[res].positive).any() and refs[res].weight[~refs[res].positive][0] > 1 else '')
+              + ''.join(f' ({kind} ones subsampled, each weighing {w[0]:.2f})'
+                        for kind, w in (('occupied', refs[res].weight[refs[res].positive]),
+                                        ('free', refs[res].weight[~refs[res].positive])) if len(w) and w[0] > 1)
               for res in resolutions]
     lines += ['', '## Area under the precision-recall curve', '',
               '| method | ' + ' | '.join(f'{res:g} m' for res in resolutions) + ' |',
@@ -184,6 +187,14 @@ def write_report(out: str | Path, refs: dict[float, ReferenceVoxels], results: S
     if deferred:
         lines += ['', f'{", ".join(deferred)}: part of the training runs on demand in the first query (only '
                       'what the asked voxels need), so it is counted in the testing time.']
+    ceiling = [(res, by[(OURS, res)].pr_auc, by[(TRUTH, res)].pr_auc) for res in resolutions
+               if (OURS, res) in by and (TRUTH, res) in by]
+    if ceiling:
+        lines += ['', '## Against the ceiling', '',
+                  f"{TRUTH}: the simulated scene's exact geometry read as a map by our rules (variance 0, the "
+                  "sensor's noise): what a perfect surface map scores under this reference.", '']
+        lines += [f'- {res:g} m: ours {ours:.3f}, {TRUTH} {truth:.3f}: {truth - ours:+.3f} to the ceiling'
+                  for res, ours, truth in ceiling]
     lines += ['', '## Where a baseline wins', '']
     wins = []
     for res in resolutions:
@@ -192,7 +203,7 @@ def write_report(out: str | Path, refs: dict[float, ReferenceVoxels], results: S
         ours = by[(OURS, res)].pr_auc
         for name in names:
             r = by.get((name, res))
-            if not name.startswith(OURS) and r is not None and r.pr_auc > ours:
+            if not name.startswith((OURS, TRUTH)) and r is not None and r.pr_auc > ours:
                 line = (f'- {res:g} m: **{name}** {r.pr_auc:.3f} against our {ours:.3f} (PR AUC); it took '
                         f'{r.fit_seconds:.1f} s to train and {r.predict_seconds:.1f} s to test (ours '
                         f'{by[(OURS, res)].fit_seconds:.1f} s and {by[(OURS, res)].predict_seconds:.1f} s).')
