@@ -336,12 +336,13 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 def _evaluation_points(cloud, config, what: str, drop_outliers: bool):
-    """(N, 3) building points and their (N, 3) sensor origins of a cloud."""
+    """(N, 3) building points and their (N, 3) sensor origins of a cloud: its building class,
+    or, for a cloud without a class field, the points the selection keeps (as ``build``)."""
     from uncertain_facade_map.io.inputs import select_building_points
 
     if drop_outliers and 'gt_outlier' in (cloud.points.dtype.names or ()):
         cloud = cloud.select(cloud.points['gt_outlier'] == 0)
-    points = select_building_points(cloud, config.input)
+    points = select_building_points(cloud, config.input, config.selection)
     if points.sensor_origins is None:
         raise CliError(f'the {what} cloud has no origin_x, origin_y, origin_z fields: the evaluation traces rays '
                        'from the sensor origins')

@@ -10,7 +10,8 @@ import pytest
 from uncertain_facade_map.mapping import allocator
 
 # Free a 16 MB array (glibc's dynamic mmap threshold rises to 16 MB), then make twenty 8 MB
-# arrays, each followed by a small block that stays (it pins the heap above the array), and
+# arrays, each followed by a 256 KB block that stays (it pins the heap above the array: too
+# large for any hole the interpreter's start leaves, whatever its environment), and
 # free the arrays: the resident memory they leave behind, in MB. argv[1]: 'limit' calls
 # limit_heap_growth first, 'trim' release_free_memory at the end, 'none' neither.
 _SCRIPT = textwrap.dedent('''
@@ -28,7 +29,7 @@ _SCRIPT = textwrap.dedent('''
     big, pins = [], []
     for i in range(20):
         big.append(np.ones(1_000_000))
-        pins.append(bytearray(4096))
+        pins.append(bytearray(256 * 1024))
     del big
     done = release_free_memory() if sys.argv[1] == 'trim' else done
     print(done, rss_mb() - before)
@@ -48,8 +49,10 @@ def test_freed_arrays_are_given_back(mode):
     if not done:
         pytest.skip('not glibc')
     _, left_default = _left_behind('none')
-    assert left < 10.0, left
-    assert left_default > 100.0, left_default  # the test can fail: glibc's default keeps them
+    # The pins themselves hold 5 MB. glibc's defaults keep about 150 MB here when the test
+    # runs alone; inside the whole test session they have been seen to give it back too, so
+    # that figure is reported, not asserted.
+    assert left < 15.0, f'{left:.1f} MB left behind ({left_default:.1f} MB with glibc defaults)'
 
 
 def test_a_users_malloc_tunables_are_left_alone(monkeypatch):
