@@ -6,7 +6,9 @@
   value beyond each, as the node and the command line must take or refuse them;
 - a seeded synthetic scene with known truth for the baseline tests: a flat wall scanned
   from a straight drive (:func:`wall_scan`), and voxels labelled by the truth, on the wall
-  or in the free space in front of it (:func:`labelled_voxels`).
+  or in the free space in front of it (:func:`labelled_voxels`);
+- :func:`evaluation_arrays`: a simulated campaign's building points and sensor origins, as
+  the occupancy evaluation takes them.
 """
 
 from __future__ import annotations
@@ -181,3 +183,13 @@ def unclassified_street(seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarr
     ray = xyz - sensor
     xyz = xyz + ray / np.linalg.norm(ray, axis=1, keepdims=True) * rng.normal(0, 0.02, (len(xyz), 1))
     return xyz, labels, sensor
+
+
+def evaluation_arrays(cloud, drop_outliers: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) building points (class 1) of a simulated cloud and their (N, 3) sensor origins;
+    ``drop_outliers``: without the points the simulator flags ``gt_outlier`` (a reference)."""
+    keep = cloud.points['class'] == 1
+    if drop_outliers:
+        keep &= cloud.points['gt_outlier'] == 0
+    p = cloud.points[keep]
+    return np.stack([p['x'], p['y'], p['z']], 1), np.stack([p['origin_x'], p['origin_y'], p['origin_z']], 1)

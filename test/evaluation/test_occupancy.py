@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from support import evaluation_arrays
 
 from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.evaluation.baselines.facade_gp import FacadeGPMethod
@@ -123,16 +124,8 @@ def test_bad_reference_input_is_refused(kwargs, match):
 
 @pytest.fixture(scope='module')
 def small_evaluation(scenes):
-    def arrays(index, drop_outliers):
-        c = scenes.campaign('small', index)
-        keep = c.points['class'] == 1
-        if drop_outliers:
-            keep &= c.points['gt_outlier'] == 0
-        p = c.points[keep]
-        return np.stack([p['x'], p['y'], p['z']], 1), np.stack([p['origin_x'], p['origin_y'], p['origin_z']], 1)
-
-    pts, org = arrays(0, False)
-    ref_pts, ref_org = arrays(1, True)
+    pts, org = evaluation_arrays(scenes.campaign('small', 0), False)
+    ref_pts, ref_org = evaluation_arrays(scenes.campaign('small', 1), True)
     refs, results = evaluate([FacadeGPMethod], pts, org, ref_pts, ref_org, resolutions=(0.1,))
     return pts, refs[0.1], results[0]
 

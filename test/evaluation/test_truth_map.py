@@ -2,19 +2,12 @@
 
 import numpy as np
 import pytest
+from support import evaluation_arrays
 
 from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.evaluation.baselines.facade_gp import FacadeGPMethod
 from uncertain_facade_map.evaluation.occupancy import evaluate
 from uncertain_facade_map.evaluation.truth_map import TruthMethod, true_signed_distance
-
-
-def _arrays(cloud, drop_outliers):
-    keep = cloud.points['class'] == 1
-    if drop_outliers:
-        keep &= cloud.points['gt_outlier'] == 0
-    p = cloud.points[keep]
-    return np.stack([p['x'], p['y'], p['z']], 1), np.stack([p['origin_x'], p['origin_y'], p['origin_z']], 1)
 
 
 def test_the_signed_distance_is_the_offset_from_the_true_surface(scenes):
@@ -40,8 +33,8 @@ def test_truth_is_the_ceiling_of_our_map_on_the_small_scene(scenes):
     than our map in both readings (PR AUC: ours 0.52, truth 0.58, truth solid 0.77,
     measured 2026-11-24)."""
     scene = scenes.scene('small')
-    pts, org = _arrays(scenes.campaign('small', 0), False)
-    ref_pts, ref_org = _arrays(scenes.campaign('small', 1), True)
+    pts, org = evaluation_arrays(scenes.campaign('small', 0), False)
+    ref_pts, ref_org = evaluation_arrays(scenes.campaign('small', 1), True)
     methods = [FacadeGPMethod, lambda r: TruthMethod(r, scene), lambda r: TruthMethod(r, scene, reading='solid')]
     _, (ours, truth, solid) = evaluate(methods, pts, org, ref_pts, ref_org, resolutions=(0.1,))
     assert truth.name == 'Truth' and solid.name == 'Truth (solid)'

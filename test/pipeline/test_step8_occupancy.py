@@ -34,3 +34,12 @@ def test_surface_probabilities_of_a_column_of_voxels_add_up_to_one():
     assert surface_probability(np.array([np.nan]), np.array([np.nan]), 0.0, 0.05).tolist() == [0.0]
     assert half_depth(np.array([[0.0, 1.0, 0.0], [np.sqrt(0.5), np.sqrt(0.5), 0.0]]), 0.1) == pytest.approx(
         [0.05, 0.1 / np.sqrt(2)])
+
+
+def test_each_voxel_takes_the_half_depth_of_its_facade_or_half_a_voxel_without_one():
+    from uncertain_facade_map.pipeline.step8_occupancy import facade_half_depth
+
+    normals = np.array([[0.0, 1.0, 0.0], [np.sqrt(0.5), np.sqrt(0.5), 0.0]])
+    h = facade_half_depth(np.array([1, -1, 0, 1]), normals, 0.1)
+    np.testing.assert_allclose(h, [0.1 / np.sqrt(2), 0.05, 0.05, 0.1 / np.sqrt(2)])
+    assert facade_half_depth(np.array([-1, -1]), np.empty((0, 3)), 0.2).tolist() == [0.1, 0.1]

@@ -21,6 +21,7 @@ from .occupancy import (
     subset_auc,
     surface_breakdown,
 )
+from .truth_map import TruthMethod
 
 #: Variance thresholds of the AUC-against-uncertainty figure, m^2.
 VARIANCE_THRESHOLDS = tuple(float(x) for x in np.geomspace(1e-4, 1.0, 13))
@@ -28,7 +29,7 @@ VARIANCE_THRESHOLDS = tuple(float(x) for x in np.geomspace(1e-4, 1.0, 13))
 DISTANCE_LIMITS = (0.05, 0.1, 0.2, 0.3, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 5.0)
 OURS = 'Ours'
 #: The ceiling's rows (:mod:`~uncertain_facade_map.evaluation.truth_map`): not a baseline.
-TRUTH = 'Truth'
+TRUTH = TruthMethod.name
 #: The methods of the uncertainty figures (paper Figs. 5, 6: our map beside GPIS).
 UNCERTAINTY_PAIR = (OURS, 'GPIS')
 

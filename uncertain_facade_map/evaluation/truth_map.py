@@ -27,7 +27,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..params import MapParams
-from ..pipeline.step8_occupancy import READINGS, UNKNOWN, half_depth, occupancy_probability, surface_probability
+from ..pipeline.step8_occupancy import READINGS, facade_half_depth, occupancy_probability, surface_probability
 from .baselines.base import OccupancyMethod, check_queries, check_scans
 
 #: How far in front of a façade plane the truth rays start, metres (relief within it).
@@ -93,7 +93,7 @@ class TruthMethod(OccupancyMethod):
         self.scene, self.noise_var, self.reading = scene, float(noise_sd) ** 2, reading
         self.free_reach = float(free_reach)
         if reading == 'solid':
-            self.name = 'Truth (solid)'
+            self.name = f'{TruthMethod.name} (solid)'
         self._cache: tuple | None = None
 
     def fit(self, points: np.ndarray, origins: np.ndarray) -> TruthMethod:
@@ -113,13 +113,9 @@ class TruthMethod(OccupancyMethod):
         s, facade = self._answers(xyz)
         zero = np.zeros(len(s))
         if self.reading == 'solid':
-            p = occupancy_probability(s, zero, self.noise_var, self.resolution)
-            return np.where(np.isfinite(s), p, UNKNOWN)
+            return occupancy_probability(s, zero, self.noise_var, self.resolution)  # UNKNOWN where no façade
         normals = np.array([f.frame.n for f in self.scene.facades]).reshape(-1, 3)
-        h = np.full(len(s), 0.5 * self.resolution)
-        known = facade >= 0
-        h[known] = half_depth(normals[facade[known]], self.resolution)
-        return surface_probability(s, zero, self.noise_var, h)
+        return surface_probability(s, zero, self.noise_var, facade_half_depth(facade, normals, self.resolution))
 
     def predict_variance(self, xyz: np.ndarray) -> np.ndarray:
         """(M,) 0 where a façade holds the voxel (the truth is exact), +inf elsewhere."""

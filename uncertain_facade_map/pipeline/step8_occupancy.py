@@ -74,6 +74,25 @@ def half_depth(normal: np.ndarray, resolution: float) -> np.ndarray:
     return 0.5 * resolution * np.abs(np.asarray(normal, dtype=np.float64)).sum(axis=-1)
 
 
+def facade_half_depth(facade: np.ndarray, normals: np.ndarray, resolution: float) -> np.ndarray:
+    """Half extent of each voxel along the normal of the façade that holds it.
+
+    Args:
+        facade: (N,) int index into ``normals`` of each voxel's façade, -1 where none.
+        normals: (F, 3) unit outward normal of each façade, map frame.
+        resolution: voxel side, metres.
+
+    Returns:
+        (N,) :func:`half_depth` of the voxel's façade normal, metres; ``r/2`` where no façade.
+    """
+    facade = np.asarray(facade)
+    h = np.full(len(facade), 0.5 * resolution)
+    known = facade >= 0
+    if known.any():
+        h[known] = half_depth(np.asarray(normals, dtype=np.float64)[facade[known]], resolution)
+    return h
+
+
 def surface_probability(signed_distance: np.ndarray, variance: np.ndarray, noise_variance: np.ndarray | float,
                         half_extent: np.ndarray | float, outside: float = 0.0) -> np.ndarray:
     """Probability that the voxel centred at each point holds the surface (a measured point).

@@ -36,7 +36,7 @@ from ...errors import InputError
 from ...mapping.facade_map import FacadeMap, build_map
 from ...params import MapParams
 from ...pipeline.step7_queries import query_points
-from ...pipeline.step8_occupancy import READINGS, half_depth, surface_probability
+from ...pipeline.step8_occupancy import READINGS, facade_half_depth, surface_probability
 from .base import OccupancyMethod, check_queries, check_scans
 
 
@@ -94,11 +94,8 @@ class FacadeGPMethod(OccupancyMethod):
         answers = self._answers(xyz)
         if self.reading == 'solid':
             return answers.p_occupied
-        h = np.full(len(answers.facade), 0.5 * self.resolution)
-        known = answers.facade >= 0
-        if known.any():
-            normals = np.array([f.frame.axes[2] for f in self.map_.facades])
-            h[known] = half_depth(normals[answers.facade[known]], self.resolution)
+        normals = np.array([f.frame.axes[2] for f in self.map_.facades]).reshape(-1, 3)
+        h = facade_half_depth(answers.facade, normals, self.resolution)
         noise = np.where(np.isfinite(answers.noise_variance), answers.noise_variance, 0.0)
         return surface_probability(answers.signed_distance, answers.variance, noise, h)
 
