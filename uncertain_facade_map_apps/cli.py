@@ -672,7 +672,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument('--no-truth', action='store_true',
                     help="with --scene: leave out the ceiling (the scene's exact geometry read as a map)")
     ev.add_argument('--report', metavar='DIR', help='write DIR/report.md and its figures')
-    ev.add_argument('--config', metavar='YAML', help='ROS 2 parameter file (input section)')
+    ev.add_argument('--config', metavar='YAML', help='ROS 2 parameter file (input and selection sections)')
     ev.add_argument('--quiet', action='store_true', help='no progress lines')
     ev.set_defaults(func=cmd_evaluate)
 
