@@ -18,6 +18,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from uncertain_facade_map.mapping import products as mp
+from uncertain_facade_map.pipeline.step8_occupancy import FIXED, PLSC
 
 from .map_messages import facade_grid_array, rclpy_map_types, triangle_marker_array
 from .pointcloud2 import pointcloud2_from_structured, rclpy_types
@@ -47,14 +48,16 @@ class PublishedMaps:
 
 
 def published_map_messages(facades: Sequence[Any], publish: Any, band_back: float, band_front: float,
-                           frame_id: str, stamp_ns: int, serialize_message: Callable[[Any], bytes]) -> PublishedMaps:
+                           frame_id: str, stamp_ns: int, serialize_message: Callable[[Any], bytes],
+                           occupancy: PLSC = FIXED) -> PublishedMaps:
     """Every published map of ``facades`` (see :func:`~uncertain_facade_map.mapping.products.map_products`
     for ``publish`` and the bands), in ``frame_id`` at ``stamp_ns``, serialized by
     ``serialize_message`` (rclpy's ``rclpy.serialization.serialize_message``: a module-level
-    function, so that the call pickles to a helper process)."""
+    function, so that the call pickles to a helper process); ``occupancy``: the PLSC
+    parameters of the occupancy (the map's learnt ones or the fixed formula's)."""
     types, cloud_types = rclpy_map_types(), rclpy_types()
     facades = list(facades)
-    products = mp.map_products(facades, publish, band_back, band_front)
+    products = mp.map_products(facades, publish, band_back, band_front, occupancy)
     surf = products.surface
     table = np.zeros(len(surf.xyz), dtype=[('x', 'f4'), ('y', 'f4'), ('z', 'f4'), ('std', 'f4'), ('facade', 'i4')])
     table['x'], table['y'], table['z'] = surf.xyz.T

@@ -180,6 +180,13 @@ def cmd_build(args: argparse.Namespace) -> int:
     with _counter('buildings', 'building', args.quiet) as update:
         fmap.add_points(points.xyz, points.building_id, points.sensor_origins, progress=update)
     build_s = time.perf_counter() - started - read_s
+    occupancy = 'fixed formula (no sensor origins to learn free space from)'
+    if points.sensor_origins is not None and fmap.facades:
+        learnt = fmap.calibrate_occupancy(config.query.resolution)
+        occupancy = (f'PLSC scale {learnt.scale:.3g}, spread {learnt.spread * 100:.1f} cm, learnt on '
+                     f'{learnt.n_positive:,} held-out hit voxels and {learnt.n_negative:,} crossed voxels'
+                     if learnt.learnt else 'fixed formula (too few labelled voxels near a façade)')
+    calibrate_s = time.perf_counter() - started - read_s - build_s
     save_map(fmap, out)
     total_s = time.perf_counter() - started
     stats = [f.stats for f in fmap.facades]
@@ -196,6 +203,7 @@ def cmd_build(args: argparse.Namespace) -> int:
     var = np.concatenate([f.surface.var[f.surface.source == 2].ravel() for f in fmap.facades] or [np.empty(0)])
     if len(var):
         print(f'surface  median std {np.sqrt(np.median(var)) * 100:.1f} cm where observed')
+    print(f'occupancy {occupancy} ({calibrate_s:.1f} s)')
     print(f'map      {out} ({out.stat().st_size / 1e6:.1f} MB, {total_s:.1f} s in all)')
     return 0
 
@@ -207,6 +215,7 @@ def cmd_query(args: argparse.Namespace) -> int:
     from uncertain_facade_map.io.map_file import load_map
     from uncertain_facade_map.io.parameter_file import load_config
     from uncertain_facade_map.pipeline.step7_queries import query_points
+    from uncertain_facade_map.pipeline.step8_occupancy import occupancy_model
 
     fmap = load_map(args.map)
     path = Path(args.points)
@@ -218,10 +227,11 @@ def cmd_query(args: argparse.Namespace) -> int:
         raise CliError(f'{path}: not a .npy array ({exc})') from None
     if xyz.dtype != np.float64 or xyz.ndim != 2 or xyz.shape[1] != 3:
         raise CliError(f'{path}: expected a float64 (N, 3) array, got {xyz.dtype} {xyz.shape}')
-    resolution = args.resolution if args.resolution is not None else load_config(args.config).query.resolution
+    query = load_config(args.config).query
+    resolution = args.resolution if args.resolution is not None else query.resolution
     started = time.perf_counter()
     result = query_points(fmap.facades, xyz, resolution, fmap.params.extraction.band_back,
-                          fmap.params.extraction.band_front)
+                          fmap.params.extraction.band_front, occupancy_model(fmap.occupancy_, query.occupancy))
     seconds = time.perf_counter() - started
     out = Path(args.out)
     with open(out, 'wb') as fh:
@@ -420,7 +430,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         from uncertain_facade_map.simulation.sensor import SensorConfig
 
         noise_sd = SCENE_SENSORS.get(scene.name, SensorConfig()).range_noise
-        factories += [lambda r, how=how: TruthMethod(r, scene, noise_sd, how) for how in ('surface', 'solid')]
+        factories += [lambda r, how=how, occ=occ: TruthMethod(r, scene, noise_sd, how, occupancy=occ)
+                      for how, occ in (('surface', 'fixed'), ('surface', 'plsc'), ('solid', 'fixed'))]
     refs, results = evaluate(factories, pts, org, ref_pts, ref_org, args.resolutions, args.rays, args.negatives,
                              args.seed, progress=say, max_positives=args.positives)
     by = {(r.name, r.resolution): r for r in results}

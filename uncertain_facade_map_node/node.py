@@ -78,6 +78,7 @@ from uncertain_facade_map.params import (
     parameters,
 )
 from uncertain_facade_map.pipeline.step7_queries import query_points
+from uncertain_facade_map.pipeline.step8_occupancy import PLSC, occupancy_model
 from uncertain_facade_map.srv import GetFacades, LoadMap, QueryPoints, SaveMap
 
 #: Seconds a service waits for the map worker (load, reset) before answering "busy".
@@ -469,7 +470,7 @@ class FacadeMapperNode(Node):
             try:
                 # Built and serialized in the helper process: here only bytes are handed over.
                 maps = self._compute(published_map_messages, facades, cfg, band.band_back, band.band_front,
-                                     self.frame_id, stamp, serialize_message)
+                                     self.frame_id, stamp, serialize_message, self._occupancy(snap))
                 # The latched publishers keep these (and the grid) until the next ones.
                 self._published_bytes = (len(maps.surface) + len(maps.mesh) + len(maps.variance_grids)
                                          + len(maps.voxels) + (maps.grid.p.size if maps.grid is not None else 0))
@@ -487,6 +488,10 @@ class FacadeMapperNode(Node):
             self.get_logger().debug(f'published map version {snap.version} in '
                                     f'{time.perf_counter() - started:.2f} s')
 
+    def _occupancy(self, snap: MapSnapshot) -> PLSC:
+        """The occupancy's PLSC parameters for a snapshot's answers (``query.occupancy``)."""
+        return occupancy_model(snap.occupancy, self.config.query.occupancy)
+
     def _compute(self, fn: Callable[..., Any], *args: Any) -> Any:
         """``fn(*args)`` in the helper process (``node.mapping_process``), else here."""
         return fn(*args) if self._helper is None else self._helper.call(fn, *args)
@@ -501,7 +506,8 @@ class FacadeMapperNode(Node):
         params = snap.params.extraction  # the map's own bands (a loaded map keeps its own)
         p, origin, resolution = np.full((1, 1), np.nan), np.zeros(2), cfg.grid_resolution
         if snap.facades:
-            g = grid or self._compute(mp.band_grid, list(snap.facades), cfg, params.band_back, params.band_front)
+            g = grid or self._compute(mp.band_grid, list(snap.facades), cfg, params.band_back, params.band_front,
+                                      self._occupancy(snap))
             p, origin, resolution = g.p, g.origin, g.resolution
             if resolution != cfg.grid_resolution:
                 self._warn(f'the 2D grid of this map would have more than publish.grid_max_cells = '
@@ -612,7 +618,8 @@ class FacadeMapperNode(Node):
                 raise InputError(f'resolution must be a positive number of metres, got {request.resolution}')
             snap = self.worker.snapshot
             params = snap.params.extraction  # the map's own bands (a loaded map keeps its own)
-            answers = query_points(list(snap.facades), xyz, resolution, params.band_back, params.band_front)
+            answers = query_points(list(snap.facades), xyz, resolution, params.band_back, params.band_front,
+                                   self._occupancy(snap))
             mm.fill_query_response(response, answers, f'{len(xyz)} points, map version {snap.version}',
                                    msg_types=self.types)
             self._query_seconds.append(time.perf_counter() - started)

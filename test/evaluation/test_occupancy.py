@@ -16,13 +16,11 @@ from uncertain_facade_map.evaluation.occupancy import (
     auc_by_variance,
     distance_to_points,
     evaluate,
-    pack_keys,
     pr_auc,
     reference_voxels,
     roc_auc,
-    unpack_keys,
-    voxel_index,
 )
+from uncertain_facade_map.voxels import pack_keys, unpack_keys, voxel_index
 
 
 def test_a_perfect_map_has_auc_1_and_a_constant_one_the_positives_share():

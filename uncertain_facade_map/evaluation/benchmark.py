@@ -70,7 +70,8 @@ from ..mapping.facade_map import FacadeMap, build_map
 from ..params import InputConfig, MapParams
 from ..pipeline.step1_facades import extract_facades, split_buildings
 from ..pipeline.step7_queries import query_points
-from .occupancy import pack_keys, pr_auc, unpack_keys, voxel_index
+from ..voxels import pack_keys, unpack_keys, voxel_index
+from .occupancy import pr_auc
 from .references import Answers, FacadePlaneMap, LocalPlaneMap
 from .surface import STEP_HEIGHT, STEP_RADIUS
 from .wall_points import WallPick, wall_points

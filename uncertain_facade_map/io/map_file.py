@@ -10,7 +10,9 @@ An open format any numpy (or any zip + .npy reader) can read, no pickle. It hold
 - per building ``b``: ``building/<b>/points``, ``building/<b>/normals`` and, if known,
   ``building/<b>/sensor_origins`` (kept so that a loaded map goes on mapping exactly as
   the map that was saved would have); ``meta`` counts per building the points thinned
-  (counted, not stored: see ``update.store_voxel``), 0 when absent.
+  (counted, not stored: see ``update.store_voxel``), 0 when absent; and the occupancy's
+  learnt PLSC parameters (``occupancy``: scale, spread, the voxels they were learnt on and
+  the points stored then; the fixed formula's when absent).
 
 Version 2 added what incremental mapping needs (per façade the wall's ``plane_extent``,
 the block grid's ``anchor`` and the points at the last whole fit; per building the point
@@ -37,6 +39,7 @@ from ..datatypes import DepthLayers, FacadeFrame, FacadeModel, Facets, Relief, S
 from ..errors import InputError
 from ..mapping.facade_map import FacadeMap
 from ..params import map_params_from_record, map_params_record
+from ..pipeline.step8_occupancy import PLSC
 
 FORMAT = 'uncertain_facade_map.map'
 VERSION = 3
@@ -135,6 +138,7 @@ def save_map(fmap: FacadeMap, path: str | Path) -> Path:
                      'stats': f.stats} for f in fmap.facades],
         'pool_checked': {str(b): int(n) for b, n in fmap.pool_checked.items()},
         'thinned': {str(b): int(n) for b, n in fmap.thinned.items()},
+        'occupancy': dict(fmap.occupancy_.as_dict(), stored=fmap.occupancy_stored_),
     }
     arrays: dict[str, np.ndarray] = {'meta': np.array(json.dumps(meta))}
     for f in fmap.facades:
@@ -241,8 +245,10 @@ def _from_records(meta: dict, arrays: dict[str, np.ndarray]) -> FacadeMap:
     pending = []
     if 'pending/xyz' in arrays:
         pending.append((arrays['pending/xyz'], arrays.get('pending/building_id'), arrays.get('pending/sensor_origins')))
+    occupancy = dict(meta.get('occupancy', {}))  # absent before issue 14: the fixed formula
+    stored = int(occupancy.pop('stored', 0))
     return FacadeMap(params, np.asarray(meta['map_origin'], dtype=np.float64), facades, points, origins, normals,
-                     pool, pending=pending, thinned=thinned)
+                     pool, pending=pending, thinned=thinned, occupancy_=PLSC(**occupancy), occupancy_stored_=stored)
 
 
 def _upgrade_1(meta: dict, arrays: dict[str, np.ndarray]) -> tuple[dict, dict]:

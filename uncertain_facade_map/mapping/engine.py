@@ -35,6 +35,7 @@ import numpy as np
 from ..datatypes import FacadeModel, array_bytes
 from ..errors import FacadeMapError
 from ..params import MapParams
+from ..pipeline.step8_occupancy import FIXED, PLSC
 from .allocator import limit_heap_growth, release_free_memory
 from .facade_map import FacadeMap
 
@@ -63,6 +64,7 @@ class MapView:
         map_bytes: bytes of the map's arrays in the process that holds it
             (:func:`~uncertain_facade_map.datatypes.array_bytes`: points, normals, sensor
             origins, voxel index, façade models).
+        occupancy: the occupancy's PLSC parameters the map has learnt (``FacadeMap.occupancy_``).
     """
 
     facades: tuple[FacadeModel, ...]
@@ -75,6 +77,7 @@ class MapView:
     stored: int = 0
     cpu_seconds: float = 0.0
     map_bytes: int = 0
+    occupancy: PLSC = FIXED
 
 
 def view_of(fmap: FacadeMap, cpu_seconds: float = 0.0) -> MapView:
@@ -83,7 +86,7 @@ def view_of(fmap: FacadeMap, cpu_seconds: float = 0.0) -> MapView:
     origin.setflags(write=False)  # the façade models' arrays are read-only already
     return MapView(tuple(fmap.facades), origin, len(fmap.points), fmap.n_points, fmap.params, fmap.n_pending,
                    bool(fmap.pending) or any(f.fitted_points != len(f.point_index) for f in fmap.facades),
-                   fmap.n_stored, cpu_seconds, array_bytes(fmap))
+                   fmap.n_stored, cpu_seconds, array_bytes(fmap), fmap.occupancy_)
 
 
 @dataclass(frozen=True)
@@ -122,7 +125,10 @@ class LocalEngine:
         """Add a cloud (``FacadeMap.add_points(..., defer=True)``); True when an update ran or
         nothing is held back. Raises what the map raised, the map rolled back."""
         def add() -> bool:
-            return bool(self._fmap.add_points(xyz, building_id, sensor_origins, defer=True)) or not self._fmap.pending
+            done = bool(self._fmap.add_points(xyz, building_id, sensor_origins, defer=True)) or not self._fmap.pending
+            if done:
+                self._fmap.calibrate_when_grown()  # the occupancy's PLSC, at each doubling of the map
+            return done
         return self._item(add)
 
     def run(self, fn: Callable[[FacadeMap], Any]) -> tuple[Any, bool]:
@@ -138,7 +144,11 @@ class LocalEngine:
     def flush(self) -> tuple[int, list[int]]:
         """Map the points held back and fit whole the façades updated block by block;
         returns (points that were held back, façades fitted whole)."""
-        return self._item(lambda: (self._fmap.n_pending, self._fmap.flush()))
+        def flush() -> tuple[int, list[int]]:
+            out = (self._fmap.n_pending, self._fmap.flush())
+            self._fmap.calibrate_when_grown()
+            return out
+        return self._item(flush)
 
     @property
     def done(self) -> int:

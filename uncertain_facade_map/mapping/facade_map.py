@@ -58,6 +58,7 @@ from ..pipeline.step1_facades import (
     extract_facades,
 )
 from ..pipeline.step6_surface import _extent, fit_facade, update_facade
+from ..pipeline.step8_occupancy import FIXED, PLSC
 
 #: Offsets of a clustering cell's 3x3 neighbourhood in cell keys (see FacadeMap._cell_keys).
 _CELL_NEIGHBOURS = np.array([du * (1 << 32) + dv for du in (-1, 0, 1) for dv in (-1, 0, 1)], dtype=np.int64)
@@ -87,6 +88,9 @@ class FacadeMap:
             (xyz, building_id or None, sensor_origins or None) per call.
         thinned: per building label, the number of its points counted but not stored
             (their voxel of ``update.store_voxel`` already held ``update.store_per_voxel``).
+        occupancy_: the occupancy's PLSC parameters learnt from the map's own scans
+            (:meth:`calibrate_occupancy`), or the fixed formula's.
+        occupancy_stored_: points stored at the last calibration (0: never calibrated).
     """
 
     params: MapParams = field(default_factory=MapParams)
@@ -99,6 +103,8 @@ class FacadeMap:
     last_update: dict = field(default_factory=dict)
     pending: list[tuple[np.ndarray, np.ndarray | None, np.ndarray | None]] = field(default_factory=list)
     thinned: dict[int, int] = field(default_factory=dict)
+    occupancy_: PLSC = FIXED
+    occupancy_stored_: int = 0
     #: Per building label, its occupied storage voxels: (V,) sorted int64 keys and (V,) int32
     #: counts of stored points (rebuilt from ``points`` when missing, e.g. after loading).
     _voxels: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, init=False, repr=False)
@@ -146,6 +152,47 @@ class FacadeMap:
             if isinstance(value, (dict, list)):
                 setattr(new, name, copy.copy(value))
         return new
+
+    def calibrate_occupancy(self, resolution: float = 0.1, progress: Callable[[str], None] | None = None) -> PLSC:
+        """Learn the occupancy's PLSC parameters from the stored points and their rays
+        (:func:`~uncertain_facade_map.mapping.calibration.calibrate_occupancy`; seeded by
+        ``params.seed``) and keep them in :attr:`occupancy_`.
+
+        Args:
+            resolution: voxel side of the labels, metres (the parameters serve every
+                resolution: the scale is relative to the voxel, the spread is the surface's).
+            progress: called with a line of text when done.
+
+        Raises:
+            InputError: a building without sensor origins (no rays to learn free space from).
+        """
+        from .calibration import calibrate_occupancy
+
+        if not self.points:
+            return self.occupancy_
+        if any(self.sensor_origins.get(b) is None for b in self.points):
+            raise InputError('the occupancy calibration needs the sensor origin of every point '
+                             '(its free space comes from the rays)')
+        labels = sorted(self.points)
+        xyz = np.vstack([self.points[b] for b in labels])
+        origins = np.vstack([self.sensor_origins[b] for b in labels])
+        ids = np.repeat(np.asarray(labels, dtype=np.int64), [len(self.points[b]) for b in labels])
+        self.occupancy_ = calibrate_occupancy(xyz, origins, self.params, ids, resolution, seed=self.params.seed,
+                                              progress=progress)
+        self.occupancy_stored_ = len(xyz)
+        return self.occupancy_
+
+    def calibrate_when_grown(self, growth: float = 1.0, min_points: int = 20_000) -> bool:
+        """Calibrate (:meth:`calibrate_occupancy`) once the stored points have grown by
+        ``growth`` times those of the last calibration (live mapping: the cost, a map of
+        at most 300,000 points, is spent at each doubling), with at least ``min_points``
+        stored and sensor origins for all; True when it did."""
+        n = self.n_stored
+        if n < max(min_points, (1.0 + growth) * self.occupancy_stored_) or \
+                any(self.sensor_origins.get(b) is None for b in self.points):
+            return False
+        self.calibrate_occupancy()
+        return True
 
     @property
     def n_pending(self) -> int:

@@ -41,6 +41,7 @@ import numpy as np
 
 from ..datatypes import FacadeModel
 from ..params import MapParams
+from ..pipeline.step8_occupancy import FIXED, PLSC
 from .engine import LocalEngine, MapView, ProcessEngine, ReplaceMap, replace_with
 from .facade_map import FacadeMap
 
@@ -65,6 +66,7 @@ class MapSnapshot:
             with): its façade bands answer its queries.
         stored: number of building points stored (``points`` less those thinned).
         map_bytes: bytes of the map's arrays where it is updated (``MapView.map_bytes``).
+        occupancy: the occupancy's PLSC parameters the map has learnt (``MapView.occupancy``).
     """
 
     version: int
@@ -76,6 +78,7 @@ class MapSnapshot:
     params: MapParams = field(default_factory=MapParams)
     stored: int = 0
     map_bytes: int = 0
+    occupancy: PLSC = FIXED
 
 
 @dataclass
@@ -295,7 +298,7 @@ class MapWorker:
     def _snapshot(self, version: int) -> MapSnapshot:
         view: MapView = self._engine.view
         return MapSnapshot(version, view.facades, view.map_origin, view.buildings, view.points, self._stamp,
-                           view.params, view.stored, view.map_bytes)
+                           view.params, view.stored, view.map_bytes, view.occupancy)
 
     def _publish(self) -> None:
         self.snapshot = self._snapshot(self.snapshot.version + 1)

@@ -22,7 +22,7 @@ from scipy import ndimage
 
 from ..datatypes import SOURCE_GLOBAL, FacadeModel, SurfaceRaster
 from ..errors import InputError
-from .step8_occupancy import occupancy_probability
+from .step8_occupancy import FIXED, PLSC
 
 #: Points handled at once (bounds memory of the (N, F) façade test).
 CHUNK = 262_144
@@ -269,7 +269,7 @@ def assign_facades(facades: Sequence[FacadeModel], xyz: np.ndarray, band_back: f
 
 
 def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: float, band_back: float,
-                 band_front: float) -> PointQuery:
+                 band_front: float, occupancy: PLSC = FIXED) -> PointQuery:
     """Answer the 3D point query for (N, 3) points in the map frame.
 
     Args:
@@ -278,6 +278,8 @@ def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: fl
         resolution: voxel side for the occupancy probability, metres.
         band_back: see :func:`assign_facades`.
         band_front: see :func:`assign_facades`.
+        occupancy: the occupancy's PLSC parameters (the map's learnt ones,
+            ``FacadeMap.occupancy_``), or the fixed formula's.
 
     Returns:
         The answers; NaN depth, variance, noise variance and distance, and occupancy 0.5,
@@ -310,5 +312,5 @@ def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: fl
             noise[sel] = facades[i].noise_var
             dist[sel], var[sel] = nearer_step_faces(facades[i].surface, uvd[sel - start], uvd[sel - start, 2] - m, v,
                                                     STEP_REACH)
-    p = occupancy_probability(dist, var, np.where(np.isfinite(noise), noise, 0.0), resolution)
+    p = occupancy.solid(dist, var, np.where(np.isfinite(noise), noise, 0.0), resolution)
     return PointQuery(facade, mean, var, noise, dist, p)

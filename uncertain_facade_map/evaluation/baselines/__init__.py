@@ -15,6 +15,7 @@ from .base import OccupancyMethod
 #: Command-line name -> "module:class" (relative to this package).
 METHODS = {
     'ours': 'facade_gp:FacadeGPMethod',
+    'ours-fixed': 'facade_gp:FacadeGPFixedMethod',
     'ours-solid': 'facade_gp:FacadeGPSolidMethod',
     'octomap': 'octomap_map:OctoMapMethod',
     'bgk': 'bgk_octomap:BGKOctoMapMethod',

@@ -18,6 +18,11 @@ the surface depth and s the voxel centre's signed distance from the mean surface
   (:func:`~uncertain_facade_map.pipeline.step8_occupancy.occupancy_probability`): the building taken as solid behind its
   façades. The report shows it beside the other, as a sensitivity of the comparison.
 
+Each reading is taken with the paper's PLSC (the default: the two parameters learnt from
+the mapped points alone by :meth:`~uncertain_facade_map.mapping.facade_map.FacadeMap.calibrate_occupancy`,
+as the command line's ``build`` and the node learn them) or with the fixed formula
+(``occupancy='fixed'``, :class:`FacadeGPFixedMethod`: scale 1, spread 0).
+
 For the evaluation a voxel belongs to a façade from ``band_back`` behind its plane to
 ``free_reach`` in front of it (the queries' ``band_front`` is 2 m, for points near the
 wall): everything in front of a mapped wall, within its extent, is free space by the
@@ -36,7 +41,7 @@ from ...errors import InputError
 from ...mapping.facade_map import FacadeMap, build_map
 from ...params import MapParams
 from ...pipeline.step7_queries import query_points
-from ...pipeline.step8_occupancy import READINGS, facade_half_depth, surface_probability
+from ...pipeline.step8_occupancy import FIXED, READINGS, facade_half_depth
 from .base import OccupancyMethod, check_queries, check_scans
 
 
@@ -50,22 +55,29 @@ class FacadeGPMethod(OccupancyMethod):
             metres.
         reading: ``'surface'`` (p that the voxel holds the surface) or ``'solid'`` (p that
             it lies behind the surface, as the node publishes).
+        occupancy: ``'plsc'`` (parameters learnt from the mapped points at this resolution)
+            or ``'fixed'``.
 
     Raises:
-        InputError: a bad resolution, ``free_reach`` or ``reading``.
+        InputError: a bad resolution, ``free_reach``, ``reading`` or ``occupancy``.
     """
 
     name = 'Ours'
     reading_default = 'surface'
+    occupancy_default = 'plsc'
 
     def __init__(self, resolution: float, params: MapParams | None = None, free_reach: float = 50.0,
-                 reading: str | None = None) -> None:
+                 reading: str | None = None, occupancy: str | None = None) -> None:
         super().__init__(resolution)
         if not (np.isfinite(free_reach) and free_reach > 0):
             raise InputError(f'free_reach must be a positive number of metres, got {free_reach!r}')
         reading = self.reading_default if reading is None else reading
         if reading not in READINGS:
             raise InputError(f'reading must be one of {", ".join(READINGS)}, got {reading!r}')
+        occupancy = self.occupancy_default if occupancy is None else occupancy
+        if occupancy not in ('plsc', 'fixed'):
+            raise InputError(f"occupancy must be 'plsc' or 'fixed', got {occupancy!r}")
+        self.occupancy = occupancy
         self.params = params or MapParams()
         self.free_reach = float(free_reach)
         self.reading = reading
@@ -76,6 +88,8 @@ class FacadeGPMethod(OccupancyMethod):
         """Build the map from (N, 3) points with their (N, 3) sensor origins (map frame, metres)."""
         points, origins = check_scans(points, origins)
         self.map_ = build_map(points, None, origins, self.params)
+        if self.occupancy == 'plsc':
+            self.map_.calibrate_occupancy(self.resolution)
         self._query = None
         return self
 
@@ -92,12 +106,13 @@ class FacadeGPMethod(OccupancyMethod):
         """(M,) occupancy probability of the voxels centred at (M, 3) ``xyz`` (map frame,
         metres), in the method's reading."""
         answers = self._answers(xyz)
+        model = self.map_.occupancy_ if self.occupancy == 'plsc' else FIXED
+        noise = np.where(np.isfinite(answers.noise_variance), answers.noise_variance, 0.0)
         if self.reading == 'solid':
-            return answers.p_occupied
+            return model.solid(answers.signed_distance, answers.variance, noise, self.resolution)
         normals = np.array([f.frame.axes[2] for f in self.map_.facades]).reshape(-1, 3)
         h = facade_half_depth(answers.facade, normals, self.resolution)
-        noise = np.where(np.isfinite(answers.noise_variance), answers.noise_variance, 0.0)
-        return surface_probability(answers.signed_distance, answers.variance, noise, h)
+        return model.surface(answers.signed_distance, answers.variance, noise, h)
 
     def predict_variance(self, xyz: np.ndarray) -> np.ndarray:
         """(M,) surface variance at ``xyz``, m^2; +inf where no façade covers the voxel."""
@@ -115,3 +130,10 @@ class FacadeGPSolidMethod(FacadeGPMethod):
 
     name = 'Ours (solid)'
     reading_default = 'solid'
+
+
+class FacadeGPFixedMethod(FacadeGPMethod):
+    """:class:`FacadeGPMethod` with the fixed formula instead of the learnt PLSC."""
+
+    name = 'Ours (fixed)'
+    occupancy_default = 'fixed'

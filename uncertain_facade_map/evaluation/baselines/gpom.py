@@ -112,7 +112,7 @@ import scipy.linalg
 from scipy.special import expit, log_ndtr, ndtr
 
 from ...errors import InputError
-from ..occupancy import pack_keys, unpack_keys
+from ...voxels import pack_keys, unpack_keys
 from .base import (
     OccupancyMethod,
     beam_samples,
@@ -153,7 +153,7 @@ def matern32(d: np.ndarray, sf2: float, ell: float) -> np.ndarray:
 
 
 def _pack(index: np.ndarray) -> np.ndarray:
-    """(N,) int64 key of (N, 3) int64 block indices (:func:`~uncertain_facade_map.evaluation.occupancy.pack_keys`).
+    """(N,) int64 key of (N, 3) int64 block indices (:func:`~uncertain_facade_map.voxels.pack_keys`).
 
     Raises:
         InputError: an index beyond +-2^20 blocks.
