@@ -483,6 +483,9 @@ class QueryConfig(Section):
 
     resolution: float = param(0.1, 'default voxel side of the occupancy probability', unit='m',
                               allowed=_closed(1e-3, 10.0))
+    occupancy: str = param('plsc', 'p_occupied by: plsc, the cumulative Gaussian whose two parameters the map '
+                                   'learnt from its own scans (the paper; the fixed formula until it has learnt '
+                                   'them); fixed, the formula Phi((r/2 - s) / sd)', allowed=Options(('plsc', 'fixed')))
 
 
 @dataclass(frozen=True)

@@ -97,3 +97,16 @@ def test_save_is_atomic(tmp_path, fmap, monkeypatch):
     assert path.read_bytes() == good, 'a failed save must leave the old map'
     assert [p.name for p in tmp_path.iterdir()] == ['m.npz'], 'no temporary file left behind'
     assert zipfile.is_zipfile(path)
+
+
+def test_the_learnt_occupancy_is_saved_and_a_file_without_it_reads_the_fixed_formula(tmp_path, fmap):
+    import dataclasses
+
+    from uncertain_facade_map.pipeline.step8_occupancy import FIXED, PLSC
+
+    learnt = dataclasses.replace(fmap.clone(), occupancy_=PLSC(2.1, 0.045, 3000, 2000), occupancy_stored_=1234)
+    loaded = load_map(save_map(learnt, tmp_path / 'l.npz'))
+    assert loaded.occupancy_ == learnt.occupancy_ and loaded.occupancy_stored_ == 1234
+    rewrite_meta(tmp_path / 'l.npz', tmp_path / 'old.npz', lambda m: m.pop('occupancy'))
+    old = load_map(tmp_path / 'old.npz')
+    assert old.occupancy_ == FIXED and old.occupancy_stored_ == 0

@@ -38,6 +38,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from ..errors import InputError
+from ..pipeline.step8_occupancy import PLSC
 from ..voxels import ReferenceVoxels, reference_voxels
 
 #: Reference campaigns by protocol name (campaign 0 is the mapped one).
@@ -106,6 +107,7 @@ class MethodResult:
         roc_auc: area under the ROC curve.
         extra: the method's per-voxel diagnostics (:meth:`OccupancyMethod.diagnostics`).
         trains_on_predict: part of the training ran in ``predict`` (so in the testing time).
+        plsc: the PLSC parameters the method learnt (its ``plsc_``), or None.
     """
 
     name: str
@@ -118,6 +120,7 @@ class MethodResult:
     roc_auc: float
     extra: dict = field(default_factory=dict)
     trains_on_predict: bool = False
+    plsc: PLSC | None = None
 
 
 def run_method(method, points: np.ndarray, origins: np.ndarray, ref: ReferenceVoxels) -> MethodResult:
@@ -137,7 +140,8 @@ def run_method(method, points: np.ndarray, origins: np.ndarray, ref: ReferenceVo
         raise InputError(f'{method.name} returned no (K,) probabilities in [0, 1]')
     return MethodResult(method.name, ref.resolution, p, None if variance is None else np.asarray(variance, float),
                         t1 - t0, t2 - t1, pr_auc(ref.positive, p, ref.weight), roc_auc(ref.positive, p, ref.weight),
-                        dict(method.diagnostics(ref.centres)), bool(getattr(method, 'trains_on_predict', False)))
+                        dict(method.diagnostics(ref.centres)), bool(getattr(method, 'trains_on_predict', False)),
+                        getattr(method, 'plsc_', None))
 
 
 def subset_auc(result: MethodResult, ref: ReferenceVoxels, keep: np.ndarray) -> tuple[float, float]:
@@ -309,6 +313,7 @@ def evaluate(methods: Sequence[Callable[[float], object]], points: np.ndarray, o
             res = run_method(factory(r), points, origins, ref)
             results.append(res)
             if progress is not None:
+                learnt = '' if res.plsc is None else f'  PLSC scale {res.plsc.scale:.3g} spread {res.plsc.spread:.3g} m'
                 progress(f'{r:g} m: {res.name:<12} PR AUC {res.pr_auc:.3f}  ROC AUC {res.roc_auc:.3f}  '
-                         f'train {res.fit_seconds:.1f} s  test {res.predict_seconds:.1f} s')
+                         f'train {res.fit_seconds:.1f} s  test {res.predict_seconds:.1f} s{learnt}')
     return refs, results

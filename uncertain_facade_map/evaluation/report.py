@@ -171,6 +171,14 @@ def write_report(out: str | Path, refs: dict[float, ReferenceVoxels], results: S
         lines.append(f'| {accurate_label(variance_threshold)} | '
                      + ' | '.join(f'{_fmt(accurate[res][0])} ({accurate[res][1]:.0%} of voxels)'
                                   if res in accurate else '-' for res in resolutions) + ' |')
+    learnt = [(name, res, by[(name, res)].plsc) for name in names for res in resolutions
+              if (name, res) in by and by[(name, res)].plsc is not None]
+    if learnt:
+        lines += ['', 'PLSC parameters learnt from the mapped points alone (scale of the half voxel, spread added '
+                      "to the map's sd; the fixed formula is scale 1, spread 0): "
+                  + '; '.join(f'{name} at {res:g} m: {p.scale:.2f}, {p.spread * 100:.1f} cm' if p.learnt else
+                              f'{name} at {res:g} m: too few labelled voxels, the fixed formula'
+                              for name, res, p in learnt) + '.']
     lines += ['', '## Area under the ROC curve', '',
               '| method | ' + ' | '.join(f'{res:g} m' for res in resolutions) + ' |',
               '|---|' + '---:|' * len(resolutions)]

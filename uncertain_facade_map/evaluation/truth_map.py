@@ -99,7 +99,7 @@ class TruthMethod(OccupancyMethod):
         self.free_reach = float(free_reach)
         if occupancy not in ('plsc', 'fixed'):
             raise InputError(f"occupancy must be 'plsc' or 'fixed', got {occupancy!r}")
-        self.occupancy, self.occupancy_ = occupancy, FIXED
+        self.occupancy, self._model = occupancy, FIXED
         extra = [w for w, on in (('solid', reading == 'solid'), ('PLSC', occupancy == 'plsc')) if on]
         if extra:
             self.name = f'{TruthMethod.name} ({", ".join(extra)})'
@@ -112,7 +112,7 @@ class TruthMethod(OccupancyMethod):
             labels = scan_voxels(points, origins, self.resolution, max_positives=100_000)
             s, facade = true_signed_distance(self.scene, labels.centres, MapParams().extraction.band_back,
                                              MapParams().extraction.band_front)
-            self.occupancy_ = fit_plsc(labels.positive, labels.weight, s, np.zeros(len(s)),
+            self._model = fit_plsc(labels.positive, labels.weight, s, np.zeros(len(s)),
                                        np.full(len(s), self.noise_var), self._half_depth(facade))
         return self
 
@@ -128,8 +128,13 @@ class TruthMethod(OccupancyMethod):
         s, facade = self._answers(xyz)
         zero = np.zeros(len(s))
         if self.reading == 'solid':
-            return self.occupancy_.solid(s, zero, self.noise_var, self.resolution)  # UNKNOWN where no façade
-        return self.occupancy_.surface(s, zero, self.noise_var, self._half_depth(facade))
+            return self._model.solid(s, zero, self.noise_var, self.resolution)  # UNKNOWN where no façade
+        return self._model.surface(s, zero, self.noise_var, self._half_depth(facade))
+
+    @property
+    def plsc_(self):
+        """The PLSC parameters learnt in :meth:`fit` (None with the fixed formula)."""
+        return self._model if self.occupancy == 'plsc' else None
 
     def _half_depth(self, facade: np.ndarray) -> np.ndarray:
         normals = np.array([f.frame.n for f in self.scene.facades]).reshape(-1, 3)

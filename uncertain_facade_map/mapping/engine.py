@@ -125,10 +125,7 @@ class LocalEngine:
         """Add a cloud (``FacadeMap.add_points(..., defer=True)``); True when an update ran or
         nothing is held back. Raises what the map raised, the map rolled back."""
         def add() -> bool:
-            done = bool(self._fmap.add_points(xyz, building_id, sensor_origins, defer=True)) or not self._fmap.pending
-            if done:
-                self._fmap.calibrate_when_grown()  # the occupancy's PLSC, at each doubling of the map
-            return done
+            return bool(self._fmap.add_points(xyz, building_id, sensor_origins, defer=True)) or not self._fmap.pending
         return self._item(add)
 
     def run(self, fn: Callable[[FacadeMap], Any]) -> tuple[Any, bool]:
@@ -144,11 +141,7 @@ class LocalEngine:
     def flush(self) -> tuple[int, list[int]]:
         """Map the points held back and fit whole the façades updated block by block;
         returns (points that were held back, façades fitted whole)."""
-        def flush() -> tuple[int, list[int]]:
-            out = (self._fmap.n_pending, self._fmap.flush())
-            self._fmap.calibrate_when_grown()
-            return out
-        return self._item(flush)
+        return self._item(lambda: (self._fmap.n_pending, self._fmap.flush()))
 
     @property
     def done(self) -> int:

@@ -124,7 +124,9 @@ class FacadeMap:
             defer: hold the points back (:attr:`pending`) until ``update.batch_points``
                 points are pending, then map them all in one update (live mapping; see
                 :meth:`flush`). The map then depends only on the sequence of calls, not
-                on their timing.
+                on their timing. Live mapping also learns the occupancy's PLSC
+                parameters at each doubling of the stored points
+                (:meth:`calibrate_when_grown`).
 
         Returns:
             The labels of the buildings updated (none while points are held back).
@@ -138,7 +140,9 @@ class FacadeMap:
             self.pending.append((xyz, building_id, sensor_origins))
             if self.n_pending < self.params.update.batch_points:
                 return []
-            return self._map_pending(progress)
+            updated = self._map_pending(progress)
+            self.calibrate_when_grown()
+            return updated
         if self.pending:
             self.pending.append((xyz, building_id, sensor_origins))
             return self._map_pending(progress)
@@ -215,17 +219,19 @@ class FacadeMap:
         was only updated block by block since its last whole fit, so that the map is as
         good as one built in one go from the same points.
 
+        Then, as live mapping does after each update, the occupancy's PLSC parameters are
+        learnt again if the stored points have doubled (:meth:`calibrate_when_grown`).
+
         Returns:
             The ids of the façades fitted whole.
         """
         self._map_pending()
-        if not consolidate:
-            return []
         done = []
-        for f in list(self.facades):
+        for f in list(self.facades) if consolidate else []:
             if f.fitted_points != len(f.point_index):
                 self._refit_whole(f.building, f.facade_id, f.point_index, f.plane_extent)
                 done.append(f.facade_id)
+        self.calibrate_when_grown()
         return done
 
     def _checked(self, xyz: np.ndarray, building_id: np.ndarray | None, sensor_origins: np.ndarray | None

@@ -114,6 +114,11 @@ class FacadeGPMethod(OccupancyMethod):
         h = facade_half_depth(answers.facade, normals, self.resolution)
         return model.surface(answers.signed_distance, answers.variance, noise, h)
 
+    @property
+    def plsc_(self):
+        """The PLSC parameters learnt in :meth:`fit` (None with the fixed formula)."""
+        return self.map_.occupancy_ if self.occupancy == 'plsc' and self.map_ is not None else None
+
     def predict_variance(self, xyz: np.ndarray) -> np.ndarray:
         """(M,) surface variance at ``xyz``, m^2; +inf where no façade covers the voxel."""
         var = self._answers(xyz).variance
