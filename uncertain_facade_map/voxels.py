@@ -27,7 +27,7 @@ from .errors import InputError
 _BITS = 21
 _OFFSET = 1 << (_BITS - 1)
 
-__all__ = ['ReferenceVoxels', 'pack_keys', 'reference_voxels', 'unpack_keys', 'voxel_index']
+__all__ = ['ReferenceVoxels', 'pack_keys', 'ray_crossings', 'reference_voxels', 'unpack_keys', 'voxel_index']
 
 
 def voxel_index(xyz: np.ndarray, resolution: float) -> np.ndarray:
@@ -157,3 +157,57 @@ def _subsample(rng: np.random.Generator, keys: np.ndarray, limit: int) -> tuple[
     if len(keys) <= limit:
         return keys, 1.0
     return np.sort(rng.choice(keys, limit, replace=False)), len(keys) / limit
+
+
+def ray_crossings(points: np.ndarray, origins: np.ndarray, resolution: float, keys: np.ndarray,
+                  reach: float = 5.0, samples_per_chunk: int = 4_000_000) -> np.ndarray:
+    """How many rays pass through each of the given voxels.
+
+    Rays are sampled at the samples of :func:`reference_voxels` (every ``r / 3`` from the
+    origin, up to ``r / 2`` before the point) that lie within ``reach`` of the point; a ray counts once per voxel (a
+    straight line leaves a convex voxel once, so consecutive equal samples are one).
+
+    Args:
+        points: (N, 3) float64 ray end points, map frame, metres.
+        origins: (N, 3) float64 their sensor origins.
+        resolution: voxel side, metres.
+        keys: (K,) int64 packed keys of the voxels to count (:func:`pack_keys`).
+        reach: metres of each ray traced, back from its point.
+        samples_per_chunk: ray samples handled at once (bounds memory).
+
+    Returns:
+        (K,) int64 number of rays through each voxel.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    origins = np.asarray(origins, dtype=np.float64)
+    direction = points - origins
+    length = np.linalg.norm(direction, axis=1)
+    unit = direction / np.maximum(length, 1e-12)[:, None]
+    step = resolution / 3.0
+    # The samples of reference_voxels (t = j * step from the origin, up to r/2 before the
+    # point) that lie within ``reach`` of the point.
+    first_j = np.maximum(np.ceil((length - reach) / step), 0).astype(np.int64)
+    last_j = np.floor((length - 0.5 * resolution) / step).astype(np.int64)
+    n_samples = np.maximum(last_j - first_j + 1, 0)
+    order = np.argsort(keys)
+    wanted = np.asarray(keys, dtype=np.int64)[order]
+    counts = np.zeros(len(wanted), dtype=np.int64)
+    cum = np.cumsum(n_samples)
+    start = 0
+    while start < len(points):
+        before = int(cum[start] - n_samples[start])
+        stop = max(start + 1, int(np.searchsorted(cum, before + samples_per_chunk, side='right')))
+        c = n_samples[start:stop]
+        ray = np.repeat(np.arange(start, stop), c)
+        t = (first_j[ray] + np.arange(int(c.sum())) - np.repeat(np.cumsum(c) - c, c)) * step
+        k = pack_keys(voxel_index(origins[ray] + unit[ray] * t[:, None], resolution))
+        first = np.r_[True, (k[1:] != k[:-1]) | (ray[1:] != ray[:-1])]
+        k = k[first]
+        at = np.searchsorted(wanted, k)
+        hit = at < len(wanted)
+        hit[hit] = wanted[at[hit]] == k[hit]
+        counts += np.bincount(at[hit], minlength=len(wanted))
+        start = stop
+    out = np.empty_like(counts)
+    out[order] = counts
+    return out

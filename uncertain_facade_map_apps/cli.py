@@ -180,12 +180,12 @@ def cmd_build(args: argparse.Namespace) -> int:
     with _counter('buildings', 'building', args.quiet) as update:
         fmap.add_points(points.xyz, points.building_id, points.sensor_origins, progress=update)
     build_s = time.perf_counter() - started - read_s
-    occupancy = 'fixed formula (no sensor origins to learn free space from)'
+    occupancy = 'not learnt, the fixed formula (no sensor origins to learn free space from)'
     if points.sensor_origins is not None and fmap.facades:
         learnt = fmap.calibrate_occupancy(config.query.resolution)
-        occupancy = (f'PLSC scale {learnt.scale:.3g}, spread {learnt.spread * 100:.1f} cm, learnt on '
+        occupancy = (f'scale {learnt.scale:.3g}, spread {learnt.spread * 100:.1f} cm, learnt on '
                      f'{learnt.n_positive:,} held-out hit voxels and {learnt.n_negative:,} crossed voxels'
-                     if learnt.learnt else 'fixed formula (too few labelled voxels near a façade)')
+                     if learnt.learnt else 'not learnt, the fixed formula (too few labelled voxels near a façade)')
     calibrate_s = time.perf_counter() - started - read_s - build_s
     save_map(fmap, out)
     total_s = time.perf_counter() - started
@@ -203,7 +203,7 @@ def cmd_build(args: argparse.Namespace) -> int:
     var = np.concatenate([f.surface.var[f.surface.source == 2].ravel() for f in fmap.facades] or [np.empty(0)])
     if len(var):
         print(f'surface  median std {np.sqrt(np.median(var)) * 100:.1f} cm where observed')
-    print(f'occupancy {occupancy} ({calibrate_s:.1f} s)')
+    print(f'plsc     {occupancy} ({calibrate_s:.1f} s)')
     print(f'map      {out} ({out.stat().st_size / 1e6:.1f} MB, {total_s:.1f} s in all)')
     return 0
 

@@ -119,6 +119,27 @@ def test_query_contract(simulated, built, tmp_path):
         assert np.nanmedian(np.abs(r['signed_distance'][on])) < 0.05
 
 
+def test_query_reads_the_learnt_plsc_unless_the_configuration_says_fixed(simulated, built, tmp_path):
+    from uncertain_facade_map.io.map_file import load_map
+    from uncertain_facade_map.pipeline.step8_occupancy import FIXED
+
+    learnt = load_map(built).occupancy_
+    assert learnt.learnt and learnt != FIXED, 'build learns the PLSC parameters from points with sensor origins'
+    pts = read_npz(simulated / 'campaign0.npz').xyz[::50]
+    np.save(tmp_path / 'p.npy', pts)
+    (tmp_path / 'fixed.yaml').write_text('facade_mapper:\n  ros__parameters:\n    query:\n      occupancy: fixed\n')
+    for name, extra in (('plsc', []), ('fixed', ['--config', str(tmp_path / 'fixed.yaml')])):
+        assert main(['query', str(built), '--points', str(tmp_path / 'p.npy'), '--out', str(tmp_path / f'{name}.npz'),
+                     *extra]) == 0
+    with np.load(tmp_path / 'plsc.npz') as a, np.load(tmp_path / 'fixed.npz') as b:
+        on = a['facade'] >= 0
+        noise = a['noise_variance'][on]
+        np.testing.assert_array_equal(a['p_occupied'][on],
+                                      learnt.solid(a['signed_distance'][on], a['variance'][on], noise, 0.1))
+        np.testing.assert_array_equal(b['p_occupied'][on],
+                                      FIXED.solid(b['signed_distance'][on], b['variance'][on], noise, 0.1))
+
+
 def test_cloud_without_class_is_all_building(tmp_path, simulated, capsys):
     from uncertain_facade_map.io.cloud import Cloud
     from uncertain_facade_map.io.npz import write_npz

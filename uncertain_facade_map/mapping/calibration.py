@@ -21,10 +21,15 @@ holds some out, as R&W fit PLSC on leave-one-out predictions (Section 6.5):
 4. **Fit.** That map's signed distance and variance at the held-out hit voxels (each
    weighing ``1 / holdout``, so that they stand for all hit voxels) and at the crossed
    voxels, and :func:`~uncertain_facade_map.pipeline.step8_occupancy.fit_plsc`.
+
+:func:`calibrate_free_space` learns, with the same sample and hold-out, the weight of the
+free-space extension (beyond the paper): how much each mapped ray through a voxel lowers
+its occupancy (:func:`~uncertain_facade_map.pipeline.step8_occupancy.carve`).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
@@ -32,11 +37,11 @@ import numpy as np
 from ..errors import InputError
 from ..params import MapParams
 from ..pipeline.step7_queries import query_points
-from ..pipeline.step8_occupancy import FIXED, PLSC, facade_half_depth, fit_plsc
-from ..voxels import ReferenceVoxels, pack_keys, reference_voxels, voxel_index
-from .facade_map import build_map
+from ..pipeline.step8_occupancy import FIT_BAND, FIXED, PLSC, facade_half_depth, fit_carving, fit_plsc
+from ..voxels import ReferenceVoxels, pack_keys, ray_crossings, reference_voxels, unpack_keys, voxel_index
+from .facade_map import FacadeMap, build_map
 
-__all__ = ['calibrate_occupancy', 'scan_voxels']
+__all__ = ['calibrate_free_space', 'calibrate_occupancy', 'scan_voxels']
 
 
 def scan_voxels(xyz: np.ndarray, origins: np.ndarray, resolution: float, max_rays: int = 50_000,
@@ -62,6 +67,66 @@ def _sample_regions(xyz: np.ndarray, region: float, max_points: int, rng: np.ran
     order = rng.permutation(len(counts))
     taken = order[:int(np.searchsorted(np.cumsum(counts[order]), max_points)) + 1]
     return np.flatnonzero(np.isin(cube, taken))
+
+
+def _checked(xyz: np.ndarray, origins: np.ndarray, holdout: float, resolution: float, region: float,
+             reach: float) -> tuple[np.ndarray, np.ndarray]:
+    xyz = np.asarray(xyz, dtype=np.float64)
+    origins = np.asarray(origins, dtype=np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3 or origins.shape != xyz.shape:
+        raise InputError(f'calibration needs (N, 3) points and sensor origins, got {xyz.shape} and {origins.shape}')
+    if not (0.0 < holdout < 1.0):
+        raise InputError(f'holdout must be in (0, 1), got {holdout!r}')
+    if not all(np.isfinite(x) and x > 0 for x in (resolution, region, reach)):
+        raise InputError(f'resolution, region and reach must be positive, got {resolution!r}, {region!r} and {reach!r}')
+    return xyz, origins
+
+
+@dataclass(frozen=True, eq=False)
+class _HeldOut:
+    """Steps 1 and 3 of the module docstring: the sample and what is held out of it.
+
+    Attributes:
+        xyz, origins, ids: the sampled points (M, 3), their sensor origins (M, 3) and
+            building labels (M,) or None.
+        hit_keys: (H,) sorted keys of the voxels holding sampled points.
+        held_keys: (h,) sorted keys of the hit voxels held out.
+        mapped: (M,) bool, the points outside the held-out voxels.
+        fmap: the map of the mapped points.
+    """
+
+    xyz: np.ndarray
+    origins: np.ndarray
+    ids: np.ndarray | None
+    hit_keys: np.ndarray
+    held_keys: np.ndarray
+    mapped: np.ndarray
+    fmap: FacadeMap
+
+
+def _hold_out(xyz: np.ndarray, origins: np.ndarray, ids: np.ndarray | None, params: MapParams, resolution: float,
+              holdout: float, max_points: int, region: float, rng: np.random.Generator) -> _HeldOut | None:
+    """Sample whole cubes, hold out a share of their hit voxels and map the rest (None:
+    too few points to map)."""
+    pick = _sample_regions(xyz, region, max_points, rng)
+    xyz, origins = xyz[pick], origins[pick]
+    ids = None if ids is None else np.asarray(ids)[pick]
+    if len(xyz) < params.extraction.min_facade_points:
+        return None
+    point_keys = pack_keys(voxel_index(xyz, resolution))
+    hit_keys = np.unique(point_keys)
+    held_keys = np.sort(rng.choice(hit_keys, max(1, int(round(holdout * len(hit_keys)))), replace=False))
+    mapped = ~np.isin(point_keys, held_keys)
+    fmap = build_map(xyz[mapped], None if ids is None else ids[mapped], origins[mapped], params)
+    return _HeldOut(xyz, origins, ids, hit_keys, held_keys, mapped, fmap)
+
+
+def _ask(h: _HeldOut, keys: np.ndarray, resolution: float, band_front: float):
+    """The held-out map's answers at the voxels of ``keys``: ``(query, half extents)``."""
+    centres = (unpack_keys(keys) + 0.5) * resolution
+    q = query_points(h.fmap.facades, centres, resolution, h.fmap.params.extraction.band_back, band_front)
+    normals = np.array([f.frame.axes[2] for f in h.fmap.facades]).reshape(-1, 3)
+    return q, facade_half_depth(q.facade, normals, resolution)
 
 
 def calibrate_occupancy(xyz: np.ndarray, sensor_origins: np.ndarray, params: MapParams | None = None,
@@ -95,43 +160,68 @@ def calibrate_occupancy(xyz: np.ndarray, sensor_origins: np.ndarray, params: Map
     Raises:
         InputError: bad shapes, non-finite values or settings out of range.
     """
-    xyz = np.asarray(xyz, dtype=np.float64)
-    origins = np.asarray(sensor_origins, dtype=np.float64)
-    if xyz.ndim != 2 or xyz.shape[1] != 3 or origins.shape != xyz.shape:
-        raise InputError(f'calibration needs (N, 3) points and sensor origins, got {xyz.shape} and {origins.shape}')
-    if not (0.0 < holdout < 1.0):
-        raise InputError(f'holdout must be in (0, 1), got {holdout!r}')
-    if not all(np.isfinite(x) and x > 0 for x in (resolution, region, reach)):
-        raise InputError(f'resolution, region and reach must be positive, got {resolution!r}, {region!r} and {reach!r}')
+    xyz, origins = _checked(xyz, sensor_origins, holdout, resolution, region, reach)
     params = params or MapParams()
     band_front = params.extraction.band_front if band_front is None else float(band_front)
     rng = np.random.default_rng(seed)
-    # 1. Sample whole cubes.
-    pick = _sample_regions(xyz, region, max_points, rng)
-    xyz, origins = xyz[pick], origins[pick]
-    ids = None if building_id is None else np.asarray(building_id)[pick]
-    if len(xyz) < params.extraction.min_facade_points:
+    h = _hold_out(xyz, origins, building_id, params, resolution, holdout, max_points, region, rng)  # steps 1, 3
+    if h is None:
         return FIXED
-    # 2. The sample's own labels: hit voxels and the voxels its rays crossed.
-    labels = scan_voxels(xyz, origins, resolution, max_rays, max_negatives, reach, seed)
-    hit = labels.centres[labels.positive]
-    free, free_weight = labels.centres[~labels.positive], labels.weight[~labels.positive]
-    # 3. Hold out a share of the hit voxels with their points; map the rest.
-    held = np.sort(rng.choice(len(hit), max(1, int(round(holdout * len(hit)))), replace=False))
-    held_keys = pack_keys(voxel_index(hit[held], resolution))
-    mapped = ~np.isin(pack_keys(voxel_index(xyz, resolution)), held_keys)
-    fmap = build_map(xyz[mapped], None if ids is None else ids[mapped], origins[mapped], params)
-    # 4. Ask the held-out map about the held-out hit voxels and the crossed ones.
-    centres = np.vstack([hit[held], free])
-    positive = np.r_[np.ones(len(held), bool), np.zeros(len(free), bool)]
-    weight = np.r_[np.full(len(held), len(hit) / len(held)), free_weight]
-    q = query_points(fmap.facades, centres, resolution, params.extraction.band_back, band_front)
-    normals = np.array([f.frame.axes[2] for f in fmap.facades]).reshape(-1, 3)
+    # 2. The sample's own labels: the held-out hit voxels and the voxels its rays crossed.
+    labels = scan_voxels(h.xyz, h.origins, resolution, max_rays, max_negatives, reach, seed)
+    free = pack_keys(voxel_index(labels.centres[~labels.positive], resolution))
+    # 4. Ask the held-out map about them (each held-out hit voxel stands for 1 / holdout of all).
+    keys = np.r_[h.held_keys, free]
+    positive = np.r_[np.ones(len(h.held_keys), bool), np.zeros(len(free), bool)]
+    weight = np.r_[np.full(len(h.held_keys), len(h.hit_keys) / len(h.held_keys)), labels.weight[~labels.positive]]
+    q, half = _ask(h, keys, resolution, band_front)
     noise = np.where(np.isfinite(q.noise_variance), q.noise_variance, 0.0)
-    fitted = fit_plsc(positive, weight, q.signed_distance, q.variance, noise,
-                      facade_half_depth(q.facade, normals, resolution))
+    fitted = fit_plsc(positive, weight, q.signed_distance, q.variance, noise, half)
     if progress is not None:
         progress(f'occupancy calibration: scale {fitted.scale:.3g}, spread {fitted.spread:.3g} m from '
                  f'{fitted.n_positive:,} held-out hit voxels and {fitted.n_negative:,} crossed voxels '
-                 f'({len(xyz):,} points sampled)')
+                 f'({len(h.xyz):,} points sampled)')
     return fitted
+
+
+def calibrate_free_space(xyz: np.ndarray, sensor_origins: np.ndarray, plsc: PLSC, params: MapParams | None = None,
+                         building_id: np.ndarray | None = None, resolution: float = 0.1,
+                         band_front: float | None = None, holdout: float = 0.2, max_points: int = 300_000,
+                         region: float = 10.0, max_rays: int = 50_000, max_negatives: int = 200_000,
+                         reach: float = 5.0, seed: int = 0) -> float:
+    """Learn the free-space extension's weight (:func:`~uncertain_facade_map.pipeline.step8_occupancy.carve`;
+    beyond the paper) from the mapped points alone, with the same sample and hold-out as
+    :func:`calibrate_occupancy` (same arguments; ``plsc``: the occupancy it carves).
+
+    The labels come from the held-out points only, the evidence from the others: the
+    held-out hit voxels are occupied and the voxels the held-out points' rays crossed
+    (holding no sampled point) free; each is asked of the map of the other points, and
+    counted against the rays of the other points through it
+    (:func:`~uncertain_facade_map.voxels.ray_crossings`). So a voxel counts as free only
+    by rays the carving did not see, as in the evaluation, where the reference's rays
+    are not the mapped ones.
+
+    Returns:
+        The weight in log-odds per ray (0 when nothing can be learnt).
+    """
+    xyz, origins = _checked(xyz, sensor_origins, holdout, resolution, region, reach)
+    params = params or MapParams()
+    band_front = params.extraction.band_front if band_front is None else float(band_front)
+    rng = np.random.default_rng(seed)
+    h = _hold_out(xyz, origins, building_id, params, resolution, holdout, max_points, region, rng)
+    if h is None or h.mapped.all():
+        return 0.0
+    held = ~h.mapped
+    labels = scan_voxels(h.xyz[held], h.origins[held], resolution, max_rays, max_negatives, reach, seed)
+    free = pack_keys(voxel_index(labels.centres[~labels.positive], resolution))
+    keep = ~np.isin(free, h.hit_keys)
+    free, free_weight = free[keep], labels.weight[~labels.positive][keep]
+    keys = np.r_[h.held_keys, free]
+    positive = np.r_[np.ones(len(h.held_keys), bool), np.zeros(len(free), bool)]
+    weight = np.r_[np.ones(len(h.held_keys)), free_weight]
+    q, half = _ask(h, keys, resolution, band_front)
+    noise = np.where(np.isfinite(q.noise_variance), q.noise_variance, 0.0)
+    near = np.isfinite(q.signed_distance) & (np.abs(q.signed_distance) <= FIT_BAND)
+    p = plsc.surface(q.signed_distance, q.variance, noise, half)
+    crossings = ray_crossings(h.xyz[h.mapped], h.origins[h.mapped], resolution, keys, reach)
+    return fit_carving(positive[near], weight[near], p[near], crossings[near])

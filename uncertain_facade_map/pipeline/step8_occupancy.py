@@ -53,7 +53,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import minimize
+from scipy.optimize import minimize, minimize_scalar
 from scipy.special import log_ndtr, ndtr
 
 from ..errors import InputError
@@ -283,3 +283,56 @@ def occupancy_model(learnt: PLSC, choice: str) -> PLSC:
     (``query.occupancy``, checked where the configuration is read), the fixed formula's
     for 'fixed'."""
     return FIXED if choice == 'fixed' else learnt
+
+
+def carve(p: np.ndarray, crossings: np.ndarray, weight: float) -> np.ndarray:
+    """Occupancy lowered by the rays that passed through the voxel (the free-space
+    extension, beyond the paper): ``logit p' = logit p - weight * crossings``, as an
+    occupancy grid's log-odds update takes a miss (OctoMap), with one learnt weight.
+
+    Args:
+        p: (N,) occupancy probabilities from the surface.
+        crossings: (N,) int number of mapped rays through each voxel (0 for a voxel
+            holding a mapped point: a hit outweighs passing rays).
+        weight: log-odds taken off per crossing ray (>= 0).
+
+    Returns:
+        (N,) probabilities in [0, 1].
+    """
+    p = np.asarray(p, dtype=np.float64)
+    factor = np.exp(-weight * np.asarray(crossings, dtype=np.float64))
+    with np.errstate(invalid='ignore', divide='ignore'):
+        out = p * factor / (p * factor + (1.0 - p))
+    return np.where(p > 0, out, 0.0)
+
+
+#: Bounds of the carving weight (log-odds per ray).
+CARVE_BOUNDS = (0.0, 10.0)
+
+
+def fit_carving(positive: np.ndarray, weight: np.ndarray, p: np.ndarray, crossings: np.ndarray) -> float:
+    """The :func:`carve` weight of maximum likelihood on labelled voxels.
+
+    Args:
+        positive: (N,) bool labels (voxel holds points).
+        weight: (N,) weight of each voxel.
+        p: (N,) occupancy of each voxel before carving.
+        crossings: (N,) int rays through each voxel.
+
+    Returns:
+        The weight in :data:`CARVE_BOUNDS` (0 when no labelled voxel was crossed).
+    """
+    crossings = np.asarray(crossings)
+    use = crossings > 0  # uncrossed voxels do not depend on the weight
+    if not use.any():
+        return 0.0
+    y, w, p0, k = np.asarray(positive, bool)[use], np.asarray(weight, float)[use], np.asarray(p, float)[use], \
+        crossings[use].astype(np.float64)
+    eps = 1e-12
+    base = np.log(np.clip(p0, eps, 1 - eps)) - np.log1p(-np.clip(p0, eps, 1 - eps))
+
+    def nll(a: float) -> float:
+        z = base - a * k
+        return float(np.sum(w * np.where(y, np.logaddexp(0.0, -z), np.logaddexp(0.0, z))))
+
+    return float(minimize_scalar(nll, bounds=CARVE_BOUNDS, method='bounded').x)

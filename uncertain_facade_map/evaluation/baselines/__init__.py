@@ -16,6 +16,7 @@ from .base import OccupancyMethod
 METHODS = {
     'ours': 'facade_gp:FacadeGPMethod',
     'ours-fixed': 'facade_gp:FacadeGPFixedMethod',
+    'ours-free': 'facade_gp:FacadeGPFreeSpaceMethod',
     'ours-solid': 'facade_gp:FacadeGPSolidMethod',
     'octomap': 'octomap_map:OctoMapMethod',
     'bgk': 'bgk_octomap:BGKOctoMapMethod',

@@ -38,11 +38,17 @@ from __future__ import annotations
 import numpy as np
 
 from ...errors import InputError
+from ...mapping.calibration import calibrate_free_space
 from ...mapping.facade_map import FacadeMap, build_map
 from ...params import MapParams
 from ...pipeline.step7_queries import query_points
-from ...pipeline.step8_occupancy import FIXED, READINGS, facade_half_depth
+from ...pipeline.step8_occupancy import FIXED, READINGS, carve, facade_half_depth
+from ...voxels import pack_keys, ray_crossings, voxel_index
 from .base import OccupancyMethod, check_queries, check_scans
+
+#: The last map built (``key``, ``map``): the readings of one map (:class:`FacadeGPMethod`
+#: and its subclasses, asked one after the other by the evaluation) build and calibrate it once.
+_SHARED: dict = {}
 
 
 class FacadeGPMethod(OccupancyMethod):
@@ -85,11 +91,19 @@ class FacadeGPMethod(OccupancyMethod):
         self._query = None
 
     def fit(self, points: np.ndarray, origins: np.ndarray) -> FacadeGPMethod:
-        """Build the map from (N, 3) points with their (N, 3) sensor origins (map frame, metres)."""
+        """Build the map from (N, 3) points with their (N, 3) sensor origins (map frame,
+        metres) and learn its PLSC parameters at this resolution. The readings of one map
+        share it: a fit on the same arrays, parameters and resolution as the last one takes
+        that map (:data:`_SHARED`), so only the first pays for it."""
         points, origins = check_scans(points, origins)
-        self.map_ = build_map(points, None, origins, self.params)
-        if self.occupancy == 'plsc':
-            self.map_.calibrate_occupancy(self.resolution)
+        key = (id(points), id(origins), points.shape, float(points.sum()), float(origins.sum()), self.params,
+               self.resolution)
+        if _SHARED.get('key') != key:
+            _SHARED.clear()
+            fmap = build_map(points, None, origins, self.params)
+            fmap.calibrate_occupancy(self.resolution)
+            _SHARED.update(key=key, map=fmap)
+        self.map_ = _SHARED['map']
         self._query = None
         return self
 
@@ -142,3 +156,30 @@ class FacadeGPFixedMethod(FacadeGPMethod):
 
     name = 'Ours (fixed)'
     occupancy_default = 'fixed'
+
+
+class FacadeGPFreeSpaceMethod(FacadeGPMethod):
+    """:class:`FacadeGPMethod` with the mapped rays' free space (an extension beyond the
+    paper, issue 14): a voxel's learnt PLSC occupancy loses ``carve_`` log-odds per mapped
+    ray through it (:func:`~uncertain_facade_map.pipeline.step8_occupancy.carve`), unless
+    it holds a mapped point; the weight is learnt from the mapped points alone
+    (:func:`~uncertain_facade_map.mapping.calibration.calibrate_free_space`)."""
+
+    name = 'Ours + free space'
+
+    def fit(self, points: np.ndarray, origins: np.ndarray) -> FacadeGPFreeSpaceMethod:
+        """Build the map, learn PLSC and the carving weight from (N, 3) points and their
+        (N, 3) sensor origins (map frame, metres)."""
+        super().fit(points, origins)
+        self._rays = check_scans(points, origins)
+        self.carve_ = calibrate_free_space(*self._rays, self.map_.occupancy_, self.params, resolution=self.resolution,
+                                           seed=self.params.seed)
+        return self
+
+    def predict(self, xyz: np.ndarray) -> np.ndarray:
+        """(M,) carved occupancy of the voxels centred at (M, 3) ``xyz``."""
+        p = super().predict(xyz)
+        keys = pack_keys(voxel_index(check_queries(xyz), self.resolution))
+        crossings = ray_crossings(*self._rays, self.resolution, keys)
+        crossings[np.isin(keys, pack_keys(voxel_index(self._rays[0], self.resolution)))] = 0  # hits stay
+        return carve(p, crossings, self.carve_)
