@@ -79,7 +79,7 @@ class TruthMethod(OccupancyMethod):
         free_reach: how far in front of a wall plane its surface answers, metres.
         occupancy: ``'fixed'`` (the fixed formula) or ``'plsc'`` (its two parameters learnt
             on the mapped scan's own voxels, as our map learns them: a seeded subset of
-            100,000 hit voxels against the voxels its rays crossed; nothing need be held
+            50,000 hit voxels against 100,000 of the voxels its rays crossed; nothing need be held
             out, since the truth saw no point).
 
     Raises:
@@ -109,7 +109,7 @@ class TruthMethod(OccupancyMethod):
         """Nothing to learn but PLSC's two parameters (the inputs are checked as every method's)."""
         points, origins = check_scans(points, origins)
         if self.occupancy == 'plsc':
-            labels = scan_voxels(points, origins, self.resolution, max_positives=100_000)
+            labels = scan_voxels(points, origins, self.resolution, max_negatives=100_000, max_positives=50_000)
             s, facade = true_signed_distance(self.scene, labels.centres, MapParams().extraction.band_back,
                                              MapParams().extraction.band_front)
             self._model = fit_plsc(labels.positive, labels.weight, s, np.zeros(len(s)),

@@ -104,10 +104,30 @@ class _HeldOut:
     fmap: FacadeMap
 
 
+#: The last hold-out (``key``, ``held``): learning PLSC and then the free-space weight from
+#: the same points draws the same sample and hold-out, so the map of it is built once.
+_LAST: dict = {}
+
+#: The free-space evidence takes every RAY_STEP-th mapped ray (in calibration and use alike).
+RAY_STEP = 2
+
+
 def _hold_out(xyz: np.ndarray, origins: np.ndarray, ids: np.ndarray | None, params: MapParams, resolution: float,
-              holdout: float, max_points: int, region: float, rng: np.random.Generator) -> _HeldOut | None:
+              holdout: float, max_points: int, region: float, seed: int) -> _HeldOut | None:
     """Sample whole cubes, hold out a share of their hit voxels and map the rest (None:
-    too few points to map)."""
+    too few points to map); seeded by ``seed``."""
+    key = (xyz.shape, float(xyz.sum()), float(origins.sum()), None if ids is None else float(np.sum(ids)), params,
+           resolution, holdout, max_points, region, seed)
+    if _LAST.get('key') != key:
+        _LAST.clear()
+        _LAST.update(key=key, held=_new_hold_out(xyz, origins, ids, params, resolution, holdout, max_points, region,
+                                                 np.random.default_rng(seed)))
+    return _LAST['held']
+
+
+def _new_hold_out(xyz: np.ndarray, origins: np.ndarray, ids: np.ndarray | None, params: MapParams,
+                  resolution: float, holdout: float, max_points: int, region: float, rng: np.random.Generator
+                  ) -> _HeldOut | None:
     pick = _sample_regions(xyz, region, max_points, rng)
     xyz, origins = xyz[pick], origins[pick]
     ids = None if ids is None else np.asarray(ids)[pick]
@@ -131,7 +151,7 @@ def _ask(h: _HeldOut, keys: np.ndarray, resolution: float, band_front: float):
 
 def calibrate_occupancy(xyz: np.ndarray, sensor_origins: np.ndarray, params: MapParams | None = None,
                         building_id: np.ndarray | None = None, resolution: float = 0.1,
-                        band_front: float | None = None, holdout: float = 0.2, max_points: int = 300_000,
+                        band_front: float | None = None, holdout: float = 0.2, max_points: int = 200_000,
                         region: float = 10.0, max_rays: int = 50_000, max_negatives: int = 200_000,
                         reach: float = 5.0, seed: int = 0, progress: Callable[[str], None] | None = None) -> PLSC:
     """Learn the occupancy's PLSC parameters from mapped points and their rays (module docstring).
@@ -163,8 +183,7 @@ def calibrate_occupancy(xyz: np.ndarray, sensor_origins: np.ndarray, params: Map
     xyz, origins = _checked(xyz, sensor_origins, holdout, resolution, region, reach)
     params = params or MapParams()
     band_front = params.extraction.band_front if band_front is None else float(band_front)
-    rng = np.random.default_rng(seed)
-    h = _hold_out(xyz, origins, building_id, params, resolution, holdout, max_points, region, rng)  # steps 1, 3
+    h = _hold_out(xyz, origins, building_id, params, resolution, holdout, max_points, region, seed)  # steps 1, 3
     if h is None:
         return FIXED
     # 2. The sample's own labels: the held-out hit voxels and the voxels its rays crossed.
@@ -186,7 +205,7 @@ def calibrate_occupancy(xyz: np.ndarray, sensor_origins: np.ndarray, params: Map
 
 def calibrate_free_space(xyz: np.ndarray, sensor_origins: np.ndarray, plsc: PLSC, params: MapParams | None = None,
                          building_id: np.ndarray | None = None, resolution: float = 0.1,
-                         band_front: float | None = None, holdout: float = 0.2, max_points: int = 300_000,
+                         band_front: float | None = None, holdout: float = 0.2, max_points: int = 200_000,
                          region: float = 10.0, max_rays: int = 50_000, max_negatives: int = 200_000,
                          reach: float = 5.0, seed: int = 0) -> float:
     """Learn the free-space extension's weight (:func:`~uncertain_facade_map.pipeline.step8_occupancy.carve`;
@@ -196,8 +215,8 @@ def calibrate_free_space(xyz: np.ndarray, sensor_origins: np.ndarray, plsc: PLSC
     The labels come from the held-out points only, the evidence from the others: the
     held-out hit voxels are occupied and the voxels the held-out points' rays crossed
     (holding no sampled point) free; each is asked of the map of the other points, and
-    counted against the rays of the other points through it
-    (:func:`~uncertain_facade_map.voxels.ray_crossings`). So a voxel counts as free only
+    counted against the rays of the other points through it (every :data:`RAY_STEP`-th
+    ray, as the map uses them; :func:`~uncertain_facade_map.voxels.ray_crossings`). So a voxel counts as free only
     by rays the carving did not see, as in the evaluation, where the reference's rays
     are not the mapped ones.
 
@@ -207,8 +226,7 @@ def calibrate_free_space(xyz: np.ndarray, sensor_origins: np.ndarray, plsc: PLSC
     xyz, origins = _checked(xyz, sensor_origins, holdout, resolution, region, reach)
     params = params or MapParams()
     band_front = params.extraction.band_front if band_front is None else float(band_front)
-    rng = np.random.default_rng(seed)
-    h = _hold_out(xyz, origins, building_id, params, resolution, holdout, max_points, region, rng)
+    h = _hold_out(xyz, origins, building_id, params, resolution, holdout, max_points, region, seed)
     if h is None or h.mapped.all():
         return 0.0
     held = ~h.mapped
@@ -223,5 +241,5 @@ def calibrate_free_space(xyz: np.ndarray, sensor_origins: np.ndarray, plsc: PLSC
     noise = np.where(np.isfinite(q.noise_variance), q.noise_variance, 0.0)
     near = np.isfinite(q.signed_distance) & (np.abs(q.signed_distance) <= FIT_BAND)
     p = plsc.surface(q.signed_distance, q.variance, noise, half)
-    crossings = ray_crossings(h.xyz[h.mapped], h.origins[h.mapped], resolution, keys, reach)
+    crossings = ray_crossings(h.xyz[h.mapped][::RAY_STEP], h.origins[h.mapped][::RAY_STEP], resolution, keys, reach)
     return fit_carving(positive[near], weight[near], p[near], crossings[near])

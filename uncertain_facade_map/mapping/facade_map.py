@@ -174,17 +174,49 @@ class FacadeMap:
 
         if not self.points:
             return self.occupancy_
-        if any(self.sensor_origins.get(b) is None for b in self.points):
-            raise InputError('the occupancy calibration needs the sensor origin of every point '
-                             '(its free space comes from the rays)')
-        labels = sorted(self.points)
-        xyz = np.vstack([self.points[b] for b in labels])
-        origins = np.vstack([self.sensor_origins[b] for b in labels])
-        ids = np.repeat(np.asarray(labels, dtype=np.int64), [len(self.points[b]) for b in labels])
+        xyz, origins, ids = self._stored_rays()
         self.occupancy_ = calibrate_occupancy(xyz, origins, self.params, ids, resolution, seed=self.params.seed,
                                               progress=progress)
         self.occupancy_stored_ = len(xyz)
         return self.occupancy_
+
+    def _stored_rays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(N, 3) stored points, (N, 3) their sensor origins and (N,) building labels.
+
+        Raises:
+            InputError: a building without sensor origins.
+        """
+        if any(self.sensor_origins.get(b) is None for b in self.points):
+            raise InputError('the occupancy calibration needs the sensor origin of every point '
+                             '(its free space comes from the rays)')
+        labels = sorted(self.points)
+        xyz = np.vstack([self.points[b] for b in labels]) if labels else np.empty((0, 3))
+        origins = np.vstack([self.sensor_origins[b] for b in labels]) if labels else np.empty((0, 3))
+        ids = np.repeat(np.asarray(labels, dtype=np.int64), [len(self.points[b]) for b in labels])
+        return xyz, origins, ids
+
+    def calibrate_free_space(self, resolution: float = 0.1) -> float:
+        """The free-space extension's weight (beyond the paper), learnt from the stored
+        points and their rays with :attr:`occupancy_`
+        (:func:`~uncertain_facade_map.mapping.calibration.calibrate_free_space`)."""
+        from .calibration import calibrate_free_space
+
+        xyz, origins, ids = self._stored_rays()
+        if not len(xyz):
+            return 0.0
+        return calibrate_free_space(xyz, origins, self.occupancy_, self.params, ids, resolution, seed=self.params.seed)
+
+    def ray_crossings(self, keys: np.ndarray, resolution: float) -> np.ndarray:
+        """(K,) number of stored rays (every ``calibration.RAY_STEP``-th) through each voxel
+        of (K,) packed ``keys`` (:func:`~uncertain_facade_map.voxels.ray_crossings`), 0 for
+        a voxel holding a stored point."""
+        from ..voxels import pack_keys, ray_crossings, voxel_index
+        from .calibration import RAY_STEP
+
+        xyz, origins, _ = self._stored_rays()
+        crossings = ray_crossings(xyz[::RAY_STEP], origins[::RAY_STEP], resolution, keys)
+        crossings[np.isin(keys, pack_keys(voxel_index(xyz, resolution)))] = 0  # a hit outweighs passing rays
+        return crossings
 
     def calibrate_when_grown(self, growth: float = 1.0, min_points: int = 20_000) -> bool:
         """Calibrate (:meth:`calibrate_occupancy`) once the stored points have grown by

@@ -38,12 +38,11 @@ from __future__ import annotations
 import numpy as np
 
 from ...errors import InputError
-from ...mapping.calibration import calibrate_free_space
 from ...mapping.facade_map import FacadeMap, build_map
 from ...params import MapParams
 from ...pipeline.step7_queries import query_points
 from ...pipeline.step8_occupancy import FIXED, READINGS, carve, facade_half_depth
-from ...voxels import pack_keys, ray_crossings, voxel_index
+from ...voxels import pack_keys, voxel_index
 from .base import OccupancyMethod, check_queries, check_scans
 
 #: The last map built (``key``, ``map``): the readings of one map (:class:`FacadeGPMethod`
@@ -162,8 +161,8 @@ class FacadeGPFreeSpaceMethod(FacadeGPMethod):
     """:class:`FacadeGPMethod` with the mapped rays' free space (an extension beyond the
     paper, issue 14): a voxel's learnt PLSC occupancy loses ``carve_`` log-odds per mapped
     ray through it (:func:`~uncertain_facade_map.pipeline.step8_occupancy.carve`), unless
-    it holds a mapped point; the weight is learnt from the mapped points alone
-    (:func:`~uncertain_facade_map.mapping.calibration.calibrate_free_space`)."""
+    it holds a mapped point; the rays are the map's stored points' and the weight is
+    learnt from them alone (:meth:`~uncertain_facade_map.mapping.facade_map.FacadeMap.calibrate_free_space`)."""
 
     name = 'Ours + free space'
 
@@ -171,15 +170,11 @@ class FacadeGPFreeSpaceMethod(FacadeGPMethod):
         """Build the map, learn PLSC and the carving weight from (N, 3) points and their
         (N, 3) sensor origins (map frame, metres)."""
         super().fit(points, origins)
-        self._rays = check_scans(points, origins)
-        self.carve_ = calibrate_free_space(*self._rays, self.map_.occupancy_, self.params, resolution=self.resolution,
-                                           seed=self.params.seed)
+        self.carve_ = self.map_.calibrate_free_space(self.resolution)
         return self
 
     def predict(self, xyz: np.ndarray) -> np.ndarray:
         """(M,) carved occupancy of the voxels centred at (M, 3) ``xyz``."""
         p = super().predict(xyz)
         keys = pack_keys(voxel_index(check_queries(xyz), self.resolution))
-        crossings = ray_crossings(*self._rays, self.resolution, keys)
-        crossings[np.isin(keys, pack_keys(voxel_index(self._rays[0], self.resolution)))] = 0  # hits stay
-        return carve(p, crossings, self.carve_)
+        return carve(p, self.map_.ray_crossings(keys, self.resolution), self.carve_)
