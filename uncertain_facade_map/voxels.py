@@ -18,6 +18,7 @@ the mapped scans' own.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Iterator
 
 import numpy as np
 
@@ -123,23 +124,8 @@ def reference_voxels(points: np.ndarray, origins: np.ndarray, resolution: float,
         points, origins = points[pick], origins[pick]
 
     # Free space: samples every r/3 along each ray, up to r/2 before its point.
-    step = resolution / 3.0
-    direction = points - origins
-    length = np.linalg.norm(direction, axis=1)
-    n_samples = np.maximum(np.floor((length - 0.5 * resolution) / step).astype(np.int64) + 1, 0)
-    unit = direction / np.maximum(length, 1e-12)[:, None]
-    free_parts = []
-    cum = np.cumsum(n_samples)
-    start = 0
-    while start < len(points):
-        before = int(cum[start] - n_samples[start])
-        stop = max(start + 1, int(np.searchsorted(cum, before + samples_per_chunk, side='right')))
-        counts = n_samples[start:stop]
-        ray = np.repeat(np.arange(start, stop), counts)
-        t = (np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)) * step
-        keys = pack_keys(voxel_index(origins[ray] + unit[ray] * t[:, None], resolution))
-        free_parts.append(np.unique(keys))
-        start = stop
+    free_parts = [np.unique(keys) for _, keys in _ray_samples(points, origins, resolution, np.inf,
+                                                               samples_per_chunk)]
     free = np.unique(np.concatenate(free_parts)) if free_parts else np.empty(0, np.int64)
     free = free[~np.isin(free, pos_keys, assume_unique=True)]
     n_negatives, n_positives = len(free), len(pos_keys)
@@ -178,20 +164,35 @@ def ray_crossings(points: np.ndarray, origins: np.ndarray, resolution: float, ke
     Returns:
         (K,) int64 number of rays through each voxel.
     """
-    points = np.asarray(points, dtype=np.float64)
-    origins = np.asarray(origins, dtype=np.float64)
-    direction = points - origins
-    length = np.linalg.norm(direction, axis=1)
-    unit = direction / np.maximum(length, 1e-12)[:, None]
-    step = resolution / 3.0
-    # The samples of reference_voxels (t = j * step from the origin, up to r/2 before the
-    # point) that lie within ``reach`` of the point.
-    first_j = np.maximum(np.ceil((length - reach) / step), 0).astype(np.int64)
-    last_j = np.floor((length - 0.5 * resolution) / step).astype(np.int64)
-    n_samples = np.maximum(last_j - first_j + 1, 0)
     order = np.argsort(keys)
     wanted = np.asarray(keys, dtype=np.int64)[order]
     counts = np.zeros(len(wanted), dtype=np.int64)
+    for ray, k in _ray_samples(np.asarray(points, dtype=np.float64), np.asarray(origins, dtype=np.float64),
+                               resolution, reach, samples_per_chunk):
+        first = np.r_[True, (k[1:] != k[:-1]) | (ray[1:] != ray[:-1])]
+        k = k[first]
+        at = np.searchsorted(wanted, k)
+        hit = at < len(wanted)
+        hit[hit] = wanted[at[hit]] == k[hit]
+        counts += np.bincount(at[hit], minlength=len(wanted))
+    out = np.empty_like(counts)
+    out[order] = counts
+    return out
+
+
+def _ray_samples(points: np.ndarray, origins: np.ndarray, resolution: float, reach: float,
+                 samples_per_chunk: int) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """The samples of the rays, chunk by chunk: ``(ray index, packed voxel key)``, (S,) each,
+    in ray order and along each ray from its origin. A ray from origin o to point x is
+    sampled at ``t = j * r / 3`` from o, up to ``r / 2`` before x, those within ``reach``
+    of x (``np.inf``: all)."""
+    step = resolution / 3.0
+    direction = points - origins
+    length = np.linalg.norm(direction, axis=1)
+    unit = direction / np.maximum(length, 1e-12)[:, None]
+    first_j = np.maximum(np.ceil((length - reach) / step), 0.0).astype(np.int64)
+    last_j = np.floor((length - 0.5 * resolution) / step).astype(np.int64)
+    n_samples = np.maximum(last_j - first_j + 1, 0)
     cum = np.cumsum(n_samples)
     start = 0
     while start < len(points):
@@ -200,14 +201,5 @@ def ray_crossings(points: np.ndarray, origins: np.ndarray, resolution: float, ke
         c = n_samples[start:stop]
         ray = np.repeat(np.arange(start, stop), c)
         t = (first_j[ray] + np.arange(int(c.sum())) - np.repeat(np.cumsum(c) - c, c)) * step
-        k = pack_keys(voxel_index(origins[ray] + unit[ray] * t[:, None], resolution))
-        first = np.r_[True, (k[1:] != k[:-1]) | (ray[1:] != ray[:-1])]
-        k = k[first]
-        at = np.searchsorted(wanted, k)
-        hit = at < len(wanted)
-        hit[hit] = wanted[at[hit]] == k[hit]
-        counts += np.bincount(at[hit], minlength=len(wanted))
+        yield ray, pack_keys(voxel_index(origins[ray] + unit[ray] * t[:, None], resolution))
         start = stop
-    out = np.empty_like(counts)
-    out[order] = counts
-    return out
