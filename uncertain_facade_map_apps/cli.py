@@ -19,6 +19,7 @@ import argparse
 import contextlib
 import dataclasses
 import math
+import os
 import shutil
 import sys
 import time
@@ -345,6 +346,15 @@ def cmd_plot(args: argparse.Namespace) -> int:
     return 0
 
 
+def _timed_campaign(scene, index: int):
+    """``(cloud, seconds)``: campaign ``index`` of ``scene`` simulated (in a worker process)."""
+    from uncertain_facade_map.simulation.campaign import simulate_campaign
+
+    t0 = time.perf_counter()
+    cloud = simulate_campaign(scene, index)
+    return cloud, time.perf_counter() - t0
+
+
 def _evaluation_points(cloud, config, what: str, drop_outliers: bool):
     """(N, 3) building points and their (N, 3) sensor origins of a cloud: its building class,
     or, for a cloud without a class field, the points the selection keeps (as ``build``)."""
@@ -397,17 +407,20 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.scene is not None:
         if args.clouds:
             raise CliError('give either --scene or MAPPED REFERENCE, not both')
-        from uncertain_facade_map.simulation.campaign import simulate_campaign
+        from concurrent.futures import ProcessPoolExecutor
+        from multiprocessing import get_context
+
         from uncertain_facade_map.simulation.scenes import build_scene
 
         n_ref = PROTOCOLS[args.protocol]
         scene = build_scene(args.scene, args.seed)
         clouds = []
-        for i in range(n_ref + 1):
-            t0 = time.perf_counter()
-            clouds.append(simulate_campaign(scene, i))
-            say(f'campaign {i} of {args.scene} ({"mapped" if i == 0 else "reference"}): {len(clouds[-1]):,} points '
-                f'simulated in {time.perf_counter() - t0:.1f} s')
+        # The campaigns are independent (each seeded by its number): one process per core.
+        with ProcessPoolExecutor(min(n_ref + 1, os.cpu_count() or 1), mp_context=get_context('spawn')) as pool:
+            for i, (cloud, seconds) in enumerate(pool.map(_timed_campaign, [scene] * (n_ref + 1), range(n_ref + 1))):
+                clouds.append(cloud)
+                say(f'campaign {i} of {args.scene} ({"mapped" if i == 0 else "reference"}): {len(cloud):,} points '
+                    f'simulated in {seconds:.1f} s')
         mapped, references = clouds[0], clouds[1:]
         del clouds
         what = (f'scene {args.scene} (seed {args.seed}), {protocol_label(n_ref)}: campaign 0 mapped, '

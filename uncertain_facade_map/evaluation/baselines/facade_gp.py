@@ -45,8 +45,9 @@ from ...pipeline.step8_occupancy import FIXED, READINGS, carve, facade_half_dept
 from ...voxels import pack_keys, voxel_index
 from .base import OccupancyMethod, check_queries, check_scans
 
-#: The last map built (``key``, ``map``): the readings of one map (:class:`FacadeGPMethod`
-#: and its subclasses, asked one after the other by the evaluation) build and calibrate it once.
+#: The last map built (``key``, ``map``) and its PLSC parameters by resolution (``plsc``):
+#: the readings of one map (:class:`FacadeGPMethod` and its subclasses, asked one after the
+#: other by the evaluation) and its resolutions build it once and calibrate it once per resolution.
 _SHARED: dict = {}
 
 
@@ -92,17 +93,19 @@ class FacadeGPMethod(OccupancyMethod):
     def fit(self, points: np.ndarray, origins: np.ndarray) -> FacadeGPMethod:
         """Build the map from (N, 3) points with their (N, 3) sensor origins (map frame,
         metres) and learn its PLSC parameters at this resolution. The readings of one map
-        share it: a fit on the same arrays, parameters and resolution as the last one takes
-        that map (:data:`_SHARED`), so only the first pays for it."""
+        share it: a fit on the same arrays and parameters as the last one takes that map
+        (:data:`_SHARED`; its PLSC parameters too at a resolution already learnt), so only
+        the first pays for the build and the first at each resolution for the calibration."""
         points, origins = check_scans(points, origins)
-        key = (id(points), id(origins), points.shape, float(points.sum()), float(origins.sum()), self.params,
-               self.resolution)
+        key = (id(points), id(origins), points.shape, float(points.sum()), float(origins.sum()), self.params)
         if _SHARED.get('key') != key:
             _SHARED.clear()
-            fmap = build_map(points, None, origins, self.params)
-            fmap.calibrate_occupancy(self.resolution)
-            _SHARED.update(key=key, map=fmap)
-        self.map_ = _SHARED['map']
+            _SHARED.update(key=key, map=build_map(points, None, origins, self.params), plsc={})
+        fmap = _SHARED['map']
+        if self.resolution not in _SHARED['plsc']:
+            _SHARED['plsc'][self.resolution] = fmap.calibrate_occupancy(self.resolution)
+        fmap.occupancy_ = _SHARED['plsc'][self.resolution]
+        self.map_ = fmap
         self._query = None
         return self
 
