@@ -12,15 +12,18 @@ from support import evaluation_arrays
 from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.evaluation.baselines.facade_gp import FacadeGPMethod
 from uncertain_facade_map.evaluation.occupancy import (
+    MethodResult,
     auc_by_distance,
     auc_by_variance,
     distance_to_points,
     evaluate,
     pr_auc,
+    pr_curve,
     reference_voxels,
     roc_auc,
+    subset_auc,
 )
-from uncertain_facade_map.voxels import pack_keys, unpack_keys, voxel_index
+from uncertain_facade_map.voxels import ReferenceVoxels, pack_keys, unpack_keys, voxel_index
 
 
 def test_a_perfect_map_has_auc_1_and_a_constant_one_the_positives_share():
@@ -37,6 +40,34 @@ def test_a_perfect_map_has_auc_1_and_a_constant_one_the_positives_share():
     # An inverted map is worse than a constant one.
     assert pr_auc(positive, 1.0 - positive) < positive.mean() + 1e-9
     assert np.isnan(pr_auc(np.ones(5, bool), np.ones(5))) and np.isnan(roc_auc(np.zeros(5, bool), np.ones(5)))
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(2, 300), st.integers(1, 6))
+def test_subsets_scored_from_one_ranking_match_scikit_learn(seed, n, levels):
+    """auc_by_distance and auc_by_variance rank the voxels once (occupancy._Ranked): with
+    ties, weights and empty or one-class subsets, each figure is scikit-learn's average
+    precision of that subset (subset_auc), and pr_curve is its precision_recall_curve."""
+    from sklearn.metrics import precision_recall_curve
+
+    rng = np.random.default_rng(seed)
+    positive = rng.random(n) < 0.4
+    p = rng.integers(0, levels, n) / levels  # few levels: many ties
+    weight = rng.choice([1.0, 2.5, 7.0], n)
+    ref = ReferenceVoxels(0.1, np.zeros((n, 3)), positive, weight, 1, int((~positive).sum()), int(positive.sum()))
+    result = MethodResult('m', 0.1, p, rng.random(n), 0.0, 0.0, 0.5, 0.5)
+    distance = rng.random(n)
+    limits = [-1.0, 0.1, 0.5, 0.9, 2.0]
+    for (auc, share), (a, s) in (
+            (auc_by_distance(result, ref, distance, limits), zip(*[subset_auc(result, ref, distance <= d) for d in limits])),
+            (auc_by_variance(result, ref, limits), zip(*[subset_auc(result, ref, result.variance <= t) for t in limits]))):
+        np.testing.assert_allclose(auc, np.array(a), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(share, np.array(s), rtol=0, atol=1e-12)
+    if positive.any():
+        precision, recall, _ = precision_recall_curve(positive, p, sample_weight=weight)
+        ours = pr_curve(positive, p, weight)
+        np.testing.assert_allclose(ours[0], recall, atol=1e-12)
+        np.testing.assert_allclose(ours[1], precision, atol=1e-12)
 
 
 def test_weighted_subsampled_negatives_estimate_the_full_areas():

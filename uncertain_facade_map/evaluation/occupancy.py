@@ -85,11 +85,55 @@ def roc_auc(positive: np.ndarray, score: np.ndarray, weight: np.ndarray | None =
 
 def pr_curve(positive: np.ndarray, score: np.ndarray, weight: np.ndarray | None = None
              ) -> tuple[np.ndarray, np.ndarray]:
-    """``(recall, precision)`` of the precision-recall curve, recall decreasing."""
-    from sklearn.metrics import precision_recall_curve
+    """``(recall, precision)`` of the precision-recall curve, recall decreasing, ending at
+    recall 0 and precision 1 (as scikit-learn's ``precision_recall_curve``)."""
+    ranked = _Ranked.of(np.asarray(positive, dtype=bool), np.asarray(score, dtype=np.float64),
+                        None if weight is None else np.asarray(weight, dtype=np.float64))
+    recall, precision = ranked.steps(np.ones(len(ranked.order), dtype=bool))
+    return np.r_[recall[::-1], 0.0], np.r_[precision[::-1], 1.0]
 
-    precision, recall, _ = precision_recall_curve(positive, score, sample_weight=weight)
-    return recall, precision
+
+@dataclass(frozen=True, eq=False)
+class _Ranked:
+    """Voxels ranked once by decreasing score, so that many subsets of them are scored
+    without sorting again (a subset of a ranking is ranked).
+
+    Attributes:
+        order: (K,) the voxels' indices, highest score first.
+        positive, score, weight: (K,) labels, scores and weights in that order.
+    """
+
+    order: np.ndarray
+    positive: np.ndarray
+    score: np.ndarray
+    weight: np.ndarray
+
+    @classmethod
+    def of(cls, positive: np.ndarray, score: np.ndarray, weight: np.ndarray | None) -> _Ranked:
+        order = np.argsort(-score, kind='stable')
+        w = np.ones(len(score)) if weight is None else weight[order]
+        return cls(order, positive[order], score[order], w)
+
+    def steps(self, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(recall, precision)`` at each distinct score of the kept voxels ((K,) bool in
+        the original order), highest score first: the steps of the PR curve."""
+        k = keep[self.order]
+        pos, score, w = self.positive[k], self.score[k], self.weight[k]
+        tp = np.cumsum(np.where(pos, w, 0.0))
+        fp = np.cumsum(np.where(pos, 0.0, w))
+        last = np.r_[np.flatnonzero(np.diff(score)), len(score) - 1]  # one step per distinct score
+        tp, fp = tp[last], fp[last]
+        return tp / tp[-1], tp / (tp + fp)
+
+    def subset(self, keep: np.ndarray) -> tuple[float, float]:
+        """``(pr_auc, share)`` over the kept voxels (as :func:`subset_auc`): the step-wise
+        area, sum over the steps of the recall gained times the precision there."""
+        k = keep[self.order]
+        share = float(self.weight[k].sum() / self.weight.sum())
+        if not self.positive[k].any() or self.positive[k].all():
+            return float('nan'), share
+        recall, precision = self.steps(keep)
+        return float(np.sum(np.diff(np.r_[0.0, recall]) * precision)), share
 
 
 @dataclass(eq=False)
@@ -164,7 +208,8 @@ def auc_by_variance(result: MethodResult, ref: ReferenceVoxels, thresholds: Sequ
     """
     if result.variance is None:
         raise InputError(f'{result.name} gives no variance')
-    out = [subset_auc(result, ref, result.variance <= t) for t in thresholds]
+    ranked = _Ranked.of(ref.positive, result.p, ref.weight)
+    out = [ranked.subset(result.variance <= t) for t in thresholds]
     return np.array([a for a, _ in out]), np.array([s for _, s in out])
 
 
@@ -186,7 +231,8 @@ def auc_by_distance(result: MethodResult, ref: ReferenceVoxels, distance: np.nda
     Returns:
         ``(auc, share)``, each (L,).
     """
-    out = [subset_auc(result, ref, distance <= d) for d in limits]
+    ranked = _Ranked.of(ref.positive, result.p, ref.weight)
+    out = [ranked.subset(distance <= d) for d in limits]
     return np.array([a for a, _ in out]), np.array([s for _, s in out])
 
 
