@@ -448,12 +448,14 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     refs, results = evaluate(factories, pts, org, ref_pts, ref_org, args.resolutions, args.rays, args.negatives,
                              args.seed, progress=say, max_positives=args.positives)
     by = {(r.name, r.resolution): r for r in results}
-    print(f'{"method":<14}' + ''.join(f'  PR AUC {res:<5g}  ROC AUC {res:<5g}  train s  test s'
-                                      for res in args.resolutions))
-    for name in dict.fromkeys(r.name for r in results):
-        print(f'{name:<14}' + ''.join(f'  {by[(name, res)].pr_auc:12.3f}  {by[(name, res)].roc_auc:13.3f}'
-                                      f'  {by[(name, res)].fit_seconds:7.1f}  {by[(name, res)].predict_seconds:6.1f}'
-                                      for res in args.resolutions))
+    names = list(dict.fromkeys(r.name for r in results))
+    width = max(len(n) for n in ['method', *names])
+    print(f'{"method":<{width}}' + ''.join(f'  PR AUC {res:<5g}  ROC AUC {res:<5g}  train s  test s'
+                                           for res in args.resolutions))
+    for name in names:
+        print(f'{name:<{width}}' + ''.join(f'  {by[(name, res)].pr_auc:12.3f}  {by[(name, res)].roc_auc:13.3f}'
+                                                 f'  {by[(name, res)].fit_seconds:7.1f}  {by[(name, res)].predict_seconds:6.1f}'
+                                                 for res in args.resolutions))
     for res in args.resolutions:
         ours = by.get((OURS, res))
         if ours is not None and ours.variance is not None:

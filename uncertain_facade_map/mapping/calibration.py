@@ -108,8 +108,15 @@ class _HeldOut:
 #: the same points draws the same sample and hold-out, so the map of it is built once.
 _LAST: dict = {}
 
-#: The free-space evidence takes every RAY_STEP-th mapped ray (in calibration and use alike).
-RAY_STEP = 2
+#: The free-space evidence takes at most about this many of a map's stored rays (every
+#: :func:`ray_step`-th, in calibration and use alike), so that its cost stays bounded.
+RAY_BUDGET = 600_000
+
+
+def ray_step(n_stored: int) -> int:
+    """Every how many stored rays the free-space evidence takes, for a map of ``n_stored``
+    stored points: 1 (all) up to :data:`RAY_BUDGET`, then enough to keep to about that."""
+    return max(1, -(-int(n_stored) // RAY_BUDGET))
 
 
 def _hold_out(xyz: np.ndarray, origins: np.ndarray, ids: np.ndarray | None, params: MapParams, resolution: float,
@@ -215,7 +222,7 @@ def calibrate_free_space(xyz: np.ndarray, sensor_origins: np.ndarray, plsc: PLSC
     The labels come from the held-out points only, the evidence from the others: the
     held-out hit voxels are occupied and the voxels the held-out points' rays crossed
     (holding no sampled point) free; each is asked of the map of the other points, and
-    counted against the rays of the other points through it (every :data:`RAY_STEP`-th
+    counted against the rays of the other points through it (every :func:`ray_step`-th
     ray, as the map uses them; :func:`~uncertain_facade_map.voxels.ray_crossings`). So a voxel counts as free only
     by rays the carving did not see, as in the evaluation, where the reference's rays
     are not the mapped ones.
@@ -241,5 +248,6 @@ def calibrate_free_space(xyz: np.ndarray, sensor_origins: np.ndarray, plsc: PLSC
     noise = np.where(np.isfinite(q.noise_variance), q.noise_variance, 0.0)
     near = np.isfinite(q.signed_distance) & (np.abs(q.signed_distance) <= FIT_BAND)
     p = plsc.surface(q.signed_distance, q.variance, noise, half)
-    crossings = ray_crossings(h.xyz[h.mapped][::RAY_STEP], h.origins[h.mapped][::RAY_STEP], resolution, keys, reach)
+    step = ray_step(len(xyz))  # as the whole map takes them
+    crossings = ray_crossings(h.xyz[h.mapped][::step], h.origins[h.mapped][::step], resolution, keys, reach)
     return fit_carving(positive[near], weight[near], p[near], crossings[near])

@@ -207,14 +207,15 @@ class FacadeMap:
         return calibrate_free_space(xyz, origins, self.occupancy_, self.params, ids, resolution, seed=self.params.seed)
 
     def ray_crossings(self, keys: np.ndarray, resolution: float) -> np.ndarray:
-        """(K,) number of stored rays (every ``calibration.RAY_STEP``-th) through each voxel
+        """(K,) number of stored rays (every ``calibration.ray_step``-th) through each voxel
         of (K,) packed ``keys`` (:func:`~uncertain_facade_map.voxels.ray_crossings`), 0 for
         a voxel holding a stored point."""
         from ..voxels import pack_keys, ray_crossings, voxel_index
-        from .calibration import RAY_STEP
+        from .calibration import ray_step
 
         xyz, origins, _ = self._stored_rays()
-        crossings = ray_crossings(xyz[::RAY_STEP], origins[::RAY_STEP], resolution, keys)
+        step = ray_step(len(xyz))
+        crossings = ray_crossings(xyz[::step], origins[::step], resolution, keys)
         crossings[np.isin(keys, pack_keys(voxel_index(xyz, resolution)))] = 0  # a hit outweighs passing rays
         return crossings
 
