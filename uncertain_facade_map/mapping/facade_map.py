@@ -222,8 +222,8 @@ class FacadeMap:
     def calibrate_when_grown(self, growth: float = 1.0, min_points: int = 20_000) -> bool:
         """Calibrate (:meth:`calibrate_occupancy`) once the stored points have grown by
         ``growth`` times those of the last calibration (live mapping: the cost, a map of
-        at most 300,000 points, is spent at each doubling), with at least ``min_points``
-        stored and sensor origins for all; True when it did."""
+        at most 200,000 points, calibration's ``max_points``, is spent at each doubling),
+        with at least ``min_points`` stored and sensor origins for all; True when it did."""
         n = self.n_stored
         if n < max(min_points, (1.0 + growth) * self.occupancy_stored_) or \
                 any(self.sensor_origins.get(b) is None for b in self.points):
