@@ -76,7 +76,11 @@ def test_many_calls_store_what_one_call_stores(tmp_path):
     assert live.thinned == whole.thinned and whole.n_thinned > 0
     for b in whole.points:
         np.testing.assert_array_equal(live.points[b], whole.points[b])
-    # The deferred calls come to one update here, so the maps are the same bit for bit.
+    # The deferred calls come to one update here, so the maps are the same bit for bit;
+    # live mapping learnt the occupancy's PLSC parameters once past 20,000 stored points,
+    # which build_map leaves to its caller: learnt by the same rule, they are the same too.
+    assert live.occupancy_stored_ == live.n_stored > 20_000 and whole.occupancy_stored_ == 0
+    assert whole.calibrate_when_grown()
     assert_same_maps(save_map(live, tmp_path / 'live.npz'), save_map(whole, tmp_path / 'whole.npz'))
 
 
