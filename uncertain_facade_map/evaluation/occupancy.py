@@ -89,7 +89,7 @@ def pr_curve(positive: np.ndarray, score: np.ndarray, weight: np.ndarray | None 
     recall 0 and precision 1 (as scikit-learn's ``precision_recall_curve``)."""
     ranked = _Ranked.of(np.asarray(positive, dtype=bool), np.asarray(score, dtype=np.float64),
                         None if weight is None else np.asarray(weight, dtype=np.float64))
-    recall, precision = ranked.steps(np.ones(len(ranked.order), dtype=bool))
+    recall, precision = ranked.steps(np.ones(len(ranked.order), dtype=bool))  # every voxel
     return np.r_[recall[::-1], 0.0], np.r_[precision[::-1], 1.0]
 
 
@@ -114,10 +114,9 @@ class _Ranked:
         w = np.ones(len(score)) if weight is None else weight[order]
         return cls(order, positive[order], score[order], w)
 
-    def steps(self, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def steps(self, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(recall, precision)`` at each distinct score of the kept voxels ((K,) bool in
-        the original order), highest score first: the steps of the PR curve."""
-        k = keep[self.order]
+        ranked order), highest score first: the steps of the PR curve."""
         pos, score, w = self.positive[k], self.score[k], self.weight[k]
         tp = np.cumsum(np.where(pos, w, 0.0))
         fp = np.cumsum(np.where(pos, 0.0, w))
@@ -132,7 +131,7 @@ class _Ranked:
         share = float(self.weight[k].sum() / self.weight.sum())
         if not self.positive[k].any() or self.positive[k].all():
             return float('nan'), share
-        recall, precision = self.steps(keep)
+        recall, precision = self.steps(k)
         return float(np.sum(np.diff(np.r_[0.0, recall]) * precision)), share
 
 

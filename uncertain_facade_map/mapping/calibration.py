@@ -30,18 +30,19 @@ its occupancy (:func:`~uncertain_facade_map.pipeline.step8_occupancy.carve`).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 
+from ..datatypes import FacadeModel
 from ..errors import InputError
 from ..params import MapParams
-from ..pipeline.step7_queries import query_points
+from ..pipeline.step7_queries import PointQuery, query_points
 from ..pipeline.step8_occupancy import FIT_BAND, FIXED, PLSC, facade_half_depth, fit_carving, fit_plsc
 from ..voxels import ReferenceVoxels, pack_keys, ray_crossings, reference_voxels, unpack_keys, voxel_index
 from .facade_map import FacadeMap, build_map
 
-__all__ = ['calibrate_free_space', 'calibrate_occupancy', 'scan_voxels']
+__all__ = ['calibrate_free_space', 'calibrate_occupancy', 'scan_voxels', 'surface_terms']
 
 
 def scan_voxels(xyz: np.ndarray, origins: np.ndarray, resolution: float, max_rays: int = 50_000,
@@ -148,12 +149,33 @@ def _new_hold_out(xyz: np.ndarray, origins: np.ndarray, ids: np.ndarray | None, 
     return _HeldOut(xyz, origins, ids, hit_keys, held_keys, mapped, fmap)
 
 
-def _ask(h: _HeldOut, keys: np.ndarray, resolution: float, band_front: float):
-    """The held-out map's answers at the voxels of ``keys``: ``(query, half extents)``."""
+def surface_terms(facades: Sequence[FacadeModel], answers: PointQuery, resolution: float
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """What the surface reading takes besides a query's signed distance and variance:
+    ``(noise, half)``, each (N,): the answers' noise variance (0 where no façade holds the
+    point, m^2) and the voxel's half extent along its façade's normal (metres,
+    :func:`~uncertain_facade_map.pipeline.step8_occupancy.facade_half_depth`)."""
+    noise = np.where(np.isfinite(answers.noise_variance), answers.noise_variance, 0.0)
+    normals = np.array([f.frame.axes[2] for f in facades]).reshape(-1, 3)
+    return noise, facade_half_depth(answers.facade, normals, resolution)
+
+
+def _ask(h: _HeldOut, keys: np.ndarray, resolution: float, band_front: float
+         ) -> tuple[PointQuery, np.ndarray, np.ndarray]:
+    """The held-out map's answers at the voxels of ``keys``: ``(query, noise, half)``
+    (:func:`surface_terms`)."""
     centres = (unpack_keys(keys) + 0.5) * resolution
     q = query_points(h.fmap.facades, centres, resolution, h.fmap.params.extraction.band_back, band_front)
-    normals = np.array([f.frame.axes[2] for f in h.fmap.facades]).reshape(-1, 3)
-    return q, facade_half_depth(q.facade, normals, resolution)
+    return (q, *surface_terms(h.fmap.facades, q, resolution))
+
+
+def _crossed(xyz: np.ndarray, origins: np.ndarray, resolution: float, max_rays: int, max_negatives: int,
+             reach: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(keys, weight)``, each (F,): the voxels the last ``reach`` metres of the rays of
+    (M, 3) points crossed, holding none of them (:func:`scan_voxels`), and their weights."""
+    labels = scan_voxels(xyz, origins, resolution, max_rays, max_negatives, reach, seed)
+    free = ~labels.positive
+    return pack_keys(voxel_index(labels.centres[free], resolution)), labels.weight[free]
 
 
 def calibrate_occupancy(xyz: np.ndarray, sensor_origins: np.ndarray, params: MapParams | None = None,
@@ -194,14 +216,12 @@ def calibrate_occupancy(xyz: np.ndarray, sensor_origins: np.ndarray, params: Map
     if h is None:
         return FIXED
     # 2. The sample's own labels: the held-out hit voxels and the voxels its rays crossed.
-    labels = scan_voxels(h.xyz, h.origins, resolution, max_rays, max_negatives, reach, seed)
-    free = pack_keys(voxel_index(labels.centres[~labels.positive], resolution))
+    free, free_weight = _crossed(h.xyz, h.origins, resolution, max_rays, max_negatives, reach, seed)
     # 4. Ask the held-out map about them (each held-out hit voxel stands for 1 / holdout of all).
     keys = np.r_[h.held_keys, free]
     positive = np.r_[np.ones(len(h.held_keys), bool), np.zeros(len(free), bool)]
-    weight = np.r_[np.full(len(h.held_keys), len(h.hit_keys) / len(h.held_keys)), labels.weight[~labels.positive]]
-    q, half = _ask(h, keys, resolution, band_front)
-    noise = np.where(np.isfinite(q.noise_variance), q.noise_variance, 0.0)
+    weight = np.r_[np.full(len(h.held_keys), len(h.hit_keys) / len(h.held_keys)), free_weight]
+    q, noise, half = _ask(h, keys, resolution, band_front)
     fitted = fit_plsc(positive, weight, q.signed_distance, q.variance, noise, half)
     if progress is not None:
         progress(f'occupancy calibration: scale {fitted.scale:.3g}, spread {fitted.spread:.3g} m from '
@@ -237,15 +257,13 @@ def calibrate_free_space(xyz: np.ndarray, sensor_origins: np.ndarray, plsc: PLSC
     if h is None or h.mapped.all():
         return 0.0
     held = ~h.mapped
-    labels = scan_voxels(h.xyz[held], h.origins[held], resolution, max_rays, max_negatives, reach, seed)
-    free = pack_keys(voxel_index(labels.centres[~labels.positive], resolution))
+    free, free_weight = _crossed(h.xyz[held], h.origins[held], resolution, max_rays, max_negatives, reach, seed)
     keep = ~np.isin(free, h.hit_keys)
-    free, free_weight = free[keep], labels.weight[~labels.positive][keep]
+    free, free_weight = free[keep], free_weight[keep]
     keys = np.r_[h.held_keys, free]
     positive = np.r_[np.ones(len(h.held_keys), bool), np.zeros(len(free), bool)]
     weight = np.r_[np.ones(len(h.held_keys)), free_weight]
-    q, half = _ask(h, keys, resolution, band_front)
-    noise = np.where(np.isfinite(q.noise_variance), q.noise_variance, 0.0)
+    q, noise, half = _ask(h, keys, resolution, band_front)
     near = np.isfinite(q.signed_distance) & (np.abs(q.signed_distance) <= FIT_BAND)
     p = plsc.surface(q.signed_distance, q.variance, noise, half)
     step = ray_step(len(xyz))  # as the whole map takes them

@@ -186,7 +186,7 @@ class FacadeMap:
         Raises:
             InputError: a building without sensor origins.
         """
-        if any(self.sensor_origins.get(b) is None for b in self.points):
+        if not self._has_rays:
             raise InputError('the occupancy calibration needs the sensor origin of every point '
                              '(its free space comes from the rays)')
         labels = sorted(self.points)
@@ -194,6 +194,11 @@ class FacadeMap:
         origins = np.vstack([self.sensor_origins[b] for b in labels]) if labels else np.empty((0, 3))
         ids = np.repeat(np.asarray(labels, dtype=np.int64), [len(self.points[b]) for b in labels])
         return xyz, origins, ids
+
+    @property
+    def _has_rays(self) -> bool:
+        """Every building's stored points have their sensor origins."""
+        return all(self.sensor_origins.get(b) is not None for b in self.points)
 
     def calibrate_free_space(self, resolution: float = 0.1) -> float:
         """The free-space extension's weight (beyond the paper), learnt from the stored
@@ -225,8 +230,7 @@ class FacadeMap:
         at most 200,000 points, calibration's ``max_points``, is spent at each doubling),
         with at least ``min_points`` stored and sensor origins for all; True when it did."""
         n = self.n_stored
-        if n < max(min_points, (1.0 + growth) * self.occupancy_stored_) or \
-                any(self.sensor_origins.get(b) is None for b in self.points):
+        if n < max(min_points, (1.0 + growth) * self.occupancy_stored_) or not self._has_rays:
             return False
         self.calibrate_occupancy()
         return True

@@ -38,10 +38,11 @@ from __future__ import annotations
 import numpy as np
 
 from ...errors import InputError
+from ...mapping.calibration import surface_terms
 from ...mapping.facade_map import FacadeMap, build_map
 from ...params import MapParams
 from ...pipeline.step7_queries import query_points
-from ...pipeline.step8_occupancy import FIXED, READINGS, carve, facade_half_depth
+from ...pipeline.step8_occupancy import FIXED, READINGS, carve
 from ...voxels import pack_keys, voxel_index
 from .base import OccupancyMethod, check_queries, check_scans
 
@@ -123,11 +124,9 @@ class FacadeGPMethod(OccupancyMethod):
         metres), in the method's reading."""
         answers = self._answers(xyz)
         model = self.map_.occupancy_ if self.occupancy == 'plsc' else FIXED
-        noise = np.where(np.isfinite(answers.noise_variance), answers.noise_variance, 0.0)
+        noise, h = surface_terms(self.map_.facades, answers, self.resolution)
         if self.reading == 'solid':
             return model.solid(answers.signed_distance, answers.variance, noise, self.resolution)
-        normals = np.array([f.frame.axes[2] for f in self.map_.facades]).reshape(-1, 3)
-        h = facade_half_depth(answers.facade, normals, self.resolution)
         return model.surface(answers.signed_distance, answers.variance, noise, h)
 
     @property
