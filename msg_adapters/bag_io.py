@@ -400,11 +400,14 @@ def read_bag_cloud(paths: str | Path | Sequence[str | Path], topic: str | None =
     return Cloud(points, bag.map_origin)
 
 
-def load_inputs(paths: str | Path | Sequence[str | Path], topic: str | None = None) -> Cloud:
+def load_inputs(paths: str | Path | Sequence[str | Path], topic: str | None = None, *,
+                max_distance: float | None = None, warn: Callable[[str], None] | None = None) -> Cloud:
     """Point cloud files and ROS bags joined into one cloud: the core's
-    :func:`~uncertain_facade_map.io.inputs.load_inputs` with bags read by :func:`read_bag_cloud`.
+    :func:`~uncertain_facade_map.io.inputs.load_inputs` with bags read by :func:`read_bag_cloud`
+    (``max_distance`` and ``warn`` as there).
 
     Raises:
         InputError: as the core's ``load_inputs`` and :func:`read_bag_cloud`.
     """
-    return core_load_inputs(paths, topic=topic, read_bag=lambda path, t: read_bag_cloud([path], topic=t))
+    return core_load_inputs(paths, topic=topic, read_bag=lambda path, t: read_bag_cloud([path], topic=t),
+                            max_distance=max_distance, warn=warn)

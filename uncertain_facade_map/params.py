@@ -416,6 +416,10 @@ class InputConfig(Section):
     frame_id: str = param('map', 'frame of the map; clouds must be in it')
     map_origin: tuple[float, float, float] = param(
         (0.0, 0.0, 0.0), 'georeference of the map frame (georeferenced = map + origin)', unit='m')
+    max_distance: float = param(100_000.0, 'offline inputs (build, evaluate, benchmark): a point farther than this '
+                                           'from the median point of its file in x, y or z is dropped and counted; a '
+                                           'file with more than 1 % of such points (or NaN) is refused as corrupted '
+                                           '(1e30 m, the wrong byte order)', unit='m', allowed=_closed(1.0, 1e9))
 
 
 @dataclass(frozen=True)

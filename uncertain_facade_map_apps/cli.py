@@ -173,7 +173,7 @@ def cmd_build(args: argparse.Namespace) -> int:
         raise CliError('give --sensor or --trajectory, not both')
     trajectory = None if args.trajectory is None else read_trajectory(args.trajectory)
     started = time.perf_counter()
-    cloud = load_inputs(args.inputs, topic=args.topic)
+    cloud = load_inputs(args.inputs, topic=args.topic, max_distance=config.input.max_distance, warn=print)
     selection = config.selection if args.select is None else dataclasses.replace(config.selection, mode=args.select)
     points = select_building_points(cloud, config.input, selection, sensor=args.sensor, trajectory=trajectory)
     read_s = time.perf_counter() - started
@@ -428,7 +428,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     else:
         if len(args.clouds) < 2:
             raise CliError('give the MAPPED cloud and one or more REFERENCE clouds, or --scene')
-        mapped, references = load_inputs([args.clouds[0]]), [load_inputs([c]) for c in args.clouds[1:]]
+        bound = config.input.max_distance
+        mapped = load_inputs([args.clouds[0]], max_distance=bound, warn=say)
+        references = [load_inputs([c], max_distance=bound, warn=say) for c in args.clouds[1:]]
         what = (f'{protocol_label(len(references))}: {args.clouds[0]} mapped, '
                 f'{", ".join(args.clouds[1:])} as the reference')
     pts, org = _evaluation_points(mapped, config, 'mapped', drop_outliers=False)
@@ -542,7 +544,7 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
                 close()
             stem = _unique_stem(f'scene_{args.scene}', used)
         else:
-            cloud = load_inputs([path], topic=args.topic)
+            cloud = load_inputs([path], topic=args.topic, max_distance=config.input.max_distance, warn=say)
             stem = _unique_stem(Path(path).name.split('.')[0] or 'input', used)
         say(f'{name}: {len(cloud):,} points read; choosing the building points')
         data = benchmark_input(cloud, config.input, params, seed=args.seed, sensor=args.sensor)
@@ -731,6 +733,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _linalg_error() -> type[Exception]:
+    import numpy as np
+
+    return np.linalg.LinAlgError
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit status (0 ok, 2 bad input, 1 I/O failure)."""
     parser = build_parser()
@@ -744,6 +752,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     except OSError as exc:
         print(f'{PROG}: error: {exc.strerror or exc}{f": {exc.filename}" if exc.filename else ""}', file=sys.stderr)
+        return 1
+    except (ArithmeticError, _linalg_error()) as exc:  # a fit failed on data the checks let through
+        print(f'{PROG}: error: a fit failed ({type(exc).__name__}: {exc}); the input may hold corrupted points '
+              '(see input.max_distance)', file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print(f'{PROG}: interrupted', file=sys.stderr)

@@ -487,3 +487,74 @@ def test_scan_points_of_a_scan_without_classes() -> None:
                                              sensor_origin=np.array([0.0, 0.0, 1.8])).xyz, scan.xyz)
     # No selection: all building, as before.
     assert len(select_scan_points(points, InputConfig()).xyz) == finite.sum()
+
+
+# ----------------------------------------------------------------------------------------
+# Absurd coordinates offline (input.max_distance): dropped with a count, or the file refused
+# ----------------------------------------------------------------------------------------
+def _street_points(n: int = 2000, seed: int = 0) -> np.ndarray:
+    """A wall-like cloud of ``n`` float32 points near a map origin, class 1."""
+    rng = np.random.default_rng(seed)
+    points = np.zeros(n, dtype=[('x', 'f4'), ('y', 'f4'), ('z', 'f4'), ('class', 'u1')])
+    points['x'] = rng.uniform(0, 40, n)
+    points['y'] = 8.0 + rng.normal(0, 0.02, n)
+    points['z'] = rng.uniform(0, 12, n)
+    points['class'] = 1
+    return points
+
+
+def test_a_few_absurd_points_are_dropped_and_counted(tmp_path: Path) -> None:
+    points = _street_points()
+    points['x'][[3, 70, 900]] = np.float32(1e30)
+    points['z'][5] = np.float32(-3e12)  # finite, NaN-free, absurd
+    write_npz(tmp_path / 'far.npz', Cloud(points))
+    said: list[str] = []
+    cloud = load_inputs([tmp_path / 'far.npz'], max_distance=100_000.0, warn=said.append)
+    assert len(cloud) == len(points) - 4
+    assert np.abs(cloud.xyz).max() < 100
+    assert said == [f'{tmp_path / "far.npz"}: dropped 4 of 2,000 points farther than 100000 m from the median point '
+                    'in x, y or z (input.max_distance)']
+    # Without the check the points stay (the caller's choice).
+    assert len(load_inputs([tmp_path / 'far.npz'])) == len(points)
+
+
+def test_a_file_of_mostly_absurd_points_is_refused(tmp_path: Path) -> None:
+    points = _street_points()
+    points['y'][::10] = np.float32(1e20)  # 10 % absurd, finite
+    write_npz(tmp_path / 'absurd.npz', Cloud(points))
+    with pytest.raises(InputError, match=r'absurd\.npz: 200 of 2,000 points \(10%\) are NaN or farther than 100000 m '
+                                         r'from the median point \(input\.max_distance\).*looks corrupted, not mapped$'):
+        load_inputs([tmp_path / 'absurd.npz'], max_distance=100_000.0)
+
+
+def test_a_file_far_from_any_place_on_earth_is_refused(tmp_path: Path) -> None:
+    points = _street_points()
+    points['x'] += np.float32(1e12)  # consistent, but no place on Earth
+    write_npz(tmp_path / 'space.npz', Cloud(points))
+    with pytest.raises(InputError, match='farther than any place on Earth'):
+        load_inputs([tmp_path / 'space.npz'], max_distance=100_000.0)
+
+
+@pytest.mark.parametrize('fmt', ['ply', 'npz', 'pcd'])
+def test_byte_swapped_coordinates_are_refused_with_a_hint(tmp_path: Path, fmt: str) -> None:
+    points = _street_points()
+    for c in ('x', 'y', 'z'):
+        points[c] = points[c].byteswap()  # the values a reader gets from data in the other byte order
+    path = tmp_path / f'swapped.{fmt}'
+    write_cloud(path, Cloud(points))
+    with pytest.raises(InputError, match=r"other byte order they would be plausible, so the file's byte order is "
+                                         r'wrong: the file looks corrupted, not mapped$'):
+        load_inputs([path], max_distance=100_000.0)
+
+
+def test_build_refuses_absurd_inputs_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The command line: no traceback for 1e30, absurd or byte-swapped inputs (issue 25 item 6)."""
+    from uncertain_facade_map_apps.cli import main
+
+    points = _street_points()
+    points['y'][::4] = np.float32(1e30)
+    write_npz(tmp_path / 'bad.npz', Cloud(points))
+    assert main(['build', str(tmp_path / 'bad.npz'), '--out', str(tmp_path / 'map.npz'), '--quiet']) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and 'bad.npz' in err and 'input.max_distance' in err
+    assert not (tmp_path / 'map.npz').exists()

@@ -96,7 +96,8 @@ def read_input(path: str | os.PathLike[str], *, topic: str | None = None,
 
 
 def load_inputs(paths: Sequence[str | os.PathLike[str]], *, topic: str | None = None,
-                read_bag: BagReader | None = None) -> Cloud:
+                read_bag: BagReader | None = None, max_distance: float | None = None,
+                warn: Callable[[str], None] | None = None) -> Cloud:
     """Read PLY, LAS/LAZ, PCD, NPZ files and ROS bags and join them into one cloud.
 
     Each path is read by :func:`read_input` (bags through ``read_bag``). The clouds are
@@ -119,6 +120,10 @@ def load_inputs(paths: Sequence[str | os.PathLike[str]], *, topic: str | None = 
         topic: PointCloud2 topic to read from every bag; None to take each bag's only
             PointCloud2 topic. Ignored for files.
         read_bag: reader of ROS bags (see :data:`BagReader`); None refuses bags.
+        max_distance: metres (``input.max_distance``): each input's points farther than this
+            from its own median point in x, y or z are dropped (see :func:`drop_far_points`);
+            None for no check.
+        warn: called with one line per input that lost points so (e.g. ``print``).
 
     Returns:
         The joined cloud: points of all inputs in input order, packed native structured
@@ -126,17 +131,106 @@ def load_inputs(paths: Sequence[str | os.PathLike[str]], *, topic: str | None = 
 
     Raises:
         InputError: no paths, a missing file, an unknown format, an unreadable file or
-            bag, or no point at all in the inputs.
+            bag, an input refused as corrupted by :func:`drop_far_points`, or no point at
+            all in the inputs.
     """
     items = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
     if not items:
         raise InputError('no input files given')
     clouds = [read_input(p, topic=topic, read_bag=read_bag) for p in items]
+    if max_distance is not None:
+        checked = []
+        for path, cloud in zip(items, clouds):
+            cloud, dropped = drop_far_points(cloud, max_distance, os.fspath(path))
+            if dropped and warn is not None:
+                warn(f'{os.fspath(path)}: dropped {dropped:,} of {dropped + len(cloud):,} points farther than '
+                     f'{max_distance:g} m from the median point in x, y or z (input.max_distance)')
+            checked.append(cloud)
+        clouds = checked
     joined = clouds[0] if len(clouds) == 1 else _join(clouds)
     if len(joined) == 0:
         names = ', '.join(os.fspath(p) for p in items)
         raise InputError(f'no points in {names}')
     return joined
+
+
+#: A file with more than this share of its points beyond ``input.max_distance`` (or NaN) is corrupted.
+CORRUPT_SHARE = 0.01
+#: Metres: a file whose median point lies farther than this from its map origin in x, y or z is
+#: corrupted (Earth's radius is 6.4e6 m; projected coordinates stay below 1e7 m).
+ABSURD_CENTRE = 1e8
+
+
+def swapped_plausible(points: np.ndarray, bound: float, centre: np.ndarray | None = None) -> bool:
+    """Whether x, y, z read in the other byte order would be plausible coordinates.
+
+    Args:
+        points: (N,) structured array with numeric fields x, y, z.
+        bound: metres; plausible means finite and within ``bound`` of ``centre`` in x, y
+            and z for at least 90 % of the points.
+        centre: (3,) metres, the map origin's place in the points' frame (the node: zeros);
+            None for the swapped points' own median (a file).
+
+    Returns:
+        True when the other byte order would make at least 90 % of the points plausible.
+    """
+    try:
+        with np.errstate(all='ignore'):
+            swapped = np.stack([points[c].byteswap() for c in ('x', 'y', 'z')], axis=1).astype(np.float64)
+    except (TypeError, ValueError, KeyError):
+        return False
+    with np.errstate(all='ignore'):
+        finite = np.isfinite(swapped).all(axis=1)
+        if not finite.any():
+            return False
+        mid = np.median(swapped[finite], axis=0) if centre is None else np.asarray(centre, dtype=np.float64)
+        plausible = finite & (np.abs(swapped - mid) <= bound).all(axis=1)
+    return bool(plausible.mean() >= 0.9)
+
+
+def drop_far_points(cloud: Cloud, max_distance: float, name: str) -> tuple[Cloud, int]:
+    """Drop the points of one input that lie absurdly far from the rest, or refuse the input.
+
+    A point farther than ``max_distance`` from the input's median point in x, y or z is no
+    street's (a corrupted value, 1e30 m); it would make the fits fail deep inside (a
+    ``LinAlgError``). A few are dropped and counted; if more than :data:`CORRUPT_SHARE` of
+    the points are so far or not finite, the file itself is corrupted (the wrong byte order
+    makes most values absurd or NaN) and is refused, with a hint when the other byte order
+    would make sense. NaN and infinite points are left to the caller's checks otherwise.
+
+    Args:
+        cloud: one input as read.
+        max_distance: metres (``input.max_distance``), > 0.
+        name: the input's name for the message.
+
+    Returns:
+        (the cloud without the far points, number of points dropped).
+
+    Raises:
+        InputError: more than :data:`CORRUPT_SHARE` of the points far or not finite, or the
+            median point farther than :data:`ABSURD_CENTRE` from the map origin.
+    """
+    n = len(cloud)
+    if n == 0:
+        return cloud, 0
+    with np.errstate(all='ignore'):
+        xyz = np.stack([cloud.points[c].astype(np.float64) for c in ('x', 'y', 'z')], axis=1)
+        finite = np.isfinite(xyz).all(axis=1)
+        centre = np.median(xyz[finite], axis=0) if finite.any() else np.zeros(3)
+        far = finite & ~(np.abs(xyz - centre) <= max_distance).all(axis=1)
+    bad = int(far.sum() + (~finite).sum())
+    if bad > CORRUPT_SHARE * n:
+        hint = (': read in the other byte order they would be plausible, so the file\'s byte order is wrong'
+                if swapped_plausible(cloud.points, max_distance) else '')
+        raise InputError(f'{name}: {bad:,} of {n:,} points ({bad / n:.0%}) are NaN or farther than {max_distance:g} m '
+                         f'from the median point (input.max_distance), e.g. {xyz[np.flatnonzero(far | ~finite)[0]].tolist()}'
+                         f'{hint}: the file looks corrupted, not mapped')
+    if not (np.abs(centre) <= ABSURD_CENTRE).all():
+        raise InputError(f'{name}: its median point {centre.tolist()} lies farther than {ABSURD_CENTRE:g} m from the '
+                         'map origin, farther than any place on Earth: the file looks corrupted, not mapped')
+    if not far.any():
+        return cloud, 0
+    return cloud.select(np.flatnonzero(~far)), int(far.sum())
 
 
 def _join(clouds: list[Cloud]) -> Cloud:
