@@ -98,6 +98,13 @@ def test_readme_links_every_page():
     assert not missing, f'docs pages not linked from README.md: {missing}'
 
 
+def test_index_links_every_page():
+    index = DOCS / 'index.md'
+    linked = {(DOCS / t.split('#')[0]).resolve() for t in links(index) if _relative(t)}
+    missing = [p.name for p in PAGES if p != index and p.resolve() not in linked]
+    assert not missing, f'docs pages not linked from docs/index.md: {missing}'
+
+
 @pytest.mark.parametrize('path', [README, *PAGES], ids=lambda p: p.relative_to(ROOT).as_posix())
 def test_relative_links_resolve(path):
     broken = []
