@@ -1,4 +1,4 @@
-"""Draw the README's pictures of the simulator (``python tools/readme_figures.py``).
+"""Draw the pictures of the simulator in docs/ (``python tools/readme_figures.py``).
 
 Writes docs/simulated_street.png (top view of the mapped campaign of the default street,
 coloured by class), docs/simulated_facade.png (one façade in its own frame, coloured

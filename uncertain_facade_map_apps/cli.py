@@ -579,9 +579,9 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument('--scene', default='street', choices=tuple(SCENES),
                      help='street: ~1.7 M points, 7 buildings (default); small: < 50 000 points; '
                           'zurich: real CityJSON footprints; NAME_hard: the same with walls as built and '
-                          'a real error model (see README, "Hard simulator")')
+                          'a real error model (see docs/simulator.md, "Hard simulator")')
     sim.add_argument('--sensor', choices=tuple(SENSOR_PRESETS),
-                     help="sensor preset (default: the scene's; see README, \"Hard simulator\")")
+                     help="sensor preset (default: the scene's; see docs/simulator.md, \"Hard simulator\")")
     sim.add_argument('--seed', type=int, default=0, help='scene seed (default 0)')
     sim.add_argument('--campaigns', type=int, default=1, help='number of drives, 1 mapped + references (default 1)')
     sim.add_argument('--out', default='output/simulation', help='output folder (default output/simulation)')

@@ -5,7 +5,7 @@ the repository, never copied into it; without them these tests skip. The hold-ou
 is the independent checker's (``../shared/tools/real_check.py``: its wall pick, 50 % of
 the wall points mapped, one 2 m x 2 m patch cut out of every wall longer than 8 m), run
 here in-process on the core. Figures measured at this commit (``real_check.py``):
-see the README, "Real scans".
+see docs/real-data.md, "Real scans".
 """
 
 import importlib.util

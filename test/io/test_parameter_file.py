@@ -6,9 +6,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from uncertain_facade_map.errors import InputError
-from uncertain_facade_map.io.parameter_file import DEFAULT_CONFIG, dump_config, load_config
+from uncertain_facade_map.io.parameter_file import (
+    DEFAULT_CONFIG,
+    PARAMETERS_PAGE,
+    dump_config,
+    load_config,
+    markdown_parameters,
+)
 from uncertain_facade_map.io.parameter_file import main as print_default_file
-from uncertain_facade_map.params import Config, InputConfig, config_from_parameters
+from uncertain_facade_map.params import Config, InputConfig, config_from_parameters, parameters
 
 
 def test_shipped_file_holds_the_defaults():
@@ -21,6 +27,29 @@ def test_shipped_file_is_the_generated_one(capsys):
     """config/facade_mapper.yaml is derived from the declarations, comments included."""
     print_default_file()
     assert capsys.readouterr().out == DEFAULT_CONFIG.read_text()
+
+
+def test_parameter_page_is_the_generated_one(capsys):
+    """docs/parameters.md is derived from the declarations (regenerate with --markdown)."""
+    print_default_file(['--markdown'])
+    assert capsys.readouterr().out == PARAMETERS_PAGE.read_text(), (
+        'docs/parameters.md is out of date: python -m uncertain_facade_map.io.parameter_file --markdown '
+        '> docs/parameters.md')
+
+
+def test_parameter_page_has_a_row_per_parameter():
+    """Every parameter is a table row of its section, with its default, unit and allowed values."""
+    page = markdown_parameters()
+    rows = {line.split(' | ')[0].strip('| `'): line for line in page.splitlines() if line.startswith('| `')}
+    assert set(rows) == {p.name for p in parameters()}
+    assert rows['gp.noise_sigma'] == ('| `gp.noise_sigma` | `0.02` | m | `[1e-06, 100]` | sigma_eta, the noise of the '
+                                      'points, when not estimated or too few points are close enough to estimate it '
+                                      '(paper: 0.02) |  |')
+    assert '`plsc`, `fixed`' in rows['query.occupancy']
+    assert '`band_front + band_back > 0`' in rows['extraction.band_back']
+    assert page.index('## input') < page.index('## gp') < page.index('## persistence')
+    custom = markdown_parameters(Config(input=InputConfig(class_field='a|b')))
+    assert '| `input.class_field` | `a\\|b` |' in custom  # a pipe would split the cell
 
 
 @settings(max_examples=60, deadline=None)

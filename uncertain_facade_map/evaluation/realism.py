@@ -36,8 +36,8 @@ of the points on them. Walls keep their detail (windows, sills, pipes):
 the residual spread of a real wall is sensor noise plus everything that is not flat within
 a metre, which is why the simulated walls carry their detail too.
 
-``python -m uncertain_facade_map.evaluation.realism`` prints the comparison table of the
-README's "Hard simulator" section: the real samples (``../shared/data/real/`` beside the
+``python -m uncertain_facade_map.evaluation.realism`` prints the comparison table of
+docs/simulator.md ("Against the real samples"): the real samples (``../shared/data/real/`` beside the
 repository, when present) and simulated sweeps of each sensor preset.
 """
 

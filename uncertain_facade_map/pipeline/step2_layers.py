@@ -88,7 +88,7 @@ def fit_relief(uv: np.ndarray, depth: np.ndarray, wall_depth: float, noise_sigma
     whole street front holds walls of several houses at slightly different depths and
     angles. The paper's layers are constant depths, so such a wall is cut into several
     layers whose facets alternate along it. Here the layers are offsets from this
-    surface instead (a departure from the paper: the README says where and why).
+    surface instead (a departure from the paper: docs/model.md lists them, with where and why).
 
     The surface is bilinear on a node grid of ``relief_spacing`` metres, fitted by
     iteratively reweighted least squares with Tukey's biweight (so that recesses,

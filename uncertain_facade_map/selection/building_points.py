@@ -40,8 +40,8 @@ needs none.
 
 On the Argoverse sweeps of ``../shared/data/real/`` it keeps 96-99.5 % of the wall points
 an independent RANSAC wall picker finds, and 81-82 % of what it keeps lies within 0.4 m of
-them (85-94 % within the picker's 40 m); see the README section "Clouds without classes"
-for the figures and the command that prints them (:mod:`.evaluation`).
+them (85-94 % within the picker's 40 m); see docs/selection.md for the
+figures and the command that prints them (:mod:`.evaluation`).
 """
 
 from __future__ import annotations
