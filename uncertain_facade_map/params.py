@@ -413,7 +413,13 @@ class InputConfig(Section):
     building_classes: tuple[int, ...] = param(
         (1,), 'class values that mean "building"; a cloud without the class field is selected (see selection)')
     building_id_field: str = param('building_id', 'point field with a building id, used when present')
-    frame_id: str = param('map', 'frame of the map; clouds must be in it')
+    frame_id: str = param('map', 'frame of the map: a cloud in another frame (its header.frame_id) is moved into it '
+                                 'by the transform at its stamp (/tf, /tf_static, sensor_pose, node.odometry_topic; '
+                                 'in bags the same topics)')
+    time_field: str = param('time', 'per-point time field: a cloud not in the map frame has each point moved by the '
+                                    "sensor's pose at its own time (motion compensation); float values are seconds, "
+                                    'integer ones nanoseconds, absolute (UNIX) or from the header stamp as their size '
+                                    'tells ("" or a cloud without the field: the header stamp for every point)')
     map_origin: tuple[float, float, float] = param(
         (0.0, 0.0, 0.0), 'georeference of the map frame (georeferenced = map + origin)', unit='m')
     max_distance: float = param(100_000.0, 'offline inputs (build, evaluate, benchmark): a point farther than this '
@@ -524,9 +530,27 @@ class NodeConfig(Section):
     idle_flush: float = param(2.0, 'when no cloud has come for this long, the points held back '
                                    '(update.batch_points) are mapped and the façades updated block by block are '
                                    'fitted whole (0: never)', unit='s', allowed=_closed(0.0, 3600.0))
-    pose_tolerance: float = param(0.05, 'a cloud in another frame is mapped with the sensor pose nearest its stamp '
-                                        'if closer than this', unit='s', allowed=_closed(0.0, 3600.0))
-    pose_buffer: int = param(1000, 'sensor poses kept for clouds in another frame', allowed=_closed(1, 1_000_000))
+    use_tf: bool = param(True, 'read the transforms on /tf and /tf_static (tf2_msgs/TFMessage; static ones with '
+                               'transient-local QoS, as robots publish them)')
+    odometry_topic: str = param('', 'a nav_msgs/Odometry topic whose poses (header.frame_id -> child_frame_id) join '
+                                    'the transforms ("" for none)')
+    transform_timeout: float = param(0.5, "a cloud whose transform into the map frame at its stamp (and its points' "
+                                          'times) is not known yet waits this long for it, its pose may come after '
+                                          'it; then it is mapped with the nearest pose within pose_tolerance or '
+                                          'rejected with the frames it needed', unit='s', allowed=_closed(0.0, 60.0))
+    transform_queue: int = param(20, 'clouds waiting for their transform at most, in arrival order; when full the '
+                                     'oldest is rejected', allowed=_closed(1, 10000))
+    transform_cache: float = param(10.0, "seconds of transforms kept per frame (tf2's default: 10)", unit='s',
+                                   allowed=_closed(0.1, 86400.0))
+    pose_tolerance: float = param(0.05, 'a cloud whose stamp lies outside the span of its transforms by at most this '
+                                        '(after waiting transform_timeout) is mapped with the nearest pose; 0: never '
+                                        '(as tf2)', unit='s', allowed=_closed(0.0, 3600.0))
+    pose_buffer: int = param(1000, 'transforms kept per frame at most (within transform_cache)',
+                             allowed=_closed(1, 1_000_000))
+    log_period: float = param(5.0, 'an info line this often while clouds come: clouds in, mapped, waiting for a '
+                                   'transform, dropped, rejected (why), share of the points the selection kept '
+                                   '(0: never; every cloud is logged at debug level)', unit='s',
+                              allowed=_closed(0.0, 3600.0))
     max_coordinate: float = param(100_000.0, 'a cloud with a point (after its pose), or a pose, farther than this '
                                              'from the map origin in x, y or z is refused: no street is that big, '
                                              'a corrupted cloud (wrong endianness, 1e30 m) is', unit='m',
