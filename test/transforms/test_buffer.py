@@ -351,6 +351,23 @@ def test_max_extrapolation_holds_the_edge_sample():
     assert_rigid(loose.lookup('a', 'b', 5 * S + S // 20), homogeneous([0, 0, 1], 0, [1, 2, 3]))
 
 
+def test_a_call_may_hold_the_edge_samples_longer_or_not_at_all():
+    """``max_extrapolation`` per call (the node waits strictly, then holds within its tolerance)."""
+    strict, holding = make_buffer(), make_buffer(max_extrapolation=0.05)
+    at_end = strict.lookup('odom', 'base_link', ns(13.5))
+    assert not strict.can_transform('odom', 'base_link', ns(13.54))
+    assert strict.can_transform('odom', 'base_link', ns(13.54), max_extrapolation=0.05)
+    held = strict.lookup('odom', 'base_link', ns(13.54), max_extrapolation=0.05)
+    assert np.array_equal(held.translation, at_end.translation)
+    _, t = strict.lookup_many('odom', 'base_link', np.array([ns(13.54)]), max_extrapolation=0.05)
+    assert np.array_equal(t[0], at_end.translation)
+    with pytest.raises(ExtrapolationError, match='max_extrapolation 0.05 s'):
+        strict.lookup_many('odom', 'base_link', np.array([ns(13.56)]), max_extrapolation=0.05)
+    assert not holding.can_transform('odom', 'base_link', ns(13.54), max_extrapolation=0.0)
+    with pytest.raises(InputError, match='max_extrapolation must be >= 0'):
+        strict.lookup('odom', 'base_link', ns(13.5), max_extrapolation=-1.0)
+
+
 def test_cache_time_prunes_old_samples():
     buf = make_buffer(cache_time=1.0)
     assert buf.time_range('base_link') == (ns(12.5), ns(13.5))

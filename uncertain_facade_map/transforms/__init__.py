@@ -10,7 +10,8 @@ Modules (numpy only, no ROS):
   extrapolation errors), and :class:`Rigid`, one rigid transform.
 * :mod:`.scans` -- :func:`point_times` (per-point times of a cloud, by driver convention),
   :class:`ScanPose` and :func:`locate_scan` (one pose per cloud, or one per point time:
-  motion compensation).
+  motion compensation), :func:`place_scan` (the rule the node and replay share: exact,
+  wait, hold within a tolerance, or one pose at the stamp).
 
 Errors are :class:`uncertain_facade_map.errors.TransformError` and its subclasses
 ``UnknownFrameError``, ``ConnectivityError`` and ``ExtrapolationError`` (all InputErrors).
@@ -20,17 +21,19 @@ from uncertain_facade_map.errors import ConnectivityError, ExtrapolationError, T
 
 from . import rotations
 from .buffer import Rigid, TransformBuffer
-from .scans import ScanPose, locate_scan, point_times
+from .scans import Placement, ScanPose, locate_scan, place_scan, point_times
 
 __all__ = [
     'ConnectivityError',
     'ExtrapolationError',
+    'Placement',
     'Rigid',
     'ScanPose',
     'TransformBuffer',
     'TransformError',
     'UnknownFrameError',
     'locate_scan',
+    'place_scan',
     'point_times',
     'rotations',
 ]

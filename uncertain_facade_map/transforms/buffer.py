@@ -654,26 +654,38 @@ class TransformBuffer:
         lasts = [self._tracks[c].last for c in chain.edges() if c in self._tracks]
         return min(lasts) if lasts else 0
 
-    def _coverage(self, chain: _Chain, start: int, end: int, count: Any = None) -> ExtrapolationError | None:
+    def _hold(self, max_extrapolation: float | None) -> float:
+        """Nanoseconds a lookup may hold an edge's first or last sample: the buffer's
+        ``max_extrapolation``, or the call's when given (seconds, >= 0)."""
+        if max_extrapolation is None:
+            return self._hold_ns
+        if not max_extrapolation >= 0:
+            raise InputError(f'max_extrapolation must be >= 0 s, got {max_extrapolation}')
+        return math.inf if math.isinf(max_extrapolation) else int(round(max_extrapolation * 1e9))
+
+    def _coverage(self, chain: _Chain, start: int, end: int, count: Any = None,
+                  hold_ns: float | None = None) -> ExtrapolationError | None:
         """Error for the first edge lacking data somewhere in ``[start, end]``, or None.
 
         An edge that would need data before its oldest sample is reported before one that
-        only lacks newer data (the former never resolves).
+        only lacks newer data (the former never resolves). ``hold_ns``: as :meth:`_hold`
+        (None: the buffer's).
         """
+        hold_ns = self._hold_ns if hold_ns is None else hold_ns
         future: ExtrapolationError | None = None
         for c in chain.edges():
             track = self._tracks.get(c)
             if track is None:
                 continue
             first, last = track.first, track.last
-            if start < first - self._hold_ns:
-                return self._extrapolation(chain, c, start, first, last, False, count)
-            if end > last + self._hold_ns and future is None:
-                future = self._extrapolation(chain, c, end, first, last, True, count)
+            if start < first - hold_ns:
+                return self._extrapolation(chain, c, start, first, last, False, count, hold_ns)
+            if end > last + hold_ns and future is None:
+                future = self._extrapolation(chain, c, end, first, last, True, count, hold_ns)
         return future
 
     def _extrapolation(self, chain: _Chain, c: str, stamp: int, first: int, last: int, is_future: bool,
-                       count: Any) -> ExtrapolationError:
+                       count: Any, hold_ns: float) -> ExtrapolationError:
         p = self._parent[c]
         gap = stamp - last if is_future else first - stamp
         if is_future:
@@ -686,7 +698,7 @@ class TransformBuffer:
             at = f'{mask_n} of {k} times, e.g. {_seconds(stamp)} s'
         else:
             at = f'{_seconds(stamp)} s'
-        hold = f', max_extrapolation {self.max_extrapolation:g} s' if self._hold_ns else ''
+        hold = f', max_extrapolation {hold_ns / 1e9:g} s' if hold_ns else ''
         return ExtrapolationError(
             f'lookup of "{chain.source}" in "{chain.target}" at {at} needs "{c}" in "{p}", whose samples span '
             f'{_seconds(first)}-{_seconds(last)} s: {gap / 1e9:.3f} s {where}{hold}',
@@ -721,13 +733,14 @@ class TransformBuffer:
         with self._lock:
             return self._latest(self._chain(target, source))
 
-    def lookup(self, target: str, source: str, stamp_ns: int) -> Rigid:
+    def lookup(self, target: str, source: str, stamp_ns: int, *, max_extrapolation: float | None = None) -> Rigid:
         """The transform taking points in ``source`` to ``target`` at ``stamp_ns``.
 
         Args:
             target: frame the result maps into (e.g. ``map``).
             source: frame the points are in (e.g. the cloud's ``header.frame_id``).
             stamp_ns: integer nanoseconds; 0 = the latest time the whole chain has data.
+            max_extrapolation: seconds, this call's instead of the buffer's (None).
 
         Returns:
             :class:`Rigid` with ``p_target = rotation @ p_source + translation``. The
@@ -747,7 +760,7 @@ class TransformBuffer:
             chain = self._chain(target, source)
             if stamp == 0:
                 stamp = self._latest(chain)
-            err = self._coverage(chain, stamp, stamp)
+            err = self._coverage(chain, stamp, stamp, hold_ns=self._hold(max_extrapolation))
             if err is not None:
                 raise err
             from_source = Rigid.identity()
@@ -773,13 +786,15 @@ class TransformBuffer:
         xyz = (1.0 - u)[:, None] * x[i] + u[:, None] * x[i + 1]
         return rot.to_matrix(rot.slerp(q[i], q[i + 1], u)), xyz
 
-    def lookup_many(self, target: str, source: str, stamps_ns: Any) -> tuple[np.ndarray, np.ndarray]:
+    def lookup_many(self, target: str, source: str, stamps_ns: Any, *,
+                    max_extrapolation: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`lookup` at K times, vectorised (one ``searchsorted`` and one slerp per edge).
 
         Args:
             target, source: frames as in :meth:`lookup`.
             stamps_ns: (K,) integer nanoseconds, any order; each 0 means the latest common
                 time.
+            max_extrapolation: seconds, this call's instead of the buffer's (None).
 
         Returns:
             ``(rotations (K, 3, 3), translations (K, 3))`` float64, with
@@ -808,12 +823,13 @@ class TransformBuffer:
             if zero.any():
                 stamps = np.where(zero, self._latest(chain), stamps)
             lo, hi = int(stamps.min()), int(stamps.max())
+            hold_ns = self._hold(max_extrapolation)
 
             def count(first: int, last: int, is_future: bool) -> tuple[int, int]:
-                bad = stamps > last + self._hold_ns if is_future else stamps < first - self._hold_ns
+                bad = stamps > last + hold_ns if is_future else stamps < first - hold_ns
                 return int(np.count_nonzero(bad)), k
 
-            err = self._coverage(chain, lo, hi, count)
+            err = self._coverage(chain, lo, hi, count, hold_ns)
             if err is not None:
                 raise err
             r_s, t_s = self._compose_up(chain.up_source, stamps)
@@ -842,7 +858,8 @@ class TransformBuffer:
                 r, t = r_e @ r, np.einsum('...ij,...j->...i', r_e, t) + t_e
         return r, t
 
-    def why_not(self, target: str, source: str, stamp_ns: int, end_ns: int | None = None) -> TransformError | None:
+    def why_not(self, target: str, source: str, stamp_ns: int, end_ns: int | None = None, *,
+                max_extrapolation: float | None = None) -> TransformError | None:
         """Why :meth:`lookup` would fail at ``stamp_ns`` (or somewhere up to ``end_ns``), or None.
 
         Args:
@@ -850,6 +867,7 @@ class TransformBuffer:
             stamp_ns: integer nanoseconds; 0 = the latest common time (``end_ns`` ignored).
             end_ns: last time of an interval (a sweep's span); every time in
                 ``[stamp_ns, end_ns]`` must be answerable.
+            max_extrapolation: seconds, this call's instead of the buffer's (None).
 
         Returns:
             The :class:`UnknownFrameError`, :class:`ConnectivityError` or
@@ -872,8 +890,9 @@ class TransformBuffer:
                 return err
             if start == 0:
                 start = end = self._latest(chain)
-            return self._coverage(chain, start, end)
+            return self._coverage(chain, start, end, hold_ns=self._hold(max_extrapolation))
 
-    def can_transform(self, target: str, source: str, stamp_ns: int, end_ns: int | None = None) -> bool:
+    def can_transform(self, target: str, source: str, stamp_ns: int, end_ns: int | None = None, *,
+                      max_extrapolation: float | None = None) -> bool:
         """Whether :meth:`lookup` succeeds at ``stamp_ns`` (and at every time up to ``end_ns``)."""
-        return self.why_not(target, source, stamp_ns, end_ns) is None
+        return self.why_not(target, source, stamp_ns, end_ns, max_extrapolation=max_extrapolation) is None

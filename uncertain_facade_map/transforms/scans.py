@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from uncertain_facade_map.errors import InputError
+from uncertain_facade_map.errors import ExtrapolationError, InputError, TransformError
 
 from .buffer import TransformBuffer
 
@@ -242,7 +242,8 @@ class ScanPose:
 
 
 def locate_scan(buffer: TransformBuffer, target: str, source: str, stamp_ns: int,
-                times_ns: np.ndarray | None = None, *, n_points: int | None = None) -> ScanPose:
+                times_ns: np.ndarray | None = None, *, n_points: int | None = None,
+                max_extrapolation: float | None = None) -> ScanPose:
     """Pose(s) of a cloud's frame ``source`` in ``target``, at its stamp or at each point's time.
 
     Args:
@@ -254,6 +255,8 @@ def locate_scan(buffer: TransformBuffer, target: str, source: str, stamp_ns: int
             pose at ``stamp_ns``. One lookup is made per distinct time (``np.unique``),
             vectorised through :meth:`TransformBuffer.lookup_many`.
         n_points: number of points, recorded in a single pose (for :meth:`ScanPose.origins`).
+        max_extrapolation: seconds the lookups may hold an edge's first or last sample, this
+            call's instead of the buffer's (None).
 
     Returns:
         :class:`ScanPose` (K = 1 and no index without times; K distinct times and an
@@ -265,14 +268,92 @@ def locate_scan(buffer: TransformBuffer, target: str, source: str, stamp_ns: int
         InputError: ``times_ns`` not a 1-D integer array.
     """
     if times_ns is None:
-        rigid = buffer.lookup(target, source, stamp_ns)
+        rigid = buffer.lookup(target, source, stamp_ns, max_extrapolation=max_extrapolation)
         return ScanPose(rigid.rotation[None], rigid.translation[None], None, n_points)
     times = np.asarray(times_ns)
     if times.ndim != 1 or (times.size and times.dtype.kind not in 'iu'):
         raise InputError(f'point times must be a 1-D integer array of nanoseconds, got {times.dtype} {times.shape}')
     distinct, index = np.unique(times.astype(np.int64, copy=False), return_inverse=True)
     if distinct.size == 0:
-        rigid = buffer.lookup(target, source, stamp_ns)
+        rigid = buffer.lookup(target, source, stamp_ns, max_extrapolation=max_extrapolation)
         return ScanPose(rigid.rotation[None], rigid.translation[None], np.zeros(0, dtype=np.int64))
-    rots, trans = buffer.lookup_many(target, source, distinct)
+    rots, trans = buffer.lookup_many(target, source, distinct, max_extrapolation=max_extrapolation)
     return ScanPose(rots, trans, index.reshape(-1).astype(np.int64, copy=False))
+
+
+@dataclass(frozen=True, eq=False)
+class Placement:
+    """How a cloud was put into the target frame (:func:`place_scan`).
+
+    Attributes:
+        pose: the cloud's pose(s) in the target frame; None when the cloud is in it already.
+        note: '' when every point got the transform at its own time (or the stamp); else
+            how the cloud was placed instead, for the logs (a pose held beyond the data, or
+            one pose at the stamp because no transforms cover the sweep's point times).
+    """
+
+    pose: ScanPose | None
+    note: str = ''
+
+
+def _may_come(err: TransformError) -> bool:
+    """Whether waiting for more transforms may answer a lookup that failed with ``err``."""
+    return not isinstance(err, ExtrapolationError) or err.future
+
+
+def place_scan(buffer: TransformBuffer, target: str, source: str, stamp_ns: int, times_ns: np.ndarray | None, *,
+               n_points: int, tolerance: float, final: bool) -> Placement | None:
+    """The pose of a cloud in ``target``: the one rule the node and offline replay share.
+
+    1. A cloud in ``target`` needs no pose.
+    2. If the transforms cover the stamp and every point time (the sweep's span), each
+       point gets the transform at its time (tf2's lookup: interpolated, never
+       extrapolated).
+    3. Otherwise, while more transforms may come (a newer sample, an unknown frame or
+       tree) and the caller may still wait (``final`` False): None, wait.
+    4. Finally (the node's ``node.transform_timeout`` passed, or the data can never come):
+       the same, holding the edges' first or last samples up to ``tolerance`` seconds;
+       else, for a cloud with point times, one pose at its stamp (no motion compensation);
+       else the lookup's error.
+
+    Args:
+        buffer: the transforms.
+        target: the map frame.
+        source: the cloud's ``header.frame_id``.
+        stamp_ns: the cloud's stamp, integer nanoseconds.
+        times_ns: (N,) int64 absolute time of each point (:func:`point_times`), or None.
+        n_points: N, the number of points the pose is for.
+        tolerance: seconds (``node.pose_tolerance``), >= 0.
+        final: no more waiting (see 3 and 4).
+
+    Returns:
+        The :class:`Placement`, or None (wait) only when ``final`` is False.
+
+    Raises:
+        UnknownFrameError, ConnectivityError, ExtrapolationError: the cloud cannot be
+            placed (when ``final``, or when the missing data can never come).
+    """
+    if source == target:
+        return Placement(None)
+    times = None if times_ns is None or len(times_ns) == 0 else np.asarray(times_ns, dtype=np.int64)
+    lo, hi = (int(times.min()), int(times.max())) if times is not None else (int(stamp_ns), int(stamp_ns))
+    err = buffer.why_not(target, source, lo, hi)
+    if err is None:
+        return Placement(locate_scan(buffer, target, source, stamp_ns, times, n_points=n_points))
+    if not final and _may_come(err):
+        return None
+    if tolerance > 0 and isinstance(err, ExtrapolationError) and buffer.can_transform(
+            target, source, lo, hi, max_extrapolation=tolerance):
+        gap = err.stamp_ns - err.last_ns if err.future else err.first_ns - err.stamp_ns
+        return Placement(locate_scan(buffer, target, source, stamp_ns, times, n_points=n_points,
+                                     max_extrapolation=tolerance),
+                         f'{gap / 1e9:.3f} s {"after" if err.future else "before"} the transforms of "{err.frame}" '
+                         f'in "{err.parent}": held the nearest (node.pose_tolerance)')
+    if times is not None:
+        for hold in (0.0, tolerance):
+            if buffer.can_transform(target, source, int(stamp_ns), max_extrapolation=hold):
+                return Placement(locate_scan(buffer, target, source, stamp_ns, None, n_points=n_points,
+                                             max_extrapolation=hold),
+                                 f'no transforms over its points\' times ({(hi - lo) / 1e9:.3f} s): one pose at its '
+                                 'stamp, without motion compensation')
+    raise err
