@@ -22,17 +22,26 @@ UV     := $(VENV)/bin/uv
 # package, which goes to a directory of its own, $(IFC_PY), put on sys.path after the
 # editable install's by $(IFC_PTH). The core's uncertain_facade_map/__init__.py extends its
 # __path__ to it, so `from uncertain_facade_map.srv import QueryPoints` imports while the core
-# stays the editable install (see CMakeLists.txt).
+# stays the editable install (see CMakeLists.txt). tf2_msgs (interfaces/tf2_msgs) is built
+# and installed the same way, into the same places.
 VENV_ABS  := $(abspath $(VENV))
 IFC_BUILD := build/interfaces
 IFC_PY    := $(VENV)/ros_interfaces
 IFC_PTH   := $(VENV)/lib/python3.11/site-packages/uncertain_facade_map_interfaces.pth
 IFC_STAMP := $(VENV)/.interfaces
-IFC_SRC   := CMakeLists.txt package.xml $(wildcard msg/*.msg) $(wildcard srv/*.srv)
+IFC_SRC   := CMakeLists.txt package.xml cmake/ros_wheel_quirks.cmake $(wildcard msg/*.msg) $(wildcard srv/*.srv)
+# tf2_msgs/msg/TFMessage (/tf, /tf_static), which the wheels lack: a package of its own in
+# interfaces/tf2_msgs, built the same way into the same places (see its CMakeLists.txt).
+TF2_BUILD := build/tf2_msgs
+TF2_STAMP := $(VENV)/.tf2_msgs
+TF2_SRC   := $(addprefix interfaces/tf2_msgs/,CMakeLists.txt package.xml msg/TFMessage.msg) \
+             cmake/ros_wheel_quirks.cmake
+# Everything the targets below need.
+READY     := $(STAMP) $(IFC_STAMP) $(TF2_STAMP)
 
 .PHONY: venv demo test bench soak evaluate benchmark-real lock clean
 
-venv: $(STAMP) $(IFC_STAMP)
+venv: $(READY)
 
 # Rebuilt only when the pins or the package metadata change, so the second run is quick.
 # The pins are installed by uv (from PyPI, into the venv, which keeps its own pip): it
@@ -50,27 +59,37 @@ $(STAMP): requirements.lock setup.py
 	$(UV) pip install --quiet --python $(PY) --no-deps --no-build-isolation -e . -C editable_mode=compat
 	touch $(STAMP)
 
+# Configure (further CMake arguments $(4)), build and install the interface package in $(1)
+# (build tree $(2)) into the venv; its generated Python package $(3) replaces the previous
+# copy in $(IFC_PY).
+define build_interfaces
+	AMENT_PREFIX_PATH=$(VENV_ABS) CMAKE_PREFIX_PATH=$(VENV_ABS) cmake -S $(1) -B $(2) \
+	  -DPython3_EXECUTABLE=$(VENV_ABS)/bin/python -DCMAKE_INSTALL_PREFIX=$(VENV_ABS) \
+	  -DPYTHON_INSTALL_DIR=ros_interfaces -DBUILD_TESTING=OFF $(4) --log-level=WARNING
+	cmake --build $(2) --parallel $(JOBS) >$(2)/build.log \
+	  || { tail -50 $(2)/build.log; exit 1; }
+	rm -rf $(IFC_PY)/$(3)
+	cmake --install $(2) >$(2)/install.log
+	rm -rf $(IFC_PY)/*.egg-info  # ament's copy of the metadata (ours: the editable install's; tf2_msgs: none needed)
+	echo $(VENV_ABS)/ros_interfaces > $(IFC_PTH)
+endef
+
 # Rebuilt when an interface, CMakeLists.txt, package.xml or the environment changes.
 $(IFC_STAMP): $(STAMP) $(IFC_SRC)
-	AMENT_PREFIX_PATH=$(VENV_ABS) CMAKE_PREFIX_PATH=$(VENV_ABS) cmake -S . -B $(IFC_BUILD) \
-	  -DPython3_EXECUTABLE=$(VENV_ABS)/bin/python -DCMAKE_INSTALL_PREFIX=$(VENV_ABS) \
-	  -DPYTHON_INSTALL_DIR=ros_interfaces -DINSTALL_PYTHON_PACKAGES=OFF -DBUILD_TESTING=OFF \
-	  --log-level=WARNING
-	cmake --build $(IFC_BUILD) --parallel $(JOBS) >$(IFC_BUILD)/build.log \
-	  || { tail -50 $(IFC_BUILD)/build.log; exit 1; }
-	rm -rf $(IFC_PY)
-	cmake --install $(IFC_BUILD) >$(IFC_BUILD)/install.log
-	rm -rf $(IFC_PY)/*.egg-info  # ament's copy of the metadata: the editable install has the real one
-	echo $(VENV_ABS)/ros_interfaces > $(IFC_PTH)
+	$(call build_interfaces,.,$(IFC_BUILD),uncertain_facade_map,-DINSTALL_PYTHON_PACKAGES=OFF)
 	touch $(IFC_STAMP)
 
-demo: $(STAMP) $(IFC_STAMP)
+$(TF2_STAMP): $(STAMP) $(TF2_SRC)
+	$(call build_interfaces,interfaces/tf2_msgs,$(TF2_BUILD),tf2_msgs)
+	touch $(TF2_STAMP)
+
+demo: $(READY)
 	$(PY) -m uncertain_facade_map_apps.demo --out $(OUT)
 
-test: $(STAMP) $(IFC_STAMP)
+test: $(READY)
 	$(PY) -m pytest
 
-bench: $(STAMP) $(IFC_STAMP)
+bench: $(READY)
 	$(PY) -m uncertain_facade_map_apps.bench
 
 # The soak and fault suite of the node (issue 13): 10 minutes of 100 000-point clouds at 10 Hz,
@@ -81,13 +100,13 @@ bench: $(STAMP) $(IFC_STAMP)
 # (test/node/test_soak.py).
 SOAK_OUT  ?= output/soak
 SOAK_ARGS ?=
-soak: $(STAMP) $(IFC_STAMP)
+soak: $(READY)
 	$(PY) -m uncertain_facade_map_apps.soak --out $(SOAK_OUT) $(SOAK_ARGS)
 
 # Simulates five drives of $(SCENE) (street, zurich or small), maps one with every method
 # and scores them against the four others (the paper's protocol), beside the scene's exact
 # geometry read as a map (the ceiling); writes output/evaluation/$(SCENE)/report.md.
-evaluate: $(STAMP) $(IFC_STAMP)
+evaluate: $(READY)
 	mkdir -p output/evaluation
 	$(PY) -m uncertain_facade_map_apps.cli evaluate --scene $(SCENE) --report output/evaluation/$(SCENE)
 
@@ -96,7 +115,7 @@ evaluate: $(STAMP) $(IFC_STAMP)
 # output/benchmark/. Skipped, with a note, when the folder is absent.
 REAL_DATA ?= ../shared/data/real
 REAL_FILES := av2_7fab_sweep0.ply av2_7fab_sweep1.ply av1_sweep.ply
-benchmark-real: $(STAMP) $(IFC_STAMP)
+benchmark-real: $(READY)
 	@if [ -d $(REAL_DATA) ]; then \
 	  mkdir -p output && \
 	  $(PY) -m uncertain_facade_map_apps.cli benchmark $(addprefix $(REAL_DATA)/,$(REAL_FILES)) --out output/benchmark; \

@@ -5,7 +5,11 @@ Writing: :func:`write_bag` stores scans as ``sensor_msgs/msg/PointCloud2`` in a 
 and the one of ROS 2 Jazzy) or in a ROS 1 bag (``'rosbag1'``, one ``.bag`` file, format 2.0).
 The map origin goes into every bag as one ``geometry_msgs/msg/PointStamped`` on
 ``/map_origin`` (float64, loss-free) and, for ROS 2, also into the metadata's
-``custom_data`` under :data:`ORIGIN_KEY` as three ``repr`` floats.
+``custom_data`` under :data:`ORIGIN_KEY` as three ``repr`` floats. Clouds are in the map
+frame unless a scan names its own frame (a lidar's, as a vehicle records them); further
+messages (``extra``: /tf, /tf_static, poses ...) go in beside them, each topic with the QoS
+profile asked for (``extra_qos``: /tf_static transient local). ROS 1 bags get
+``tf2_msgs/msg/TFMessage``, which rosbags' Noetic typestore lacks, added.
 
 Reading: :func:`read_bag` opens ROS 1 bags (a list of ``.bag`` files) or one ROS 2 bag (a
 directory with ``metadata.yaml``, or a single ``.db3`` / ``.mcap`` file) with
@@ -18,7 +22,7 @@ import shutil
 import sqlite3
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -41,6 +45,12 @@ ROSBAG2_VERSION = 9
 #: An extra message for :func:`write_bag`: (topic, msgtype, stamp_ns, make_msg), where
 #: ``make_msg(typestore)`` returns the message built from that typestore's classes.
 ExtraMessage = tuple[str, str, int, Callable[[Any], Any]]
+#: QoS profiles :func:`write_bag` can record for an extra topic (its ``extra_qos`` values).
+QOS_PROFILES = ('sensor', 'reliable', 'latched')
+TFMESSAGE = 'tf2_msgs/msg/TFMessage'
+#: tf2_msgs/msg/TFMessage, which rosbags' ROS 1 Noetic typestore lacks (ROS 1 md5sum
+#: 94810edda583a504dfda3829e70d7eec, as tf2_msgs/TFMessage in Noetic bags).
+_TFMESSAGE_DEFINITION = 'geometry_msgs/TransformStamped[] transforms\n'
 
 
 @dataclass
@@ -96,6 +106,34 @@ def _sensor_qos() -> list[Any]:
                 zero, zero, QosLiveliness.AUTOMATIC, zero, False)]
 
 
+def _reliable_qos() -> list[Any]:
+    """rclcpp's default QoS (reliable, volatile, keep last 10) as rosbags Qos: /tf, poses, odometry."""
+    from rosbags.interfaces import (
+        Qos,
+        QosDurability,
+        QosHistory,
+        QosLiveliness,
+        QosReliability,
+        QosTime,
+    )
+
+    zero = QosTime(0, 0)
+    return [Qos(QosHistory.KEEP_LAST, 10, QosReliability.RELIABLE, QosDurability.VOLATILE,
+                zero, zero, QosLiveliness.AUTOMATIC, zero, False)]
+
+
+def _bag_typestore(ros1: bool) -> Any:
+    """The rosbags typestore of a new bag: ROS 2 Jazzy, or ROS 1 Noetic with tf2_msgs/msg/TFMessage added."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    if not ros1:
+        return get_typestore(Stores.ROS2_JAZZY)
+    typestore = get_typestore(Stores.ROS1_NOETIC)  # a new instance: registering stays local
+    if TFMESSAGE not in typestore.types:
+        typestore.register(get_types_from_msg(_TFMESSAGE_DEFINITION, TFMESSAGE))
+    return typestore
+
+
 def _latched_qos() -> list[Any]:
     """Reliable, transient-local, keep last 1: a latched topic such as ``/map_origin``."""
     from rosbags.interfaces import (
@@ -121,6 +159,7 @@ def write_bag(
     frame_id: str = 'map',
     map_origin: Sequence[float] = (0.0, 0.0, 0.0),
     extra: Iterable[ExtraMessage] | None = None,
+    extra_qos: Mapping[str, str] | None = None,
 ) -> Path:
     """Write point cloud scans into a new ROS 1 or ROS 2 bag.
 
@@ -129,25 +168,32 @@ def write_bag(
             file (conventionally ``*.bag``) for ``'rosbag1'``. Must not exist.
         scans: ``(stamp_ns, points)`` pairs: header stamp and receive time in integer
             nanoseconds since the UNIX epoch, and a structured array (N,) with fields of
-            types i1, u1, i2, u2, i4, u4, f4 or f8 (coordinates in the map frame, metres).
+            types i1, u1, i2, u2, i4, u4, f4 or f8 (coordinates in the map frame, metres);
+            or ``(stamp_ns, points, frame_id)`` triples for clouds in another frame (a
+            sensor's), whose header then names that frame.
         storage: ``'sqlite3'``, ``'mcap'`` or ``'rosbag1'``.
         topic: PointCloud2 topic name.
         frame_id: header frame id of the clouds and of the map origin message.
         map_origin: (3,) metres, recorded on ``/map_origin`` (stamped with the first scan's
             stamp, or the first extra message's, or 0) and, for ROS 2, in ``custom_data``.
         extra: further messages ``(topic, msgtype, stamp_ns, make_msg)``; ``make_msg`` is
-            called with the bag's rosbags typestore (ROS 2 Jazzy, or ROS 1 Noetic for
-            ``'rosbag1'``) and returns the message to serialize.
+            called with the bag's rosbags typestore (ROS 2 Jazzy, or ROS 1 Noetic with
+            ``tf2_msgs/msg/TFMessage`` added, for ``'rosbag1'``) and returns the message to
+            serialize.
+        extra_qos: ``{topic: profile}`` for extra topics, profile one of
+            :data:`QOS_PROFILES`: ``'sensor'`` (best effort, volatile, keep last 5),
+            ``'reliable'`` (reliable, volatile, keep last 10) or ``'latched'`` (reliable,
+            transient local, keep last 1, as /tf_static; a latching connection in ROS 1),
+            recorded as the topic's offered QoS (ROS 2). Extra topics not named record none.
 
     Returns:
         The path of the bag written.
 
     Raises:
         InputError: unknown storage, the path exists, a non-finite or wrongly shaped map
-            origin, or scans that cannot be encoded (see ``pointcloud2_from_structured``).
+            origin, an unknown QoS profile, or scans that cannot be encoded (see
+            ``pointcloud2_from_structured``).
     """
-    from rosbags.typesys import Stores, get_typestore
-
     if storage not in STORAGES:
         raise InputError(f'unknown bag storage {storage!r} (choose from {", ".join(STORAGES)})')
     path = Path(path)
@@ -157,8 +203,14 @@ def write_bag(
     if origin.shape != (3,) or not np.isfinite(origin).all():
         raise InputError(f'map origin must be 3 finite numbers, got {map_origin!r}')
 
+    qos_of = dict(extra_qos or {})
+    unknown = sorted({q for q in qos_of.values() if q not in QOS_PROFILES})
+    if unknown:
+        raise InputError(f'unknown QoS profile {", ".join(map(repr, unknown))} '
+                         f'(choose from {", ".join(QOS_PROFILES)})')
+
     ros1 = storage == 'rosbag1'
-    typestore = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_JAZZY)
+    typestore = _bag_typestore(ros1)
     types = rosbags_types(typestore)
     serialize = typestore.serialize_ros1 if ros1 else typestore.serialize_cdr
     extra_list = list(extra or ())
@@ -193,18 +245,22 @@ def write_bag(
         with writer:
             points_conn = connect(topic, POINTCLOUD2, _sensor_qos())
             origin_conn = connect(ORIGIN_TOPIC, POINTSTAMPED, _latched_qos(), latched=True)
+            profiles = {'sensor': _sensor_qos, 'reliable': _reliable_qos, 'latched': _latched_qos}
             extra_conns = {(t, m): None for t, m, _s, _f in extra_list}
             for key in extra_conns:
-                extra_conns[key] = connect(*key)
+                profile = qos_of.get(key[0])
+                extra_conns[key] = connect(*key, profiles[profile]() if profile else None,
+                                           latched=profile == 'latched')
 
             origin_written = False
-            for stamp_ns, points in scans:
+            for stamp_ns, points, *cloud_frame in scans:
                 stamp_ns = int(stamp_ns)
                 if not origin_written:
                     writer.write(origin_conn, stamp_ns,
                                  serialize(origin_msg(stamp_ns), POINTSTAMPED))
                     origin_written = True
-                msg = pointcloud2_from_structured(points, stamp_ns=stamp_ns, frame_id=frame_id,
+                msg = pointcloud2_from_structured(points, stamp_ns=stamp_ns,
+                                                  frame_id=cloud_frame[0] if cloud_frame else frame_id,
                                                   msg_types=types)
                 writer.write(points_conn, stamp_ns, serialize(msg, POINTCLOUD2))
             if not origin_written:

@@ -19,15 +19,17 @@ STDLIB = set(sys.stdlib_module_names)
 LAYERS = {
     # laspy, pypcd4, lzf: file formats; octomap, threadpoolctl: baselines; matplotlib: the
     # evaluation report's figures; pypatchworkpp: ground removal of clouds without classes
-    # (selection.building_points) (each imported inside the function that needs it).
+    # (selection.building_points); pyarrow: Argoverse 2's feather files (io.av2) (each imported
+    # inside the function that needs it).
     'uncertain_facade_map': {'numpy', 'scipy', 'sklearn', 'yaml', 'plyfile', 'laspy', 'pypcd4', 'lzf',
-                             'threadpoolctl', 'octomap', 'matplotlib', 'pypatchworkpp', 'uncertain_facade_map'},
+                             'threadpoolctl', 'octomap', 'matplotlib', 'pypatchworkpp', 'pyarrow',
+                             'uncertain_facade_map'},
     'msg_adapters': {'numpy', 'rosbags', 'msg_adapters', 'uncertain_facade_map', 'builtin_interfaces',
-                     'diagnostic_msgs', 'geometry_msgs', 'nav_msgs', 'sensor_msgs', 'std_msgs', 'visualization_msgs',
-                     'rcl_interfaces', 'tf2_msgs'},
+                     'diagnostic_msgs', 'geometry_msgs', 'nav_msgs', 'sensor_msgs', 'std_msgs', 'tf2_msgs',
+                     'visualization_msgs', 'rcl_interfaces'},
     'uncertain_facade_map_node': {'numpy', 'rclpy', 'msg_adapters', 'uncertain_facade_map', 'uncertain_facade_map_node',
                                   'builtin_interfaces', 'diagnostic_msgs', 'geometry_msgs', 'nav_msgs', 'sensor_msgs',
-                                  'std_msgs', 'std_srvs', 'visualization_msgs', 'rcl_interfaces', 'tf2_msgs'},
+                                  'std_msgs', 'std_srvs', 'tf2_msgs', 'visualization_msgs', 'rcl_interfaces'},
 }
 #: The core's generated interfaces (``uncertain_facade_map.msg``/``.srv``) are ROS: only above the core.
 ROS_OF_CORE = ('uncertain_facade_map.msg', 'uncertain_facade_map.srv')

@@ -7,6 +7,10 @@
 - A colcon workspace (build type ament_cmake): the package builds, installs its launcher,
   package.xml and config, and its Python tree imports with the environment colcon's setup
   script sets.
+- tf2_msgs/msg/TFMessage (interfaces/tf2_msgs), which the ROS wheels lack, built by make venv
+  like our interfaces: upstream Jazzy's type name and type hash, so it talks to real /tf and
+  /tf_static endpoints; published and received by rclpy, latched on /tf_static; never
+  discovered by colcon (nested in our package), so a ROS workspace keeps the real tf2_msgs.
 """
 
 from __future__ import annotations
@@ -23,9 +27,11 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 VENV_BIN = Path(sys.executable).parent
 # What a package build needs of the repository (CMakeLists.txt installs these).
-PACKAGE_FILES = ['CMakeLists.txt', 'package.xml', 'msg', 'srv', 'scripts', 'config',
+PACKAGE_FILES = ['CMakeLists.txt', 'package.xml', 'cmake', 'msg', 'srv', 'scripts', 'config',
                  'uncertain_facade_map', 'msg_adapters', 'uncertain_facade_map_node',
                  'uncertain_facade_map_apps']
+#: In a clone but not built by colcon: the nested tf2_msgs package (make venv builds it).
+NESTED_FILES = ['interfaces']
 MESSAGES = ['Facade', 'FacadeGrid', 'FacadeGridArray']
 SERVICES = ['QueryPoints', 'GetFacades', 'SaveMap', 'LoadMap']
 
@@ -221,19 +227,24 @@ print(json.dumps({
 '''
 
 
+def workspace_with_the_package(tmp_path: Path) -> Path:
+    """A colcon workspace ``tmp_path/ws`` with the package in src/ as a clone has it (nested tf2_msgs included)."""
+    source = tmp_path / 'ws' / 'src' / 'uncertain_facade_map'
+    source.mkdir(parents=True)
+    for name in PACKAGE_FILES + NESTED_FILES:
+        if (REPO / name).is_dir():
+            shutil.copytree(REPO / name, source / name, ignore=shutil.ignore_patterns('__pycache__'))
+        else:
+            shutil.copy2(REPO / name, source / name)
+    return tmp_path / 'ws'
+
+
 @pytest.mark.slow
 @pytest.mark.ros
 def test_colcon_build_of_the_package(tmp_path):
     colcon = VENV_BIN / 'colcon'
     assert colcon.exists(), 'colcon is in requirements.lock'
-    source = tmp_path / 'ws' / 'src' / 'uncertain_facade_map'
-    source.mkdir(parents=True)
-    for name in PACKAGE_FILES:
-        if (REPO / name).is_dir():
-            shutil.copytree(REPO / name, source / name, ignore=shutil.ignore_patterns('__pycache__'))
-        else:
-            shutil.copy2(REPO / name, source / name)
-    ws = tmp_path / 'ws'
+    ws = workspace_with_the_package(tmp_path)
     prefix = str(sys.prefix)
     env = clean_env(PATH=f'{VENV_BIN}:/usr/bin:/bin', AMENT_PREFIX_PATH=prefix,
                     CMAKE_PREFIX_PATH=prefix, COLCON_HOME=str(tmp_path / 'colcon_home'))
@@ -251,6 +262,10 @@ def test_colcon_build_of_the_package(tmp_path):
     assert (install / 'share' / 'uncertain_facade_map' / 'config' / 'facade_mapper.yaml').is_file()
     assert (install / 'share' / 'ament_index' / 'resource_index' / 'packages' /
             'uncertain_facade_map').is_file()
+    # The nested tf2_msgs is neither built nor installed: the workspace's own tf2_msgs stays.
+    assert sorted(p.name for p in (ws / 'install').iterdir() if p.is_dir()) == ['uncertain_facade_map']
+    assert not (install / 'share' / 'tf2_msgs').exists()
+    assert not list(install.rglob('*tf2_msgs*'))
 
     # The environment colcon's setup script sets (PYTHONPATH, LD_LIBRARY_PATH, AMENT_PREFIX_PATH).
     def run_sourced(code: str) -> dict:
@@ -265,3 +280,261 @@ def test_colcon_build_of_the_package(tmp_path):
         assert Path(module).is_relative_to(install / 'lib'), module
     assert out['version'] and out['main'] is True
     check_round_trip(run_sourced(ROUND_TRIP))
+
+
+# ------------------------------------------------------------------------------------------
+# tf2_msgs/msg/TFMessage (interfaces/tf2_msgs)
+# ------------------------------------------------------------------------------------------
+TF2_PACKAGE = REPO / 'interfaces' / 'tf2_msgs'
+#: Upstream Jazzy's type hash of tf2_msgs/msg/TFMessage, as `ros2 topic info -v /tf` shows it
+#: on a Jazzy system (and rclcpp's golden-hash tests list it).
+UPSTREAM_TFMESSAGE_HASH = 'RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087'
+#: Upstream's definition (ros2/geometry2, tf2_msgs/msg/TFMessage.msg): one field.
+UPSTREAM_TFMESSAGE_FIELDS = [('geometry_msgs/TransformStamped[]', 'transforms')]
+
+TF2_IMPORT = '''
+import json, uuid
+import rclpy
+import tf2_msgs, tf2_msgs.msg
+from tf2_msgs.msg import TFMessage
+
+context = rclpy.Context()
+rclpy.init(context=context)
+try:
+    node = rclpy.create_node('tf2_probe_' + uuid.uuid4().hex[:8], context=context)
+    topic = '/tf_probe_' + uuid.uuid4().hex[:8]
+    node.create_publisher(TFMessage, topic, 10)
+    info = node.get_publishers_info_by_topic(topic)[0]
+    print(json.dumps({'module': tf2_msgs.msg.__file__, 'type': info.topic_type,
+                      'hash': str(info.topic_type_hash),
+                      'fields': TFMessage.get_fields_and_field_types()}))
+    node.destroy_node()
+finally:
+    rclpy.shutdown(context=context)
+'''
+
+
+def tf2_env() -> dict[str, str]:
+    """A clean environment on a domain of this test process's own, discovery on this host only."""
+    return clean_env(ROS_DOMAIN_ID=str(40 + os.getpid() % 60), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+
+
+def test_tf2_msgs_package_is_upstreams_message():
+    from catkin_pkg.package import parse_package
+
+    package = parse_package(str(TF2_PACKAGE / 'package.xml'))
+    package.validate()
+    assert package.name == 'tf2_msgs'
+    assert package.get_build_type() == 'ament_cmake'
+    assert [g.name for g in package.member_of_groups] == ['rosidl_interface_packages']
+    fields = [tuple(line.split()) for line in (TF2_PACKAGE / 'msg' / 'TFMessage.msg').read_text().splitlines()
+              if line.strip() and not line.lstrip().startswith('#')]
+    assert fields == UPSTREAM_TFMESSAGE_FIELDS
+    assert '"msg/TFMessage.msg"' in (TF2_PACKAGE / 'CMakeLists.txt').read_text()
+
+
+def test_tf2_msgs_type_name_and_hash_equal_upstream_jazzy():
+    """Four witnesses: upstream's published hash, rosbags' own computation from its Jazzy
+    definitions, rosidl's type description installed by make venv and the hash rclpy announces."""
+    from rosbags.typesys import Stores, get_typestore
+
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    assert typestore.hash_rihs01('tf2_msgs/msg/TFMessage') == UPSTREAM_TFMESSAGE_HASH
+    # The dependency it is built on (the wheels' geometry_msgs) is upstream's too.
+    wheel = json.loads((Path(sys.prefix) / 'share' / 'geometry_msgs' / 'msg' / 'TransformStamped.json').read_text())
+    assert wheel['type_hashes'][0]['hash_string'] == typestore.hash_rihs01('geometry_msgs/msg/TransformStamped')
+
+    described = json.loads((Path(sys.prefix) / 'share' / 'tf2_msgs' / 'msg' / 'TFMessage.json').read_text())
+    assert described['type_hashes'][0] == {'type_name': 'tf2_msgs/msg/TFMessage',
+                                           'hash_string': UPSTREAM_TFMESSAGE_HASH}
+    out = run_python(TF2_IMPORT, REPO, tf2_env())
+    assert out['type'] == 'tf2_msgs/msg/TFMessage'
+    assert out['hash'] == UPSTREAM_TFMESSAGE_HASH
+    assert out['fields'] == {'transforms': 'sequence<geometry_msgs/TransformStamped>'}
+    generated = Path(out['module'])
+    assert generated.parent.parent == Path(sys.prefix) / 'ros_interfaces' / 'tf2_msgs'
+
+
+TF2_PUBSUB = '''
+import json, time, uuid
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from geometry_msgs.msg import TransformStamped
+from tf2_msgs.msg import TFMessage
+
+
+def transform(parent, child, sec, x, qz):
+    t = TransformStamped()
+    t.header.stamp.sec, t.header.frame_id, t.child_frame_id = sec, parent, child
+    t.transform.translation.x = x
+    t.transform.rotation.z, t.transform.rotation.w = qz, (1.0 - qz * qz) ** 0.5
+    return t
+
+
+def as_list(msg):
+    return [[t.header.frame_id, t.child_frame_id, t.header.stamp.sec, t.transform.translation.x,
+             t.transform.rotation.z] for t in msg.transforms]
+
+
+def spin_until(executor, done, timeout):
+    end = time.monotonic() + timeout
+    while not done() and time.monotonic() < end:
+        executor.spin_once(timeout_sec=0.05)
+
+
+context = rclpy.Context()
+rclpy.init(context=context)
+try:
+    executor = SingleThreadedExecutor(context=context)
+    talker = rclpy.create_node('tf_talker_' + uuid.uuid4().hex[:8], context=context)
+    listener = rclpy.create_node('tf_listener_' + uuid.uuid4().hex[:8], context=context)
+    executor.add_node(talker)
+    executor.add_node(listener)
+    suffix = uuid.uuid4().hex[:8]
+
+    # /tf: a stream (default QoS, volatile), received while both are up.
+    got = []
+    listener.create_subscription(TFMessage, '/tf_' + suffix, got.append, 100)
+    pub = talker.create_publisher(TFMessage, '/tf_' + suffix, 100)
+    spin_until(executor, lambda: pub.get_subscription_count() > 0, 20)
+    for k in range(5):
+        pub.publish(TFMessage(transforms=[transform('map', 'egovehicle', 100 + k, 0.5 * k, 0.1),
+                                          transform('odom', 'base', 100 + k, -1.0, 0.0)]))
+    spin_until(executor, lambda: len(got) >= 5, 20)
+
+    # /tf_static: transient local, published once before anyone listens; a late subscriber gets it.
+    latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                         reliability=ReliabilityPolicy.RELIABLE)
+    static_pub = talker.create_publisher(TFMessage, '/tf_static_' + suffix, latched)
+    static_pub.publish(TFMessage(transforms=[transform('egovehicle', 'up_lidar', 7, 1.25, 0.0),
+                                             transform('egovehicle', 'down_lidar', 7, 1.5, 0.2)]))
+    spin_until(executor, lambda: False, 0.5)
+    late = []
+    listener.create_subscription(TFMessage, '/tf_static_' + suffix, late.append, latched)
+    spin_until(executor, lambda: late, 20)
+    print(json.dumps({'tf': [as_list(m) for m in got], 'static': [as_list(m) for m in late]}))
+finally:
+    rclpy.shutdown(context=context)
+'''
+
+TF2_STATIC_TALKER = '''
+import sys, time, uuid
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from geometry_msgs.msg import TransformStamped
+from tf2_msgs.msg import TFMessage
+
+context = rclpy.Context()
+rclpy.init(context=context)
+node = rclpy.create_node('tf_static_talker_' + uuid.uuid4().hex[:8], context=context)
+latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
+pub = node.create_publisher(TFMessage, sys.argv[1], latched)
+t = TransformStamped()
+t.header.frame_id, t.child_frame_id, t.header.stamp.sec = 'egovehicle', 'up_lidar', 42
+t.transform.translation.z = 1.875
+pub.publish(TFMessage(transforms=[t]))
+print('published', flush=True)
+executor = SingleThreadedExecutor(context=context)
+executor.add_node(node)
+end = time.monotonic() + 60
+while time.monotonic() < end and context.ok():
+    executor.spin_once(timeout_sec=0.1)
+'''
+
+TF2_LATE_LISTENER = '''
+import json, sys, time, uuid
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from tf2_msgs.msg import TFMessage
+
+context = rclpy.Context()
+rclpy.init(context=context)
+try:
+    node = rclpy.create_node('tf_static_listener_' + uuid.uuid4().hex[:8], context=context)
+    latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
+    got = []
+    node.create_subscription(TFMessage, sys.argv[1], got.append, latched)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    end = time.monotonic() + 30
+    while not got and time.monotonic() < end:
+        executor.spin_once(timeout_sec=0.1)
+    print(json.dumps([[t.header.frame_id, t.child_frame_id, t.header.stamp.sec, t.transform.translation.z]
+                      for m in got for t in m.transforms]))
+finally:
+    rclpy.shutdown(context=context)
+'''
+
+
+@pytest.mark.ros
+def test_tfmessage_published_and_received_by_rclpy(tmp_path):
+    out = run_python(TF2_PUBSUB, tmp_path, tf2_env())
+    assert out['tf'] == [[['map', 'egovehicle', 100 + k, 0.5 * k, 0.1], ['odom', 'base', 100 + k, -1.0, 0.0]]
+                         for k in range(5)]
+    # The late subscriber of the transient-local topic got the one static message.
+    assert out['static'] == [[['egovehicle', 'up_lidar', 7, 1.25, 0.0], ['egovehicle', 'down_lidar', 7, 1.5, 0.2]]]
+
+
+@pytest.mark.ros
+def test_tf_static_reaches_a_late_subscriber_in_another_process(tmp_path):
+    topic = '/tf_static_' + os.urandom(4).hex()
+    env = tf2_env()
+    talker = subprocess.Popen([sys.executable, '-c', TF2_STATIC_TALKER, topic], cwd=tmp_path, env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert talker.stdout.readline().strip() == 'published', talker.stderr.read()
+        result = subprocess.run([sys.executable, '-c', TF2_LATE_LISTENER, topic], cwd=tmp_path, env=env,
+                                capture_output=True, text=True, timeout=90)
+        assert result.returncode == 0, result.stderr
+        assert json.loads(result.stdout.strip().splitlines()[-1]) == [['egovehicle', 'up_lidar', 42, 1.875]]
+    finally:
+        talker.terminate()
+        talker.wait(timeout=20)
+
+
+def test_colcon_does_not_discover_the_nested_tf2_msgs(tmp_path):
+    """A ROS workspace keeps its own tf2_msgs: colcon's package discovery (what `colcon build`
+    crawls) and rosdep's (catkin_pkg) see one package; pointed at interfaces/ they see tf2_msgs."""
+    import argparse
+
+    from catkin_pkg.packages import find_packages
+    from colcon_core.package_discovery import add_package_discovery_arguments, discover_packages
+    from colcon_core.package_identification import get_package_identification_extensions
+
+    ws = workspace_with_the_package(tmp_path)
+    nested = ws / 'src' / 'uncertain_facade_map' / 'interfaces'
+    assert (nested / 'tf2_msgs' / 'package.xml').is_file()
+    parser = argparse.ArgumentParser()
+    add_package_discovery_arguments(parser)
+
+    def colcon_sees(*base_paths: Path) -> list[tuple[str, str]]:
+        args = parser.parse_args(['--base-paths', *map(str, base_paths)])
+        found = discover_packages(args, get_package_identification_extensions())
+        return sorted((d.name, str(Path(d.path).relative_to(ws))) for d in found)
+
+    assert colcon_sees(ws) == [('uncertain_facade_map', 'src/uncertain_facade_map')]
+    assert [p.name for p in find_packages(str(ws / 'src')).values()] == ['uncertain_facade_map']
+    # The control: the package is a valid one, only its place hides it.
+    assert colcon_sees(nested) == [('tf2_msgs', 'src/uncertain_facade_map/interfaces/tf2_msgs')]
+
+
+@pytest.mark.parametrize('changed, ours, tf2', [
+    ('interfaces/tf2_msgs/msg/TFMessage.msg', False, True),
+    ('interfaces/tf2_msgs/CMakeLists.txt', False, True),
+    ('interfaces/tf2_msgs/package.xml', False, True),
+    ('cmake/ros_wheel_quirks.cmake', True, True),
+    ('msg/Facade.msg', True, False),
+])
+def test_make_rebuilds_tf2_msgs_when_its_sources_change(changed, ours, tf2):
+    if shutil.which('make') is None:
+        pytest.skip('no make')
+    # -o: whatever the pins' state, only the changed file decides what is rebuilt.
+    result = subprocess.run(['make', '-n', '-W', changed, '-o', '.venv/.installed', 'venv'], cwd=REPO,
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert ('cmake -S . -B build/interfaces' in result.stdout) is ours
+    assert ('cmake -S interfaces/tf2_msgs -B build/tf2_msgs' in result.stdout) is tf2
+    assert ('cmake --install build/tf2_msgs' in result.stdout) is tf2

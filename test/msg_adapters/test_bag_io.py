@@ -237,6 +237,9 @@ def test_write_bag_errors(tmp_path: Path) -> None:
         write_bag(tmp_path / 'y', scans, storage='mcap', map_origin=(0.0, np.nan, 0.0))
     with pytest.raises(InputError, match='map origin'):
         write_bag(tmp_path / 'z', scans, storage='mcap', map_origin=(0.0, 1.0))
+    with pytest.raises(InputError, match="unknown QoS profile 'durable'"):
+        write_bag(tmp_path / 'q', scans, storage='mcap', extra_qos={'/chatter': 'durable'})
+    assert not (tmp_path / 'q').exists()
 
 
 @pytest.mark.parametrize('storage', ['sqlite3', 'mcap', 'rosbag1'])
@@ -247,3 +250,56 @@ def test_failed_write_leaves_nothing(tmp_path: Path, storage: str) -> None:
     with pytest.raises(InputError, match="field 'flag'"):
         write_bag(path, [good, bad], storage=storage)
     assert not path.exists()
+
+
+def tf_msg(parent: str, child: str, x: float):
+    """A tf2_msgs/msg/TFMessage of one transform, from a ROS 1 or ROS 2 typestore."""
+    def make(typestore):
+        t = typestore.types
+        header = rosbags_types(typestore).Header(stamp=t['builtin_interfaces/msg/Time'](sec=1, nanosec=2),
+                                                 frame_id=parent)
+        transform = t['geometry_msgs/msg/Transform'](translation=t['geometry_msgs/msg/Vector3'](x, 0.0, 0.0),
+                                                     rotation=t['geometry_msgs/msg/Quaternion'](0.0, 0.0, 0.0, 1.0))
+        one = t['geometry_msgs/msg/TransformStamped'](header=header, child_frame_id=child, transform=transform)
+        return t['tf2_msgs/msg/TFMessage'](transforms=[one])
+    return make
+
+
+@pytest.mark.parametrize('storage', ['sqlite3', 'mcap', 'rosbag1'])
+def test_clouds_in_their_own_frames_and_the_qos_of_extra_topics(tmp_path: Path, storage: str) -> None:
+    from rosbags.highlevel import AnyReader
+    from rosbags.interfaces import QosDurability, QosReliability
+
+    (s0, p0), (s1, p1), (s2, p2) = make_scans(3, 4)
+    path = write_bag(bag_path(tmp_path, storage), [(s0, p0, 'up_lidar'), (s1, p1), (s2, p2, 'down_lidar')],
+                     storage=storage, frame_id='world', map_origin=ORIGIN,
+                     extra=[('/tf_static', 'tf2_msgs/msg/TFMessage', T0, tf_msg('base', 'up_lidar', 1.5)),
+                            ('/tf', 'tf2_msgs/msg/TFMessage', T0 + 5, tf_msg('world', 'base', -2.0)),
+                            ('/chatter', 'std_msgs/msg/String', T0 + 1, string_msg('hi')),
+                            ('/cloud2', 'std_msgs/msg/String', T0 + 2, string_msg('x'))],
+                     extra_qos={'/tf_static': 'latched', '/tf': 'reliable', '/cloud2': 'sensor'})
+    with AnyReader([path]) as reader:
+        conns = {c.topic: c for c in reader.connections}
+        frames = [reader.deserialize(raw, c.msgtype).header.frame_id
+                  for c, _t, raw in reader.messages(connections=[conns['/points']])]
+        tf = {c.topic: reader.deserialize(raw, c.msgtype).transforms[0]
+              for c, _t, raw in reader.messages(connections=[conns['/tf'], conns['/tf_static']])}
+    assert frames == ['up_lidar', 'world', 'down_lidar']  # the pairs keep frame_id
+    assert (tf['/tf_static'].header.frame_id, tf['/tf_static'].child_frame_id) == ('base', 'up_lidar')
+    assert tf['/tf_static'].transform.translation.x == 1.5 and tf['/tf'].transform.translation.x == -2.0
+    assert read_bag(path).map_origin.tolist() == list(ORIGIN)
+    if storage == 'rosbag1':
+        assert {t: c.ext.latching for t, c in conns.items()} == {
+            '/points': None, '/map_origin': 1, '/tf_static': 1, '/tf': None, '/chatter': None, '/cloud2': None}
+        assert conns['/tf'].digest == '94810edda583a504dfda3829e70d7eec'  # tf2_msgs/TFMessage of ROS 1
+        return
+    profiles = {t: [(q.reliability, q.durability, q.depth) for q in c.ext.offered_qos_profiles]
+                for t, c in conns.items()}
+    assert profiles == {
+        '/points': [(QosReliability.BEST_EFFORT, QosDurability.VOLATILE, 5)],
+        '/map_origin': [(QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL, 1)],
+        '/tf_static': [(QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL, 1)],
+        '/tf': [(QosReliability.RELIABLE, QosDurability.VOLATILE, 10)],
+        '/chatter': [],
+        '/cloud2': [(QosReliability.BEST_EFFORT, QosDurability.VOLATILE, 5)],
+    }
