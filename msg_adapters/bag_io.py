@@ -13,13 +13,21 @@ profile asked for (``extra_qos``: /tf_static transient local). ROS 1 bags get
 
 Reading: :func:`read_bag` opens ROS 1 bags (a list of ``.bag`` files) or one ROS 2 bag (a
 directory with ``metadata.yaml``, or a single ``.db3`` / ``.mcap`` file) with
-``rosbags.highlevel.AnyReader`` and decodes the PointCloud2 topic.
+``rosbags.highlevel.AnyReader`` and decodes the PointCloud2 topic with each cloud's frame,
+and the poses a robot records beside it: every ``tf2_msgs/msg/TFMessage`` topic (``/tf``;
+a topic named ``tf_static`` holds static transforms), ``geometry_msgs/msg/TransformStamped``
+topic (such as the node's ``sensor_pose``) and ``nav_msgs/msg/Odometry`` topic
+(:data:`POSE_TYPES`), so that the clouds can be put into the map frame exactly as the node
+does (:meth:`BagClouds.transform_buffer`). :func:`read_bag_cloud` joins the scans of a bag
+into one map-frame cloud for ``build``.
 """
 
 from __future__ import annotations
 
+import math
 import shutil
 import sqlite3
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
@@ -29,8 +37,10 @@ import numpy as np
 from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.io.cloud import Cloud
 from uncertain_facade_map.io.inputs import load_inputs as core_load_inputs
+from uncertain_facade_map.transforms import TransformBuffer
 
 from .pointcloud2 import pointcloud2_from_structured, rosbags_types, structured_from_pointcloud2
+from .transforms import StampedTransform, stamped_transforms, transform_arrays
 
 #: custom_data key of ROS 2 bags holding the map origin, ``'x y z'`` as Python float reprs.
 ORIGIN_KEY = 'uncertain_facade_map/map_origin'
@@ -51,6 +61,15 @@ TFMESSAGE = 'tf2_msgs/msg/TFMessage'
 #: tf2_msgs/msg/TFMessage, which rosbags' ROS 1 Noetic typestore lacks (ROS 1 md5sum
 #: 94810edda583a504dfda3829e70d7eec, as tf2_msgs/TFMessage in Noetic bags).
 _TFMESSAGE_DEFINITION = 'geometry_msgs/TransformStamped[] transforms\n'
+TRANSFORMSTAMPED = 'geometry_msgs/msg/TransformStamped'
+ODOMETRY = 'nav_msgs/msg/Odometry'
+#: The message types read as poses of frames: transforms, the node's sensor_pose, odometry.
+POSE_TYPES = (TFMESSAGE, TRANSFORMSTAMPED, ODOMETRY)
+
+
+def is_static_topic(topic: str) -> bool:
+    """Whether a TFMessage topic holds static transforms (``/tf_static``, ``/robot/tf_static``)."""
+    return topic.rstrip('/').split('/')[-1] == 'tf_static'
 
 
 @dataclass
@@ -63,11 +82,46 @@ class BagClouds:
             as given by :func:`~msg_adapters.pointcloud2.structured_from_pointcloud2`.
         map_origin: (3,) float64, metres; zeros if the bag records none.
         topic: the PointCloud2 topic read.
+        frame_ids: each scan's ``header.frame_id``, in the order of ``scans``.
+        transforms: the poses of the bag's pose topics (:data:`POSE_TYPES`) in bag order,
+            as ``(topic, static, transform)``.
+        pose_topics: topic -> message type of the pose topics read.
     """
 
     scans: list[tuple[int, np.ndarray]]
     map_origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
     topic: str = ''
+    frame_ids: list[str] = field(default_factory=list)
+    transforms: list[tuple[str, bool, StampedTransform]] = field(default_factory=list)
+    pose_topics: dict[str, str] = field(default_factory=dict)
+
+    def transform_buffer(self, cache_time: float = math.inf) -> tuple[TransformBuffer, list[str]]:
+        """Every transform of the bag in one buffer (as the node's, but keeping them all).
+
+        Returns:
+            (the buffer, the reasons of the transforms it refused, e.g. a frame given two
+            parents, as ``'TOPIC: reason'``).
+        """
+        buffer = TransformBuffer(cache_time=cache_time)
+        refused: list[str] = []
+        groups: dict[tuple[str, bool], list[StampedTransform]] = {}
+        for topic, static, t in self.transforms:
+            groups.setdefault((topic, static), []).append(t)
+        for (topic, static), items in groups.items():
+            why: list[str] = []
+            buffer.set_transforms(**transform_arrays(items), static=static, strict=False, refused=why)
+            refused += [f'{topic}: {w}' for w in why]
+        return buffer, refused
+
+    def cloud_frames(self) -> dict[str, int]:
+        """The frames of the clouds, with the number of clouds in each, in order of appearance."""
+        return dict(Counter(self.frame_ids))
+
+    @property
+    def located_scans(self) -> list[tuple[int, np.ndarray, str]]:
+        """``(stamp_ns, points, frame_id)`` of each scan, in bag order."""
+        frames = self.frame_ids or [''] * len(self.scans)
+        return [(stamp, points, frame) for (stamp, points), frame in zip(self.scans, frames)]
 
 
 # --------------------------------------------------------------------------------------
@@ -369,23 +423,27 @@ def read_bag(
     paths: str | Path | Sequence[str | Path],
     *,
     topic: str | None = None,
+    poses: Sequence[str] | None = None,
 ) -> BagClouds:
-    """Read every PointCloud2 scan of one topic of a bag, and its map origin.
+    """Read every PointCloud2 scan of one topic of a bag, its frames, poses and map origin.
 
     Args:
         paths: one ROS 2 bag (directory with metadata.yaml, or a ``.db3`` / ``.mcap``
             file) or one or more ROS 1 ``.bag`` files.
         topic: the PointCloud2 topic; None to use the bag's only PointCloud2 topic.
+        poses: the pose topics to read; None for every topic of a type in
+            :data:`POSE_TYPES`, ``[]`` for none.
 
     Returns:
-        :class:`BagClouds` with the scans in bag order, the map origin ((3,) float64,
-        metres: from ``/map_origin``, else the ROS 2 custom_data key :data:`ORIGIN_KEY`,
-        else zeros) and the topic read.
+        :class:`BagClouds` with the scans and their frames in bag order, the transforms of
+        the pose topics, the map origin ((3,) float64, metres: from ``/map_origin``, else
+        the ROS 2 custom_data key :data:`ORIGIN_KEY`, else zeros) and the topic read.
 
     Raises:
         InputError: a path is missing or not a bag; ``topic`` is None and the bag has zero
             or several PointCloud2 topics, or ``topic`` is not a PointCloud2 topic of the
-            bag (the message lists the topics found); a message cannot be decoded.
+            bag (the message lists the topics found); a pose topic that is not one of
+            :data:`POSE_TYPES`; a message cannot be decoded.
     """
     reader = _open_reader(_paths(paths))
     try:
@@ -405,8 +463,18 @@ def read_bag(
                 f'bag has no {POINTCLOUD2} topic {topic!r}; topics: {_topics_text(topics)}'
             )
 
-        wanted = [c for c in reader.connections if c.topic in (topic, ORIGIN_TOPIC)]
+        if poses is None:
+            pose_topics = {t: m for t, m in topics.items() if m in POSE_TYPES}
+        else:
+            bad = [t for t in poses if topics.get(t) not in POSE_TYPES]
+            if bad:
+                raise InputError(f'{", ".join(bad)}: no pose topic of the bag (types {", ".join(POSE_TYPES)}); '
+                                 f'topics: {_topics_text(topics)}')
+            pose_topics = {t: topics[t] for t in poses}
+        wanted = [c for c in reader.connections if c.topic in (topic, ORIGIN_TOPIC) or c.topic in pose_topics]
         scans: list[tuple[int, np.ndarray]] = []
+        frames: list[str] = []
+        transforms: list[tuple[str, bool, StampedTransform]] = []
         origin: np.ndarray | None = None
         for conn, _time, raw in reader.messages(connections=wanted):
             try:
@@ -418,6 +486,10 @@ def read_bag(
                 stamp = msg.header.stamp
                 stamp_ns = int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
                 scans.append((stamp_ns, structured_from_pointcloud2(msg)))
+                frames.append(str(msg.header.frame_id))
+            elif conn.topic in pose_topics:
+                static = conn.msgtype == TFMESSAGE and is_static_topic(conn.topic)
+                transforms += [(conn.topic, static, t) for t in stamped_transforms(msg)]
             elif origin is None and conn.msgtype == POINTSTAMPED:
                 p = msg.point
                 origin = np.array([p.x, p.y, p.z], dtype=np.float64)
@@ -427,43 +499,133 @@ def read_bag(
         reader.close()
     if origin is None:
         origin = np.zeros(3)
-    return BagClouds(scans=scans, map_origin=origin, topic=topic)
+    return BagClouds(scans=scans, map_origin=origin, topic=topic, frame_ids=frames, transforms=transforms,
+                     pose_topics=pose_topics)
 
 
-def read_bag_cloud(paths: str | Path | Sequence[str | Path], topic: str | None = None) -> Cloud:
-    """Read all scans of a bag's PointCloud2 topic as one cloud.
+def no_transform_message(path: str, bag: BagClouds, missing: dict[str, str], map_frame: str,
+                         buffer: TransformBuffer) -> str:
+    """One line refusing a bag whose clouds no transform puts into the map frame."""
+    frames = ', '.join(f'"{f}" ({n} clouds)' for f, n in bag.cloud_frames().items())
+    tree = repr(buffer).replace('\n', '; ') if buffer.frames() else 'none'
+    poses = ', '.join(f'{t} ({m})' for t, m in bag.pose_topics.items()) or 'none'
+    why = next(iter(missing.values()))
+    return (f'{path}: the clouds on {bag.topic} are in {frames}, not in the map frame "{map_frame}" '
+            f'(input.frame_id), and no transform connects them with it ({why}); pose topics read: {poses}; '
+            f'transforms: {tree}. Set input.frame_id to the fixed frame of the transforms, or record /tf and '
+            '/tf_static (or sensor_pose) with the clouds; nothing was mapped as if in the map frame')
+
+
+def refuse_unplaceable(path: str, bag: BagClouds, buffer: TransformBuffer, map_frame: str) -> None:
+    """InputError when no cloud of the bag can be put into the map frame (see :func:`no_transform_message`)."""
+    from uncertain_facade_map.io.scans import frames_without_transform
+
+    frames = bag.cloud_frames()
+    missing = frames_without_transform(frames, buffer, map_frame)
+    if frames and len(missing) == len(frames):
+        raise InputError(no_transform_message(path, bag, missing, map_frame, buffer))
+
+
+def _placed(scan: Any, placement: Any) -> np.ndarray:
+    """The finite points of a placed scan as a structured array in the map frame: x, y, z
+    and sensor origins (when known) as float64, the other fields as they were."""
+    from uncertain_facade_map.io.scans import ORIGIN_FIELDS, select_scan_points
+
+    points = scan.points[scan.finite]
+    moved = select_scan_points(scan.points, _all_building(), pose=placement.pose)
+    has_origins = moved.sensor_origins is not None
+    coords = ('x', 'y', 'z') + (ORIGIN_FIELDS if has_origins else ())
+    rest = [(n, points.dtype.fields[n][0]) for n in points.dtype.names if n not in coords + ORIGIN_FIELDS]
+    out = np.zeros(len(points), dtype=[(n, 'f8') for n in coords] + rest)
+    for k, n in enumerate(('x', 'y', 'z')):
+        out[n] = moved.xyz[:, k]
+    if has_origins:
+        for k, n in enumerate(ORIGIN_FIELDS):
+            out[n] = moved.sensor_origins[:, k]
+    for n, _t in rest:
+        out[n] = points[n]
+    return out
+
+
+def _all_building() -> Any:
+    from uncertain_facade_map.params import InputConfig
+
+    return InputConfig(class_field='', building_id_field='')
+
+
+def read_bag_cloud(paths: str | Path | Sequence[str | Path], topic: str | None = None, config: Any = None,
+                   warn: Callable[[str], None] | None = None) -> Cloud:
+    """Read all scans of a bag's PointCloud2 topic as one cloud in the map frame.
 
     Args:
         paths: as for :func:`read_bag`.
         topic: as for :func:`read_bag`.
+        config: a :class:`~uncertain_facade_map.params.Config`: clouds in other frames than
+            ``input.frame_id`` are put into it as the node does (the bag's pose topics,
+            ``input.time_field``, ``node.pose_tolerance``: :class:`~uncertain_facade_map.io.scans.Scan`),
+            with their sensor origins; None: the clouds are taken as in the map frame.
+        warn: called with one line about clouds that could not be placed (dropped).
 
     Returns:
         A :class:`~uncertain_facade_map.io.cloud.Cloud` with the points of all scans in bag
-        order (map frame, metres) and the bag's map origin.
+        order (map frame, metres) and the bag's map origin. Clouds in other frames give
+        their finite points with x, y, z and origin_x/y/z as float64.
 
     Raises:
         InputError: as :func:`read_bag`; also if the topic has no message, the scans'
-            fields differ, or the points lack x, y or z.
+            fields differ, the points lack x, y or z, or no cloud can be put into the map
+            frame (:func:`refuse_unplaceable`).
     """
-    bag = read_bag(paths, topic=topic)
+    from uncertain_facade_map.errors import TransformError
+    from uncertain_facade_map.io.scans import Scan
+
+    name = ', '.join(str(p) for p in ([paths] if isinstance(paths, (str, Path)) else paths))
+    bag = read_bag(paths, topic=topic, poses=None if config is not None else [])
     if not bag.scans:
         raise InputError(f'topic {bag.topic} of the bag has no messages')
-    dtypes = {pts.dtype for _stamp, pts in bag.scans}
+    map_frame = None if config is None else config.input.frame_id
+    if map_frame is None or all(f == map_frame for f in bag.frame_ids):
+        dtypes = {pts.dtype for _stamp, pts in bag.scans}
+        if len(dtypes) > 1:
+            raise InputError(f'scans on {bag.topic} have different fields: '
+                             + '; '.join(str(d) for d in dtypes))
+        return Cloud(np.concatenate([pts for _stamp, pts in bag.scans]), bag.map_origin)
+    buffer, _refused = bag.transform_buffer()
+    refuse_unplaceable(name, bag, buffer, map_frame)
+    parts, rejected = [], Counter()
+    for stamp, points, frame in bag.located_scans:
+        try:
+            scan = Scan.of(points, frame, stamp, config.input)
+            parts.append(_placed(scan, scan.place(buffer, map_frame, config.node.pose_tolerance)))
+        except TransformError as exc:
+            rejected[str(exc).splitlines()[0]] += 1
+    if rejected and warn is not None:
+        warn(f'{name}: {sum(rejected.values())} of {len(bag.scans)} clouds dropped, no transform into '
+             f'"{map_frame}": {rejected.most_common(1)[0][0]}')
+    if not parts:
+        raise InputError(f'{name}: no cloud on {bag.topic} could be put into the map frame "{map_frame}"')
+    names = {p.dtype.names for p in parts}
+    if len(names) > 1:  # some clouds without sensor origins (in the map frame): keep the common fields
+        common = [n for n in parts[0].dtype.names if all(n in p.dtype.names for p in parts)]
+        if warn is not None and not all(n in common for n in ('origin_x', 'origin_y', 'origin_z')):
+            warn(f'{name}: some clouds have no sensor origins: mapped without any')
+        parts = [p[common] for p in parts]
+    dtypes = {p.dtype for p in parts}
     if len(dtypes) > 1:
-        raise InputError(f'scans on {bag.topic} have different fields: '
-                         + '; '.join(str(d) for d in dtypes))
-    points = np.concatenate([pts for _stamp, pts in bag.scans])
-    return Cloud(points, bag.map_origin)
+        raise InputError(f'scans on {bag.topic} have different fields: ' + '; '.join(str(d) for d in dtypes))
+    return Cloud(np.concatenate(parts), bag.map_origin)
 
 
 def load_inputs(paths: str | Path | Sequence[str | Path], topic: str | None = None, *,
-                max_distance: float | None = None, warn: Callable[[str], None] | None = None) -> Cloud:
+                max_distance: float | None = None, warn: Callable[[str], None] | None = None,
+                config: Any = None) -> Cloud:
     """Point cloud files and ROS bags joined into one cloud: the core's
     :func:`~uncertain_facade_map.io.inputs.load_inputs` with bags read by :func:`read_bag_cloud`
-    (``max_distance`` and ``warn`` as there).
+    (``max_distance`` and ``warn`` as there; ``config`` as for :func:`read_bag_cloud`).
 
     Raises:
         InputError: as the core's ``load_inputs`` and :func:`read_bag_cloud`.
     """
-    return core_load_inputs(paths, topic=topic, read_bag=lambda path, t: read_bag_cloud([path], topic=t),
+    return core_load_inputs(paths, topic=topic,
+                            read_bag=lambda path, t: read_bag_cloud([path], topic=t, config=config, warn=warn),
                             max_distance=max_distance, warn=warn)

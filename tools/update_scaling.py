@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from uncertain_facade_map.io.inputs import select_scan_points
+from uncertain_facade_map.io.scans import select_scan_points
 from uncertain_facade_map.mapping.facade_map import FacadeMap
 from uncertain_facade_map.params import InputConfig, MapParams, UpdateParams
 

@@ -173,7 +173,8 @@ def cmd_build(args: argparse.Namespace) -> int:
         raise CliError('give --sensor or --trajectory, not both')
     trajectory = None if args.trajectory is None else read_trajectory(args.trajectory)
     started = time.perf_counter()
-    cloud = load_inputs(args.inputs, topic=args.topic, max_distance=config.input.max_distance, warn=print)
+    cloud = load_inputs(args.inputs, topic=args.topic, max_distance=config.input.max_distance, warn=print,
+                        config=config)
     selection = config.selection if args.select is None else dataclasses.replace(config.selection, mode=args.select)
     points = select_building_points(cloud, config.input, selection, sensor=args.sensor, trajectory=trajectory)
     read_s = time.perf_counter() - started
@@ -243,13 +244,14 @@ def cmd_query(args: argparse.Namespace) -> int:
     return 0
 
 
-def _read_bags(paths: Sequence[str], topic: str | None):
-    """Scans of the bags in order, their map origin and the topic read; checks the fields."""
-    from msg_adapters.bag_io import list_topics, read_bag
+def _read_bags(paths: Sequence[str], topic: str | None, poses: Sequence[str] | None = None):
+    """The bags' scans as ``(stamp_ns, points, frame_id)`` in order, their transforms, map origin,
+    topic and pose topics; checks the fields."""
+    from msg_adapters.bag_io import BagClouds, list_topics, read_bag
 
-    scans, origin, name = [], None, topic
+    joined, origin = BagClouds([]), None
     for path in paths:
-        bag = read_bag(path, topic=topic)
+        bag = read_bag(path, topic=topic, poses=poses)
         if not bag.scans:
             raise CliError(f'{path}: no messages on {bag.topic}')
         names = bag.scans[0][1].dtype.names or ()
@@ -258,14 +260,30 @@ def _read_bags(paths: Sequence[str], topic: str | None):
             topics = ', '.join(f'{t} ({m})' for t, m in list_topics(path).items())
             raise CliError(f'{path}: the clouds on {bag.topic} have no {", ".join(missing)} field (fields: '
                            f'{", ".join(names)}); topics: {topics}')
-        scans += bag.scans
+        joined.scans += bag.scans
+        joined.frame_ids += bag.frame_ids
+        joined.transforms += bag.transforms
+        joined.pose_topics.update(bag.pose_topics)
         origin = bag.map_origin if origin is None else origin
-        name = bag.topic
-    return scans, origin, name
+        joined.topic = bag.topic
+    joined.map_origin = origin
+    return joined
+
+
+def _poses_option(text: str | None) -> list[str] | None:
+    """``--poses``: None (every pose topic), [] (``none``) or the topics listed."""
+    if text is None:
+        return None
+    return [] if text.strip() == 'none' else [t.strip() for t in text.split(',') if t.strip()]
+
+
+def _share(part: int, whole: int) -> str:
+    return f'{part / whole:.0%}' if whole else '-'
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
     """Replay bags offline into a map, or publish them to a running node (see ``replay --help``)."""
+    from msg_adapters.bag_io import refuse_unplaceable
     from uncertain_facade_map.io.map_file import save_map
     from uncertain_facade_map.io.parameter_file import load_config
     from uncertain_facade_map.mapping.facade_map import FacadeMap
@@ -275,17 +293,30 @@ def cmd_replay(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     if args.out and not Path(args.out).parent.exists():
         raise CliError(f'output folder {Path(args.out).parent} does not exist')
-    scans, origin, topic = _read_bags(args.bags, args.topic)
+    bag = _read_bags(args.bags, args.topic, _poses_option(args.poses))
+    map_frame = config.input.frame_id
+    buffer, refused = bag.transform_buffer()
+    refuse_unplaceable(', '.join(args.bags), bag, buffer, map_frame)
+    for why in refused[:3]:
+        print(f'warning: transform refused: {why}', file=sys.stderr)
+    if len(refused) > 3:
+        print(f'warning: {len(refused) - 3} more transforms refused', file=sys.stderr)
+    scans = bag.located_scans
     if args.mode == 'publish':
-        from uncertain_facade_map_node.replay import publish_scans, select_window
+        from uncertain_facade_map_node.replay import publish_recording, select_window
 
         window = select_window(scans, args.start, args.duration)
         span = (window[-1][0] - window[0][0]) / 1e9
         with _counter('published', 'scan', args.quiet, len(window)) as update:
-            done = publish_scans(window, topic=args.publish_topic, frame_id=config.input.frame_id, rate=args.rate,
-                                 loop=args.loop, reliable=not args.best_effort, progress=update)
-        print(f'published {done["published"]:,} scans of {topic} ({span:.1f} s of recording) on '
-              f'{args.publish_topic} in {done["seconds"]:.1f} s (rate {args.rate:g})')
+            done = publish_recording(window, bag.transforms, pose_types=bag.pose_topics,
+                                     topic=args.publish_topic or bag.topic, rate=args.rate, loop=args.loop,
+                                     reliable=not args.best_effort, progress=update, wait_node=args.wait_node)
+        print(f'published {done["published"]:,} scans of {bag.topic} ({span:.1f} s of recording) on '
+              f'{done["topic"]} in {done["seconds"]:.1f} s (rate {args.rate:g}), with {done["transforms"]:,} '
+              f'transforms ({", ".join(done["pose_topics"]) or "none"})')
+        print(done['received'])
+        for line in done['warnings']:
+            print(f'warning: {line}', file=sys.stderr)
         return 0
     if args.start or args.duration is not None or args.loop:
         from uncertain_facade_map_node.replay import select_window
@@ -293,11 +324,23 @@ def cmd_replay(args: argparse.Namespace) -> int:
         if args.loop:
             raise CliError('--loop is for --mode publish')
         scans = select_window(scans, args.start, args.duration)
-    fmap = FacadeMap(map_params(config), origin)
+    fmap = FacadeMap(map_params(config), bag.map_origin)
     with _counter('mapped', 'scan', args.quiet, len(scans)) as update:
-        summary = map_scans(fmap, (points for _, points in scans), config.input, update, config.selection)
-    print(f'replayed {summary.scans:,} scans of {topic}: {summary.points:,} points, {summary.building_points:,} '
+        summary = map_scans(fmap, scans, config.input, update, config.selection, buffer=buffer,
+                            tolerance=config.node.pose_tolerance, max_coordinate=config.node.max_coordinate)
+    frames = ', '.join(f'{f} ({n})' for f, n in bag.cloud_frames().items())
+    print(f'replayed {summary.scans:,} scans of {bag.topic}: {summary.points:,} points, {summary.building_points:,} '
           f'building, {summary.nonfinite:,} skipped (NaN/Inf)')
+    print(f'frames   clouds in {frames}; map frame "{map_frame}"'
+          + (f'; transforms from {", ".join(bag.pose_topics)}: {buffer!r}'.replace('\n', '; ') if bag.pose_topics
+             else ''))
+    if summary.non_ground:
+        print(f'selected {summary.selected:,} of {summary.non_ground:,} non-ground points '
+              f'({_share(summary.selected, summary.non_ground)}) as building')
+    for note, count in summary.notes.items():
+        print(f'placed   {count} scans: {note}')
+    if summary.rejected:
+        print(f'rejected {summary.rejected:,} scans: ' + '; '.join(f'{n} x {why}' for why, n in summary.reasons.items()))
     print(f'mapped   {summary.buildings} buildings, {summary.facades} façades in {summary.seconds:.1f} s '
           f'({summary.points / max(summary.seconds, 1e-9):,.0f} points/s)')
     if args.out:
@@ -655,7 +698,14 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument('--loop', action='store_true', help='publish: start again after the last scan')
     replay.add_argument('--start', type=float, default=0.0, help='seconds into the recording to start at')
     replay.add_argument('--duration', type=float, help='seconds of recording to replay (default: all)')
-    replay.add_argument('--publish-topic', default='points', help='publish: topic to publish on (default points)')
+    replay.add_argument('--publish-topic', help="publish: topic to publish the clouds on (default: the bag's own)")
+    replay.add_argument('--poses', metavar='TOPICS',
+                        help='pose topics to read, comma-separated, or none (default: every tf2_msgs/TFMessage, '
+                             'geometry_msgs/TransformStamped and nav_msgs/Odometry topic; a topic named tf_static holds '
+                             'static transforms)')
+    replay.add_argument('--wait-node', type=float, default=10.0,
+                        help="publish: seconds to wait for the node's diagnostics after the last cloud, to report how "
+                             'many it received (default 10; 0: do not wait)')
     replay.add_argument('--best-effort', action='store_true', help='publish: best-effort QoS (default reliable)')
     replay.add_argument('--quiet', action='store_true', help='no progress bar')
     replay.set_defaults(func=cmd_replay)

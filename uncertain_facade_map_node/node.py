@@ -62,8 +62,8 @@ from msg_adapters import parameters as mp_params
 from msg_adapters.published_maps import published_map_messages
 from uncertain_facade_map.datatypes import array_bytes
 from uncertain_facade_map.errors import FacadeMapError, InputError
-from uncertain_facade_map.io.inputs import select_scan_points
 from uncertain_facade_map.io.map_file import load_map, remove_stale_temporaries, save_map
+from uncertain_facade_map.io.scans import select_scan_points
 from uncertain_facade_map.mapping import products as mp
 from uncertain_facade_map.mapping.allocator import limit_heap_growth, release_free_memory
 from uncertain_facade_map.mapping.engine import HelperProcess

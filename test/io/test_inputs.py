@@ -467,7 +467,7 @@ def test_a_selection_without_walls_is_a_one_line_error() -> None:
 def test_scan_points_of_a_scan_without_classes() -> None:
     from support import WALL
 
-    from uncertain_facade_map.io.inputs import select_scan_points
+    from uncertain_facade_map.io.scans import select_scan_points
     from uncertain_facade_map.params import SelectionConfig
     from uncertain_facade_map.selection import select_building_points as select
 

@@ -107,7 +107,7 @@ def test_map_scans_selects_in_scans_without_classes():
     of scans without a class field, and all of them without a selection."""
     from support import unclassified_street
 
-    from uncertain_facade_map.io.inputs import select_scan_points
+    from uncertain_facade_map.io.scans import select_scan_points
     from uncertain_facade_map.mapping.worker import map_scans
     from uncertain_facade_map.params import InputConfig, SelectionConfig
 

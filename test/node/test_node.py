@@ -540,7 +540,7 @@ def test_a_cloud_without_classes_is_mapped_as_its_selected_points(client, mapped
     from geometry_msgs.msg import TransformStamped
     from support import WALL, unclassified_street
 
-    from uncertain_facade_map.io.inputs import select_scan_points
+    from uncertain_facade_map.io.scans import select_scan_points
     from uncertain_facade_map.params import SelectionConfig
     from uncertain_facade_map.srv import LoadMap, QueryPoints, SaveMap
 

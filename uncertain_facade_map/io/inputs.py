@@ -9,7 +9,7 @@ a message saying how to read it.
 :func:`select_building_points` then keeps the points the configuration calls building and
 returns them as plain arrays (:class:`BuildingPoints`): by their class, or, in a cloud
 without the class field, by :mod:`uncertain_facade_map.selection` (``selection.mode``);
-:func:`select_scan_points` does the same for one live scan.
+:func:`.scans.select_scan_points` does the same for one live scan.
 
 A path is taken as a bag if it is a directory (a ROS 2 bag folder, which must hold
 ``metadata.yaml``) or ends in ``.bag`` (ROS 1), ``.db3`` (ROS 2 sqlite3 storage) or
@@ -439,91 +439,3 @@ def select_building_points(cloud: Cloud, config: InputConfig, selection: Selecti
         map_origin=cloud.map_origin.copy(),
         selection=found,
     )
-
-
-@dataclass(frozen=True, eq=False)
-class ScanPoints:
-    """The building points of one live scan, and what was left out.
-
-    Attributes:
-        xyz: (N, 3) float64 building points with finite coordinates, metres, frame of the scan.
-        building_id: (N,) int64 building ids, or None.
-        sensor_origins: (N, 3) float64 sensor positions, metres, or None.
-        nonfinite: number of points skipped for NaN or infinite coordinates.
-        not_building: number of finite points of another class, or not selected.
-    """
-
-    xyz: np.ndarray
-    building_id: np.ndarray | None
-    sensor_origins: np.ndarray | None
-    nonfinite: int
-    not_building: int
-
-
-def select_scan_points(points: np.ndarray, config: InputConfig, selection: SelectionConfig | None = None,
-                       sensor_origin: np.ndarray | None = None) -> ScanPoints:
-    """Building points of one scan (a PointCloud2 as a structured array), tolerant of gaps.
-
-    Unlike :func:`select_building_points` (whole inputs, where a NaN is an error), a live
-    scan may hold NaN or infinite points (no return): they are skipped and counted. A scan
-    without building points gives empty arrays. A scan without the class field is reduced
-    by the selection as :func:`select_building_points` does, in the scan's own frame. Used
-    alike by the node and by offline replay, so both map the same points.
-
-    Args:
-        points: (M,) structured array with at least float fields ``x``, ``y``, ``z``;
-            ``config.class_field``, ``config.building_id_field`` and ``origin_x``,
-            ``origin_y``, ``origin_z`` are used when present.
-        config: which class values are building.
-        selection: the selection's parameters for scans without classes; None for none
-            (such a scan is all building).
-        sensor_origin: (3,) sensor position in the scan's frame, metres, for the selection
-            when the scan has no origin fields (e.g. zeros for a scan in the sensor's frame);
-            None if unknown.
-
-    Returns:
-        The building points.
-
-    Raises:
-        InputError: no x, y or z field (the message lists the fields), a coordinate or
-            class field that is not numeric, or a class or building id field that holds
-            non-integer values.
-    """
-    names = points.dtype.names or ()
-    missing = [c for c in ('x', 'y', 'z') if c not in names]
-    if missing:
-        raise InputError(f'no {", ".join(missing)} field (fields: {", ".join(names) or "none"})')
-    for c in ('x', 'y', 'z'):
-        if points.dtype[c].kind not in 'iuf' or points.dtype[c].shape:
-            raise InputError(f'field {c!r} must be a number, found type {points.dtype[c]}')
-    cloud = Cloud(points)
-    xyz = np.stack([points[c].astype(np.float64) for c in ('x', 'y', 'z')], axis=1)
-    keep = np.isfinite(xyz).all(axis=1)
-    nonfinite = int((~keep).sum())
-    not_building = 0
-    origin_fields = all(c in names for c in ('origin_x', 'origin_y', 'origin_z'))
-    if _selects(names, config, selection):
-        origins = sensor_origin
-        if origin_fields:
-            origins = np.stack([points[c][keep].astype(np.float64) for c in ('origin_x', 'origin_y', 'origin_z')], 1)
-            origins = origins if np.isfinite(origins).all() else sensor_origin
-        from ..selection import select_building_points as select_walls
-
-        selected = np.zeros(len(keep), dtype=bool)
-        selected[keep] = select_walls(xyz[keep], origins, selection).mask
-        not_building = int((keep & ~selected).sum())
-        keep = selected
-    elif config.class_field in names:
-        classes = _integer_values(cloud, config.class_field, 'class')
-        building = np.isin(classes, np.asarray(config.building_classes, dtype=np.int64))
-        not_building = int((keep & ~building).sum())
-        keep &= building
-    ids = None
-    if config.building_id_field in names:
-        ids = _integer_values(cloud, config.building_id_field, 'building id')[keep]
-    origins = None
-    if origin_fields:
-        origins = np.stack([points[c][keep].astype(np.float64) for c in ('origin_x', 'origin_y', 'origin_z')], 1)
-        if not np.isfinite(origins).all():
-            origins = None
-    return ScanPoints(xyz[keep], ids, origins, nonfinite, not_building)

@@ -33,13 +33,14 @@ from __future__ import annotations
 
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import numpy as np
 
 from ..datatypes import FacadeModel
+from ..errors import InputError
 from ..params import MapParams
 from ..pipeline.step8_occupancy import FIXED, PLSC
 from .engine import LocalEngine, MapView, ProcessEngine, ReplaceMap, replace_with
@@ -430,6 +431,13 @@ class ReplaySummary:
         buildings: buildings in the map.
         facades: façades in the map.
         seconds: wall time of mapping, flush included.
+        rejected: scans refused (no transform into the map frame, absurd coordinates, bad
+            fields), as the node refuses them.
+        reasons: why, with a count of each reason (the first line of each distinct message).
+        notes: scans placed otherwise than exactly (a pose held within node.pose_tolerance,
+            one pose for a sweep), with a count of each note.
+        non_ground: non-ground points of the scans that went through the selection.
+        selected: of those, the points the selection kept.
     """
 
     scans: int
@@ -439,46 +447,76 @@ class ReplaySummary:
     buildings: int
     facades: int
     seconds: float
+    rejected: int = 0
+    reasons: dict[str, int] = field(default_factory=dict)
+    notes: dict[str, int] = field(default_factory=dict)
+    non_ground: int = 0
+    selected: int = 0
 
 
 def map_scans(fmap: FacadeMap, scans: Any, config: Any, progress: Callable[[int], None] | None = None,
-              selection: Any = None) -> ReplaySummary:
+              selection: Any = None, *, buffer: Any = None, map_frame: str | None = None, tolerance: float = 0.0,
+              max_coordinate: float | None = None) -> ReplaySummary:
     """Feed scans to a map one by one, as the node's worker does, then flush.
 
-    The node maps the clouds it receives exactly so (``add_points(defer=True)`` per
-    cloud, a flush when the input pauses), so a node fed the same scans without drops ends
-    with the same map.
+    The node maps the clouds it receives exactly so (each placed in the map frame and
+    reduced to its building points by :class:`~uncertain_facade_map.io.scans.Scan`,
+    ``add_points(defer=True)`` per cloud, a flush when the input pauses), so a node fed the
+    same scans and transforms without drops ends with the same map. A scan the node would
+    refuse (no transform into the map frame, a point beyond ``max_coordinate``, fields that
+    cannot be read) is refused and counted here too.
 
     Args:
         fmap: the map to grow.
-        scans: iterable of structured arrays (one per scan, fields as a PointCloud2
-            gives them: x, y, z and optionally the class, building id and sensor origin
-            fields of ``config``), in the map frame.
+        scans: iterable of scans in recorded order: ``(stamp_ns, points, frame_id)`` tuples,
+            or plain structured arrays (in the map frame, stamp 0); points as a PointCloud2
+            gives them (x, y, z and optionally the class, building id, sensor origin and time
+            fields of ``config``).
         config: an :class:`~uncertain_facade_map.params.InputConfig`.
         progress: called with the number of scans done after each one.
         selection: a :class:`~uncertain_facade_map.params.SelectionConfig` for scans
             without the class field, as the node passes it; None: such scans are all building.
+        buffer: the recording's transforms (a
+            :class:`~uncertain_facade_map.transforms.TransformBuffer` holding all of them);
+            None for none.
+        map_frame: the map frame; None for ``config.frame_id``.
+        tolerance: seconds a pose may be held beyond the transforms (``node.pose_tolerance``).
+        max_coordinate: metres (``node.max_coordinate``); None for no bound.
 
     Returns:
         The summary.
-
-    Raises:
-        InputError: a scan without x, y, z or with a non-integer class field.
     """
-    from ..io.inputs import select_scan_points
+    from ..io.scans import Scan
 
+    frame = config.frame_id if map_frame is None else map_frame
     started = time.perf_counter()
     n_scans = n_points = n_building = n_bad = 0
-    for points in scans:
-        scan = select_scan_points(points, config, selection)
+    rejected: Counter[str] = Counter()
+    notes: Counter[str] = Counter()
+    non_ground = selected = 0
+    for item in scans:
+        stamp, points, scan_frame = (0, item, frame) if isinstance(item, np.ndarray) else item
         n_scans += 1
         n_points += len(points)
-        n_bad += scan.nonfinite
-        if len(scan.xyz):
-            n_building += len(scan.xyz)
-            fmap.add_points(scan.xyz, scan.building_id, scan.sensor_origins, defer=True)
+        try:
+            scan = Scan.of(points, scan_frame, stamp, config)
+            placement = scan.place(buffer, frame, tolerance)
+            found = scan.building_points(placement, config, selection, max_coordinate)
+        except InputError as exc:
+            rejected[str(exc).splitlines()[0]] += 1
+        else:
+            if placement.note:
+                notes[placement.note] += 1
+            n_bad += found.nonfinite
+            if found.selection is not None and found.selection.applied:
+                non_ground += int((~found.selection.ground).sum())
+                selected += int(found.selection.mask.sum())
+            if len(found.xyz):
+                n_building += len(found.xyz)
+                fmap.add_points(found.xyz, found.building_id, found.sensor_origins, defer=True)
         if progress is not None:
             progress(n_scans)
     fmap.flush()
     return ReplaySummary(n_scans, n_points, n_building, n_bad, len(fmap.points), len(fmap.facades),
-                         time.perf_counter() - started)
+                         time.perf_counter() - started, sum(rejected.values()), dict(rejected), dict(notes),
+                         non_ground, selected)
