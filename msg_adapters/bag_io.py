@@ -576,7 +576,6 @@ def read_bag_cloud(paths: str | Path | Sequence[str | Path], topic: str | None =
             fields differ, the points lack x, y or z, or no cloud can be put into the map
             frame (:func:`refuse_unplaceable`).
     """
-    from uncertain_facade_map.errors import TransformError
     from uncertain_facade_map.io.scans import Scan
 
     name = ', '.join(str(p) for p in ([paths] if isinstance(paths, (str, Path)) else paths))
@@ -597,10 +596,10 @@ def read_bag_cloud(paths: str | Path | Sequence[str | Path], topic: str | None =
         try:
             scan = Scan.of(points, frame, stamp, config.input)
             parts.append(_placed(scan, scan.place(buffer, map_frame, config.node.pose_tolerance)))
-        except TransformError as exc:
+        except InputError as exc:  # no transform (TransformError), or a time field that cannot be read
             rejected[str(exc).splitlines()[0]] += 1
     if rejected and warn is not None:
-        warn(f'{name}: {sum(rejected.values())} of {len(bag.scans)} clouds dropped, no transform into '
+        warn(f'{name}: {sum(rejected.values())} of {len(bag.scans)} clouds dropped, not placed in '
              f'"{map_frame}": {rejected.most_common(1)[0][0]}')
     if not parts:
         raise InputError(f'{name}: no cloud on {bag.topic} could be put into the map frame "{map_frame}"')

@@ -7,9 +7,12 @@ ever refits a model.
 
 Topics (names relative, remap with ``--ros-args -r``):
 
-- subscribed: ``points`` (sensor_msgs/PointCloud2, QoS ``node.qos``), ``sensor_pose``
-  (geometry_msgs/TransformStamped: the pose of a cloud's frame ``child_frame_id`` in the
-  map frame, for clouds not in the map frame; there is no tf2 in the wheel set);
+- subscribed: ``points`` (sensor_msgs/PointCloud2 in any frame, QoS ``node.qos``), and the
+  poses that put a cloud's frame into the map frame, all into one
+  :class:`~uncertain_facade_map.transforms.TransformBuffer` (tf2's BufferCore semantics; tf2
+  itself is not in the wheel set): ``/tf`` and ``/tf_static`` (tf2_msgs/TFMessage, the
+  static ones transient local, ``node.use_tf``), ``sensor_pose``
+  (geometry_msgs/TransformStamped) and ``node.odometry_topic`` (nav_msgs/Odometry);
 - published, transient-local (a late subscriber gets the last map): ``surface``
   (PointCloud2 x, y, z, std, facade), ``surface_mesh`` (visualization_msgs/MarkerArray),
   ``variance_grids`` (uncertain_facade_map/FacadeGridArray), ``occupancy_voxels``
@@ -24,28 +27,35 @@ namespaces (``--ros-args -r __ns:=/robot1``); the node warns when another node a
 offers one of its services under the same name. No exception escapes a callback: a
 failure is logged, counted (``callback_errors``) and answered as a failure.
 
-Input that cannot be right is refused and counted before it reaches the map: clouds with a
-coordinate beyond ``node.max_coordinate`` of the map origin (a corrupted cloud: 1e30 m, or
-data whose byte order differs from ``is_bigendian``, which the message then names), poses
-likewise; an update that fails anyway leaves the map as it was (the worker rolls back).
+A cloud not in the map frame waits for its transform (at its stamp and its points' times,
+``input.time_field``) in a queue of its own (``node.transform_queue``, at most
+``node.transform_timeout`` s) while the poses come in on another callback group; then it is
+placed, moved into the map frame and reduced to its building points exactly as offline
+replay does (:class:`~uncertain_facade_map.io.scans.Scan`), or rejected with the frames it
+needed. Input that cannot be right is refused and counted before it reaches the map: clouds
+with a coordinate beyond ``node.max_coordinate`` of the map origin (a corrupted cloud: 1e30
+m, or data whose byte order differs from ``is_bigendian``, which the message then names),
+poses likewise; an update that fails anyway leaves the map as it was (the worker rolls back).
+What happened is logged: each cloud at debug level, a summary every ``node.log_period`` s.
 """
 
 from __future__ import annotations
 
-import bisect
 import difflib
 import functools
+import os
 import sys
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TransformStamped
-from nav_msgs.msg import OccupancyGrid
+from nav_msgs.msg import OccupancyGrid, Odometry
 from nav_msgs.srv import GetMap
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.exceptions import ParameterException
@@ -59,11 +69,12 @@ from visualization_msgs.msg import MarkerArray
 import msg_adapters as ma
 from msg_adapters import map_messages as mm
 from msg_adapters import parameters as mp_params
+from msg_adapters import transforms as mt
 from msg_adapters.published_maps import published_map_messages
 from uncertain_facade_map.datatypes import array_bytes
-from uncertain_facade_map.errors import FacadeMapError, InputError
+from uncertain_facade_map.errors import FacadeMapError, InputError, TransformError
 from uncertain_facade_map.io.map_file import load_map, remove_stale_temporaries, save_map
-from uncertain_facade_map.io.scans import select_scan_points
+from uncertain_facade_map.io.scans import Scan, ScanPoints
 from uncertain_facade_map.mapping import products as mp
 from uncertain_facade_map.mapping.allocator import limit_heap_growth, release_free_memory
 from uncertain_facade_map.mapping.engine import HelperProcess
@@ -80,6 +91,7 @@ from uncertain_facade_map.params import (
 from uncertain_facade_map.pipeline.step7_queries import query_points
 from uncertain_facade_map.pipeline.step8_occupancy import PLSC, occupancy_model
 from uncertain_facade_map.srv import GetFacades, LoadMap, QueryPoints, SaveMap
+from uncertain_facade_map.transforms import Placement, TransformBuffer
 
 #: Seconds a service waits for the map worker (load, reset) before answering "busy".
 COMMAND_TIMEOUT = 120.0
@@ -91,8 +103,10 @@ SERVICE_CHECK_DELAY = 3.0
 SERVICE_CHECKS = 20
 #: Parameters every rclpy node has, besides the declared ones.
 _BUILTIN_PARAMETERS = frozenset({'use_sim_time', 'start_type_description_service'})
-#: A sensor_pose whose quaternion's squared norm is further than this from 1 is refused (as tf2 does).
-QUATERNION_TOLERANCE = 0.01
+#: Seconds between the looks at the clouds waiting for their transform.
+TRANSFORM_POLL = 0.01
+#: A cloud larger than this (bytes) is lost whole over Fast DDS's defaults (docs/node.md).
+LARGE_CLOUD_BYTES = 116_000
 #: Kinds of event that make the diagnostic level WARN while they are recent.
 _WARN_EVENTS = ('dropped', 'rejected', 'failed', 'callback_error')
 
@@ -160,19 +174,13 @@ def _guarded(callback: Callable[..., Any]) -> Callable[..., Any]:
     return run
 
 
-def _byte_order_hint(points: np.ndarray, msg: Any, bound: float) -> str:
-    """A note when the coordinates would lie within ``bound`` read in the other byte order."""
-    try:
-        swapped = np.stack([points[c].byteswap() for c in ('x', 'y', 'z')], axis=1).astype(np.float64)
-    except (TypeError, ValueError):
-        return ''
-    with np.errstate(all='ignore'):
-        plausible = np.isfinite(swapped).all(axis=1) & (np.abs(swapped) <= bound).all(axis=1)
-    if plausible.mean() < 0.9:
-        return ''
-    said = 'big' if msg.is_bigendian else 'little'
-    other = 'little' if msg.is_bigendian else 'big'
-    return f'; read as {other}-endian they would be plausible: is is_bigendian ({said}-endian) wrong?'
+@dataclass
+class _Waiting:
+    """A received cloud waiting for its transform into the map frame."""
+
+    scan: Scan
+    points: int  # width * height
+    arrived: float  # time.monotonic()
 
 
 class FacadeMapperNode(Node):
@@ -189,13 +197,15 @@ class FacadeMapperNode(Node):
         self.counters = {'clouds_received': 0, 'points_received': 0, 'clouds_rejected': 0, 'points_rejected': 0,
                          'clouds_no_building': 0, 'points_nonfinite': 0, 'points_not_building': 0,
                          'clouds_missed_estimate': 0, 'poses_rejected': 0, 'queries': 0, 'queries_failed': 0,
-                         'saves': 0, 'callback_errors': 0}
+                         'saves': 0, 'callback_errors': 0, 'clouds_no_transform': 0, 'transforms_received': 0}
         self._count_lock = threading.Lock()
         self._events: deque[tuple[float, str, str]] = deque(maxlen=1000)  # (monotonic, kind, text)
         self._last_stamp: dict[str, tuple[int, deque[int]]] = {}  # frame -> (last stamp, recent periods)
         self._warned: dict[str, float] = {}
-        self._poses: dict[str, tuple[list[int], list[tuple[np.ndarray, np.ndarray]]]] = {}
-        self._pose_lock = threading.Lock()
+        # Every pose source feeds one buffer (it has its own lock: the pose callbacks run beside the clouds').
+        self.transforms = TransformBuffer(cache_time=cfg.node.transform_cache, max_samples=cfg.node.pose_buffer)
+        self._waiting: deque[_Waiting] = deque()  # clouds waiting for their transform, in arrival order
+        self._interval = self._new_interval()  # what the next summary line tells
         self._grid: tuple[int, Any] | None = None
         self._facades_size: tuple[int, float] = (-1, 0.0)  # (snapshot version, MB of its façade arrays)
         self._published_bytes = 0  # of the latest published maps (serialized; the grid's cells)
@@ -227,10 +237,22 @@ class FacadeMapperNode(Node):
 
         qos = qos_profile_sensor_data if cfg.node.qos == 'sensor_data' else QoSProfile(
             depth=max(10, cfg.node.queue_size), reliability=ReliabilityPolicy.RELIABLE)
+        # Clouds (and their wait for a transform) in one group, poses in another: a cloud's
+        # selection must never hold up the pose it waits for.
         inputs = MutuallyExclusiveCallbackGroup()
         self.create_subscription(PointCloud2, 'points', self.points_callback, qos, callback_group=inputs)
-        self.create_subscription(TransformStamped, 'sensor_pose', self.pose_callback, 100,
-                                 callback_group=inputs)
+        self.create_timer(TRANSFORM_POLL, self.waiting_callback, callback_group=inputs)
+        poses = MutuallyExclusiveCallbackGroup()
+        self.create_subscription(TransformStamped, 'sensor_pose', self.pose_callback, 100, callback_group=poses)
+        self._pose_sources = ['sensor_pose']
+        if cfg.node.use_tf:
+            self._subscribe_tf(poses)
+        if cfg.node.odometry_topic:
+            self.create_subscription(Odometry, cfg.node.odometry_topic, self.odometry_callback, 100,
+                                     callback_group=poses)
+            self._pose_sources.append(cfg.node.odometry_topic)
+        if cfg.node.log_period > 0:
+            self.create_timer(cfg.node.log_period, self.summary_callback, callback_group=MutuallyExclusiveCallbackGroup())
         services = ReentrantCallbackGroup()
         self.create_service(QueryPoints, 'query_points', self.query_callback, callback_group=services)
         self.create_service(GetFacades, 'get_facades', self.get_facades_callback, callback_group=services)
@@ -251,7 +273,8 @@ class FacadeMapperNode(Node):
         self._service_check = self.create_timer(SERVICE_CHECK_DELAY, self.service_check_callback,
                                                 callback_group=MutuallyExclusiveCallbackGroup())
         snap = self.worker.snapshot
-        self.get_logger().info(f'mapping clouds on "points" in frame "{self.frame_id}"; '
+        self.get_logger().info(f'mapping clouds on "{self.resolve_topic_name("points")}" into frame "{self.frame_id}" '
+                               f'with the transforms of {", ".join(self._pose_sources)}; '
                                f'{len(snap.facades)} façades, {snap.points} points to start with')
 
     # -- set-up ---------------------------------------------------------------------
@@ -288,151 +311,274 @@ class FacadeMapperNode(Node):
             with self._count_lock:
                 self.counters['callback_errors'] += 1
 
-    def _reject(self, why: str, points: int) -> None:
-        """Count a refused cloud of ``points`` points (the caller holds ``_count_lock``)."""
+    def _reject(self, why: str, points: int, kind: str | None = None) -> None:
+        """Count a refused cloud of ``points`` points (the caller holds ``_count_lock``);
+        ``kind`` names the reason in the summary line (default: the reason's first words)."""
         self.counters['clouds_rejected'] += 1
         self.counters['points_rejected'] += points
+        self._interval['rejected'][kind or why.split(':')[0][:40]] += 1
         self._event('rejected', f'cloud rejected: {why}')
-        self._warn(f'cloud rejected: {why}', why.split(':')[0][:30])
+        self._warn(f'cloud rejected: {why}', kind or why.split(':')[0][:30])
 
-    def _count_gap(self, frame: str, stamp: int) -> None:
+    def _count_gap(self, frame: str, stamp: int, size: int = 0) -> None:
         """Estimate clouds lost before they reached the node from the gaps between stamps
         (a gap of k typical periods means k - 1 lost). The typical period is the 10th
         percentile of the last 50 gaps: when most clouds are lost the median gap is itself
-        a gap, the short ones are still the sensor's period."""
+        a gap, the short ones are still the sensor's period. Large clouds (``size`` bytes)
+        lost without the DDS profile for large clouds get a warning pointing to it."""
         last, periods = self._last_stamp.get(frame, (None, deque(maxlen=50)))
         if last is not None and stamp > last:
             gap = stamp - last
             if len(periods) >= 5:
                 typical = float(np.percentile(periods, 10))
                 if typical > 0 and gap > 1.5 * typical:
-                    self.counters['clouds_missed_estimate'] += int(round(gap / typical)) - 1
+                    missed = int(round(gap / typical)) - 1
+                    self.counters['clouds_missed_estimate'] += missed
+                    if size > LARGE_CLOUD_BYTES and not os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE'):
+                        self._warn(f'about {missed} clouds of "{frame}" were lost before they reached the node (a gap '
+                                   f'in their stamps); clouds of {size / 1e6:.1f} MB are lost whole to DDS '
+                                   "fragmentation with Fast DDS's defaults: export FASTRTPS_DEFAULT_PROFILES_FILE="
+                                   '<repository>/config/fastdds_large_clouds.xml for the node and the publisher '
+                                   '(docs/node.md, "Large clouds over DDS")', 'dds losses', period=60.0)
             periods.append(gap)
         if last is None or stamp > last:
             self._last_stamp[frame] = (stamp, periods)
 
-    def _reject_pose(self, why: str) -> None:
+    # -- poses ------------------------------------------------------------------------
+    def _subscribe_tf(self, group: Any) -> None:
+        """Subscribe to /tf and /tf_static as tf2's TransformListener does (depth 100; static
+        transient local), if tf2_msgs imports."""
+        try:
+            from tf2_msgs.msg import TFMessage
+        except ImportError:
+            self.get_logger().warning('tf2_msgs does not import: /tf and /tf_static are not read (node.use_tf); '
+                                      'clouds in other frames need sensor_pose or node.odometry_topic')
+            return
+        dynamic = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+        static = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                            durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.create_subscription(TFMessage, '/tf', self.tf_callback, dynamic, callback_group=group)
+        self.create_subscription(TFMessage, '/tf_static', self.tf_static_callback, static, callback_group=group)
+        self._pose_sources += ['/tf', '/tf_static']
+
+    def _reject_pose(self, source: str, why: str) -> None:
         with self._count_lock:
             self.counters['poses_rejected'] += 1
-        self._event('rejected', f'sensor_pose rejected: {why}')
-        self._warn(f'sensor_pose rejected: {why}', 'pose ' + why[:20])
+        self._event('rejected', f'{source} rejected: {why}')
+        self._warn(f'{source} rejected: {why}', f'pose {source} {why[:20]}')
+
+    def _add_poses(self, msg: Any, source: str, static: bool = False) -> None:
+        """Put the transforms of a message into the buffer; refuse (and count) the bad ones."""
+        try:
+            transforms = mt.stamped_transforms(msg)
+        except (InputError, ValueError, TypeError) as exc:
+            self._reject_pose(source, str(exc))
+            return
+        bound = self.config.node.max_coordinate
+        for t in transforms:
+            if not np.all(np.abs(t.translation) <= bound):
+                self._reject_pose(source, f'"{t.parent}" -> "{t.child}": translation {t.translation.tolist()} beyond '
+                                          f'node.max_coordinate = {bound:g} m')
+                continue
+            try:
+                self.transforms.set_transform(t.parent, t.child, t.stamp_ns, t.translation, t.rotation, static=static)
+            except TransformError as exc:
+                self._reject_pose(source, str(exc))
+                continue
+            with self._count_lock:
+                self.counters['transforms_received'] += 1
 
     @_guarded
     def pose_callback(self, msg: Any) -> None:
-        """Keep the pose of a sensor frame in the map frame (for clouds in that frame)."""
-        if msg.header.frame_id != self.frame_id:
-            self._reject_pose(f'in frame "{msg.header.frame_id}": poses must be given in the map frame '
-                              f'"{self.frame_id}"')
-            return
-        try:
-            rigid = mm.rigid_from_pose(msg)
-        except (InputError, ValueError) as exc:
-            self._reject_pose(str(exc))
-            return
-        q = msg.transform.rotation
-        norm2 = float(q.x) ** 2 + float(q.y) ** 2 + float(q.z) ** 2 + float(q.w) ** 2
-        if abs(norm2 - 1.0) > QUATERNION_TOLERANCE:
-            self._reject_pose(f'its quaternion has norm {norm2 ** 0.5:.4g}, not 1: not a rotation')
-            return
-        bound = self.config.node.max_coordinate
-        if not np.all(np.abs(rigid[1]) <= bound):
-            self._reject_pose(f'translation {rigid[1].tolist()} beyond node.max_coordinate = {bound:g} m')
-            return
-        with self._pose_lock:
-            stamps, poses = self._poses.setdefault(msg.child_frame_id, ([], []))
-            t = _stamp_ns(msg.header)
-            i = bisect.bisect_right(stamps, t)
-            stamps.insert(i, t)
-            poses.insert(i, rigid)
-            excess = len(stamps) - self.config.node.pose_buffer
-            if excess > 0:
-                del stamps[:excess], poses[:excess]
+        """A pose of a frame (``child_frame_id``) in another (``header.frame_id``), into the transforms."""
+        self._add_poses(msg, 'sensor_pose')
 
-    def _pose_for(self, frame: str, stamp: int) -> tuple[np.ndarray, np.ndarray] | None:
-        with self._pose_lock:
-            stamps, poses = self._poses.get(frame, ([], []))
-            if not stamps:
-                return None
-            i = bisect.bisect_left(stamps, stamp)
-            best = min((j for j in (i - 1, i) if 0 <= j < len(stamps)), key=lambda j: abs(stamps[j] - stamp))
-            if abs(stamps[best] - stamp) > self.config.node.pose_tolerance * 1e9:
-                return None
-            return poses[best]
+    @_guarded
+    def tf_callback(self, msg: Any) -> None:
+        """The transforms of /tf."""
+        self._add_poses(msg, '/tf')
+
+    @_guarded
+    def tf_static_callback(self, msg: Any) -> None:
+        """The static transforms of /tf_static."""
+        self._add_poses(msg, '/tf_static', static=True)
+
+    @_guarded
+    def odometry_callback(self, msg: Any) -> None:
+        """The pose of an odometry message (``child_frame_id`` in ``header.frame_id``)."""
+        self._add_poses(msg, self.config.node.odometry_topic)
+
+    # -- clouds -------------------------------------------------------------------------
+    @staticmethod
+    def _new_interval() -> dict[str, Any]:
+        return {'in': 0, 'mapped': 0, 'rejected': Counter(), 'dropped': 0, 'non_ground': 0, 'selected': 0,
+                'notes': Counter(), 'points': 0, 'building': 0}
 
     @_guarded
     def points_callback(self, msg: Any) -> None:
-        """Check and convert a cloud, keep its building points, queue it for the worker.
+        """Check and convert a cloud, and queue it for its transform (then the worker).
 
         Every cloud is counted once: received, then rejected, mapped without building
-        points, or handed to the worker (which counts it mapped, dropped or failed).
+        points, or handed to the worker (which counts it mapped, dropped or failed); while
+        it waits for its transform it counts as waiting.
         """
         with self._count_lock:  # the diagnostics read the counts between two clouds
             n = int(msg.width) * int(msg.height)
             self.counters['clouds_received'] += 1
             self.counters['points_received'] += n
-            self._count_gap(msg.header.frame_id, _stamp_ns(msg.header))
-            why = self._map_cloud(msg, n)
+            self._interval['in'] += 1
+            self._count_gap(msg.header.frame_id, _stamp_ns(msg.header), len(msg.data))
+            why = self._receive(msg, n)
             if why is not None:
                 self._reject(why, n)
+            self._drain()
 
-    def _map_cloud(self, msg: Any, n: int) -> str | None:
-        """Queue a cloud's building points; returns why it was refused, or None."""
+    @_guarded
+    def waiting_callback(self) -> None:
+        """Map the clouds whose transform has come; reject those that waited too long."""
+        if self._waiting:
+            with self._count_lock:
+                self._drain()
+
+    def _receive(self, msg: Any, n: int) -> str | None:
+        """Queue a cloud to wait for its transform; returns why it was refused, or None."""
         cfg = self.config
         if n > cfg.node.max_cloud_points:
             return f'{n:,} points, more than node.max_cloud_points = {cfg.node.max_cloud_points:,}'
         if n == 0:
             return 'empty cloud'
-        frame = msg.header.frame_id
-        stamp = _stamp_ns(msg.header)
-        pose = None
-        if frame != self.frame_id:
-            pose = self._pose_for(frame, stamp)
-            if pose is None:
-                return (f'cloud in frame "{frame}", not the map frame "{self.frame_id}", and no '
-                        f'sensor_pose of "{frame}" within {cfg.node.pose_tolerance} s of its stamp')
         try:
             points = ma.structured_from_pointcloud2(msg)
+            scan = Scan.of(points, msg.header.frame_id, _stamp_ns(msg.header), cfg.input)
         except (InputError, ValueError, TypeError) as exc:
             return str(exc)
         names = points.dtype.names or ()
-        if cfg.input.class_field not in names and all(c in names for c in ('x', 'y', 'z')):
+        if cfg.input.class_field not in names:
             what = ('its building points are selected (selection.mode: auto)' if cfg.selection.mode != 'off'
                     else 'every point is taken as building (selection.mode: off)')
             self._warn(f'a cloud has no field "{cfg.input.class_field}" (input.class_field; fields: '
                        f'{", ".join(names)}): {what}', 'class field', period=60.0)
+        self._waiting.append(_Waiting(scan, n, time.monotonic()))
+        if len(self._waiting) > cfg.node.transform_queue:
+            old = self._waiting.popleft()
+            self._no_transform(old, f'more than node.transform_queue = {cfg.node.transform_queue} clouds wait for '
+                                    'their transform: the oldest is given up')
+        return None
+
+    def _drain(self) -> None:
+        """Place the waiting clouds in arrival order (the caller holds ``_count_lock``): the
+        first whose transform has not come yet stops the others behind it, so that clouds
+        reach the map in the order they came, as offline replay maps them."""
+        cfg = self.config.node
+        while self._waiting:
+            head = self._waiting[0]
+            final = time.monotonic() - head.arrived >= cfg.transform_timeout
+            try:
+                placement = head.scan.place(self.transforms, self.frame_id, cfg.pose_tolerance, final=final)
+            except TransformError as exc:
+                self._waiting.popleft()
+                self._no_transform(head, str(exc))
+                continue
+            except InputError as exc:  # a time field that cannot be read
+                self._waiting.popleft()
+                self._reject(str(exc), head.points)
+                continue
+            if placement is None:
+                return
+            self._waiting.popleft()
+            why = self._map(head, placement)
+            if why is not None:
+                self._reject(why, head.points)
+
+    def _no_transform(self, item: _Waiting, why: str) -> None:
+        """Reject a cloud whose transform never came (the caller holds ``_count_lock``)."""
+        scan = item.scan
+        self.counters['clouds_no_transform'] += 1
+        self._reject(f'no transform from "{scan.frame_id}" into the map frame "{self.frame_id}" at '
+                     f'{scan.stamp_ns / 1e9:.3f} s after {time.monotonic() - item.arrived:.2f} s: {why}', item.points,
+                     kind='no transform')
+
+    def _map(self, item: _Waiting, placement: Placement) -> str | None:
+        """A placed cloud's building points to the worker; returns why it was refused, or None."""
+        cfg = self.config
+        scan = item.scan
         try:
-            # A cloud in another frame than the map's is in its sensor's (or vehicle's) frame.
-            scan = select_scan_points(points, cfg.input, cfg.selection, None if pose is None else np.zeros(3))
+            found = scan.building_points(placement, cfg.input, cfg.selection, cfg.node.max_coordinate)
         except InputError as exc:
             return str(exc)
-        xyz, ids, origins = scan.xyz, scan.building_id, scan.sensor_origins
-        if pose is not None and len(xyz):
-            rotation, translation = pose
-            xyz = mm.transform_points(xyz, rotation, translation)
-            origins = (mm.transform_points(origins, rotation, translation) if origins is not None
-                       else np.broadcast_to(translation, xyz.shape).copy())
-        bound = cfg.node.max_coordinate
-        far = ~(np.abs(xyz) <= bound).all(axis=1)
-        if far.any():
-            example = xyz[np.flatnonzero(far)[0]].tolist()
-            return (f'{int(far.sum()):,} of {n:,} points lie beyond node.max_coordinate = {bound:g} m of the map '
-                    f'origin, e.g. {example}{_byte_order_hint(points, msg, bound)}')
-        if origins is not None and not (np.abs(origins) <= bound).all():
-            return f'sensor origins (origin_x/y/z) lie beyond node.max_coordinate = {bound:g} m of the map origin'
-        self.counters['points_not_building'] += scan.not_building
-        if scan.nonfinite:
-            self.counters['points_nonfinite'] += scan.nonfinite
-            self._warn(f'{scan.nonfinite} of {n} points with NaN or infinite coordinates skipped', 'nonfinite')
-        if not len(xyz):
+        interval = self._interval
+        if placement.note:
+            interval['notes'][placement.note] += 1
+            self._warn(f'a cloud in "{scan.frame_id}" at {scan.stamp_ns / 1e9:.3f} s: {placement.note}',
+                       'placement ' + placement.note[:12], period=30.0)
+        self.counters['points_not_building'] += found.not_building
+        if found.nonfinite:
+            self.counters['points_nonfinite'] += found.nonfinite
+            self._warn(f'{found.nonfinite} of {item.points} points with NaN or infinite coordinates skipped',
+                       'nonfinite')
+        self._selection_note(found)
+        self.get_logger().debug(self._cloud_line(item, placement, found))
+        interval['points'] += item.points
+        interval['building'] += len(found.xyz)
+        if not len(found.xyz):
             self.counters['clouds_no_building'] += 1
+            interval['mapped'] += 1
             return None
-        if not self.worker.put(Cloud(xyz, ids, origins, stamp)):
+        if not self.worker.put(Cloud(found.xyz, found.building_id, found.sensor_origins, scan.stamp_ns)):
             dropped = self.worker.counters['clouds_dropped']
+            interval['dropped'] += 1
             self._event('dropped', f'mapping falls behind: {dropped} clouds dropped so far')
             self.get_logger().warning(f'mapping falls behind: dropped the oldest waiting cloud ({dropped} so far; '
                                       'a larger node.queue_size or update.batch_points may help)',
                                       throttle_duration_sec=5.0)
+        interval['mapped'] += 1
         return None
+
+    def _selection_note(self, found: ScanPoints) -> None:
+        """Count what the selection kept of a cloud without classes, and warn when it kept little."""
+        sel = found.selection
+        if sel is None or not sel.applied:
+            return
+        self._interval['non_ground'] += int((~sel.ground).sum())
+        self._interval['selected'] += int(sel.mask.sum())
+
+    def _cloud_line(self, item: _Waiting, placement: Placement, found: ScanPoints) -> str:
+        """One debug line per cloud: its frame, points kept, pose and wait."""
+        scan = item.scan
+        pose = 'in the map frame'
+        if placement.pose is not None:
+            t = placement.pose.translations[0]
+            pose = (f'frame "{scan.frame_id}" at ({t[0]:.2f}, {t[1]:.2f}, {t[2]:.2f}) m'
+                    + (f', {len(placement.pose.translations)} poses over its points\' times' if not placement.pose.single
+                       else ''))
+        sel = found.selection
+        kept = (f', the selection kept {int(sel.mask.sum()):,} of {int((~sel.ground).sum()):,} non-ground points'
+                if sel is not None and sel.applied else '')
+        return (f'cloud at {scan.stamp_ns / 1e9:.3f} s: {item.points:,} points, {len(found.xyz):,} building{kept}; '
+                f'{pose}; waited {time.monotonic() - item.arrived:.3f} s'
+                + (f' ({placement.note})' if placement.note else ''))
+
+    @_guarded
+    def summary_callback(self) -> None:
+        """Every ``node.log_period`` s while clouds come: one info line of what happened."""
+        with self._count_lock:
+            interval, self._interval = self._interval, self._new_interval()
+            waiting = len(self._waiting)
+        if not interval['in'] and not interval['mapped'] and not interval['rejected']:
+            return
+        snap = self.worker.snapshot
+        rejected = sum(interval['rejected'].values())
+        why = '; '.join(f'{n} {kind}' for kind, n in interval['rejected'].most_common(3))
+        parts = [f'last {self.config.node.log_period:g} s: {interval["in"]} clouds in, {interval["mapped"]} mapped',
+                 f'{waiting} waiting for a transform', f'{interval["dropped"]} dropped',
+                 f'{rejected} rejected' + (f' ({why})' if why else '')]
+        if interval['non_ground']:
+            parts.append(f'the selection kept {interval["selected"] / interval["non_ground"]:.0%} of the non-ground '
+                         'points')
+        elif interval['points']:
+            parts.append(f'{interval["building"] / interval["points"]:.0%} of the points building')
+        parts.append(f'map: {snap.buildings} buildings, {len(snap.facades)} façades, {snap.points:,} points')
+        self.get_logger().info(', '.join(parts))
 
     def _flushed(self, points: int, refitted: list[int]) -> None:
         self.get_logger().info(f'input idle: mapped the {points} points held back, fitted {len(refitted)} '
@@ -550,16 +696,20 @@ class FacadeMapperNode(Node):
         with self._count_lock:
             c = dict(self.counters)
             w = self.worker.accounts()
+            waiting, waiting_points = len(self._waiting), sum(item.points for item in self._waiting)
         return {
             'clouds_received': c['clouds_received'], 'clouds_mapped': w['clouds_mapped'] + c['clouds_no_building'],
             'clouds_dropped': w['clouds_dropped'], 'clouds_rejected': c['clouds_rejected'],
-            'clouds_failed': w['clouds_failed'], 'clouds_waiting': w['clouds_waiting'],
+            'clouds_failed': w['clouds_failed'], 'clouds_waiting': w['clouds_waiting'] + waiting,
+            'clouds_waiting_transform': waiting, 'clouds_no_transform': c['clouds_no_transform'],
             'clouds_missed_estimate': c['clouds_missed_estimate'],
             'points_received': c['points_received'], 'points_mapped': w['points_mapped'],
             'points_not_building': c['points_not_building'], 'points_nonfinite': c['points_nonfinite'],
             'points_dropped': w['points_dropped'], 'points_rejected': c['points_rejected'],
-            'points_failed': w['points_failed'], 'points_waiting': w['points_waiting'],
+            'points_failed': w['points_failed'],
+            'points_waiting': w['points_waiting'] + waiting_points,
             'points_pending': w['points_pending'], 'poses_rejected': c['poses_rejected'],
+            'transforms_received': c['transforms_received'],
             'flushes': w['flushes'], 'queries': c['queries'], 'queries_failed': c['queries_failed'],
             'saves': c['saves'], 'callback_errors': c['callback_errors'],
         }

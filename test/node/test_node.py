@@ -401,9 +401,10 @@ def test_bad_clouds_are_refused_and_the_map_kept(client, mapped, scans):
     assert (after['facade'] == before['facade']).mean() > 0.99
     assert np.nanmax(np.abs(after['mean_depth'] - before['mean_depth'])) < 0.2
     log = mapped.log.read_text()
-    for text in ('no x, y, z field', 'empty cloud', 'node.max_cloud_points', 'not the map frame',
-                 'NaN or infinite'):
+    for text in ('no x, y, z field', 'empty cloud', 'node.max_cloud_points',
+                 'no transform from "velodyne" into the map frame "map"', 'NaN or infinite'):
         assert text in log, text
+    assert int(values['clouds_no_transform']) == int(start['clouds_no_transform']) + 1
 
 
 def test_bad_queries_get_error_responses(client, mapped):
@@ -536,13 +537,15 @@ def test_clouds_in_a_sensor_frame_are_moved_by_its_pose(client, mapped, scans):
 
 def test_a_cloud_without_classes_is_mapped_as_its_selected_points(client, mapped, workdir):
     """A sweep without the class field, in its sensor's frame: the node maps the points the
-    selection keeps (walls), selected in that frame with the sensor at its origin."""
+    selection keeps (walls), selected in the map frame with the sensor origin from its pose,
+    as offline replay does (io.scans.Scan)."""
     from geometry_msgs.msg import TransformStamped
     from support import WALL, unclassified_street
 
-    from uncertain_facade_map.io.scans import select_scan_points
+    from uncertain_facade_map.io.scans import Scan
     from uncertain_facade_map.params import SelectionConfig
     from uncertain_facade_map.srv import LoadMap, QueryPoints, SaveMap
+    from uncertain_facade_map.transforms import TransformBuffer
 
     before = workdir / 'before_unclassified.npz'
     assert client.call(SaveMap, 'save_map', SaveMap.Request(path=str(before))).success
@@ -550,8 +553,11 @@ def test_a_cloud_without_classes_is_mapped_as_its_selected_points(client, mapped
     xyz, labels, sensor = unclassified_street(seed=3)
     points = np.zeros(len(xyz), dtype=[('x', 'f4'), ('y', 'f4'), ('z', 'f4')])
     points['x'], points['y'], points['z'] = (xyz - sensor).T  # the sensor frame
-    expected = select_scan_points(points, InputConfig(), SelectionConfig(), sensor_origin=np.zeros(3))
     t = np.array([1000.0, 0.0, 1.8])  # far from the street drive's buildings
+    tf = TransformBuffer()
+    tf.set_transform('map', 'sweep', 9 * 10**9, t, [0, 0, 0, 1])
+    scan = Scan.of(points, 'sweep', 9 * 10**9, InputConfig())
+    expected = scan.building_points(scan.place(tf, 'map', 0.05), InputConfig(), SelectionConfig(), None)
     pose = TransformStamped()
     pose.header.frame_id = 'map'
     pose.header.stamp.sec = 9

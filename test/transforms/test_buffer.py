@@ -368,6 +368,17 @@ def test_a_call_may_hold_the_edge_samples_longer_or_not_at_all():
         strict.lookup('odom', 'base_link', ns(13.5), max_extrapolation=-1.0)
 
 
+def test_max_samples_keeps_the_newest():
+    buf = TransformBuffer(cache_time=math.inf, max_samples=3)
+    for k in range(10):
+        buf.set_transform('map', 'base', ns(1.0 + k), [k, 0, 0], [0, 0, 0, 1])
+    assert buf.time_range('base') == (ns(8.0), ns(10.0))
+    buf.set_transforms('map', 'base', [ns(11.0), ns(12.0)], [[11, 0, 0], [12, 0, 0]], [[0, 0, 0, 1]] * 2)
+    assert buf.time_range('base') == (ns(10.0), ns(12.0))
+    with pytest.raises(InputError, match='max_samples must be >= 2'):
+        TransformBuffer(max_samples=1)
+
+
 def test_cache_time_prunes_old_samples():
     buf = make_buffer(cache_time=1.0)
     assert buf.time_range('base_link') == (ns(12.5), ns(13.5))

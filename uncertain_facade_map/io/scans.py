@@ -4,8 +4,8 @@ The node and offline replay (:func:`uncertain_facade_map.mapping.worker.map_scan
 scan by the same three calls (:class:`Scan`: ``Scan.of``, ``place``, ``building_points``), so
 that both make the same map:
 
-1. :func:`scan_times` -- the scan's finite points and, when it has the per-point time field
-   ``input.time_field``, each one's absolute time (the span a transform must cover).
+1. ``Scan.of`` -- the scan's finite points and, when it must be moved and has the per-point
+   time field ``input.time_field``, each one's absolute time (the span a transform must cover).
 2. :func:`uncertain_facade_map.transforms.place_scan` -- its pose(s) in the map frame from
    the transform buffer: at each point's time (motion compensation), or at the stamp
    (the node may wait for the transform first).
@@ -75,32 +75,7 @@ def _xyz(points: np.ndarray) -> np.ndarray:
     return np.stack([points[c].astype(np.float64) for c in ('x', 'y', 'z')], axis=1)
 
 
-def scan_times(points: np.ndarray, stamp_ns: int, config: InputConfig) -> tuple[np.ndarray, np.ndarray | None]:
-    """The finite points of a scan and their absolute times.
-
-    Args:
-        points: (M,) structured array with numeric fields x, y, z.
-        stamp_ns: the scan's header stamp, integer nanoseconds.
-        config: ``time_field`` is used.
-
-    Returns:
-        ``(finite, times)``: (M,) bool, the points with finite coordinates; (F,) int64
-        absolute nanoseconds of those F points from ``config.time_field``
-        (:func:`~uncertain_facade_map.transforms.point_times`), or None when the scan has
-        no such field (or it is '').
-
-    Raises:
-        InputError: no numeric x, y or z field; a time field that is not a number or holds
-            NaN or mixed conventions.
-    """
-    finite = np.isfinite(_xyz(points)).all(axis=1)
-    field = config.time_field
-    if not field or field not in (points.dtype.names or ()):
-        return finite, None
-    return finite, point_times(points[finite], stamp_ns, field)
-
-
-@dataclass(frozen=True, eq=False)
+@dataclass(eq=False)
 class Scan:
     """A scan as it arrived: its points in its own frame, its stamp, and what placing it needs.
 
@@ -109,28 +84,45 @@ class Scan:
         frame_id: the frame of the points (``header.frame_id``).
         stamp_ns: the header stamp, integer nanoseconds.
         finite: (M,) bool, the points with finite coordinates.
-        times: (F,) int64 absolute nanoseconds of the finite points (``input.time_field``),
-            or None.
+        time_field: ``input.time_field``: the per-point times are read (once, by
+            :attr:`times`) only for a scan that must be moved into the map frame.
     """
 
     points: np.ndarray
     frame_id: str
     stamp_ns: int
     finite: np.ndarray
-    times: np.ndarray | None
+    time_field: str = ''
+    _times: tuple[np.ndarray | None] | None = None
 
     @classmethod
     def of(cls, points: np.ndarray, frame_id: str, stamp_ns: int, config: InputConfig) -> Scan:
-        """A scan from its points, frame and stamp (InputError as :func:`scan_times`)."""
-        finite, times = scan_times(points, stamp_ns, config)
-        return cls(points, str(frame_id), int(stamp_ns), finite, times)
+        """A scan from its points, frame and stamp.
+
+        Raises:
+            InputError: no numeric x, y or z field.
+        """
+        finite = np.isfinite(_xyz(points)).all(axis=1)
+        return cls(points, str(frame_id), int(stamp_ns), finite, config.time_field)
+
+    @property
+    def times(self) -> np.ndarray | None:
+        """(F,) int64 absolute nanoseconds of the finite points from the time field, or None
+        (read once; InputError for a field that is not a number, NaN, or mixed conventions)."""
+        if self._times is None:
+            field = self.time_field
+            names = self.points.dtype.names or ()
+            times = point_times(self.points[self.finite], self.stamp_ns, field) if field and field in names else None
+            self._times = (times,)
+        return self._times[0]
 
     @property
     def span_ns(self) -> tuple[int, int]:
         """First and last time the scan's transform must cover (its points' times, else its stamp)."""
-        if self.times is None or not len(self.times):
+        times = self.times
+        if times is None or not len(times):
             return self.stamp_ns, self.stamp_ns
-        return int(self.times.min()), int(self.times.max())
+        return int(times.min()), int(times.max())
 
     def place(self, buffer: TransformBuffer | None, map_frame: str, tolerance: float,
               final: bool = True) -> Placement | None:
@@ -147,6 +139,7 @@ class Scan:
 
         Raises:
             TransformError: the scan cannot be placed (see ``place_scan``).
+            InputError: a bad time field (see :attr:`times`).
         """
         if self.frame_id == map_frame:
             return Placement(None)

@@ -241,12 +241,16 @@ class _Track:
         self.quat[:n] = np.concatenate([old_q, quat])[pick]
         self.lo, self.hi = 0, n
 
-    def prune(self, keep_ns: int | None) -> None:
-        """Drop samples older than ``newest - keep_ns`` (tf2's TimeCache::pruneList)."""
-        if keep_ns is None or len(self) == 0:
+    def prune(self, keep_ns: int | None, max_samples: int | None = None) -> None:
+        """Drop samples older than ``newest - keep_ns`` (tf2's TimeCache::pruneList), and
+        the oldest beyond ``max_samples``."""
+        if len(self) == 0:
             return
-        cutoff = self.last - keep_ns
-        self.lo += int(np.searchsorted(self.stamps[self.lo:self.hi], cutoff, side='left'))
+        if keep_ns is not None:
+            cutoff = self.last - keep_ns
+            self.lo += int(np.searchsorted(self.stamps[self.lo:self.hi], cutoff, side='left'))
+        if max_samples is not None and len(self) > max_samples:
+            self.lo = self.hi - max_samples
 
 
 # --------------------------------------------------------------------------------------
@@ -279,20 +283,27 @@ class TransformBuffer:
             default 10 s). ``math.inf`` keeps everything (offline tools preloading a bag).
         max_extrapolation: seconds a lookup may reach before the first or after the last
             sample of a dynamic edge, answered by holding that sample. tf2: 0 (never).
+        max_samples: samples kept per dynamic edge at most, the newest (None: no limit
+            besides ``cache_time``); bounds the memory of an edge published very often.
 
     Raises:
-        InputError: ``cache_time`` not > 0, or ``max_extrapolation`` negative or NaN.
+        InputError: ``cache_time`` not > 0, ``max_extrapolation`` negative or NaN, or
+            ``max_samples`` < 2.
     """
 
-    def __init__(self, cache_time: float = 10.0, max_extrapolation: float = 0.0) -> None:
+    def __init__(self, cache_time: float = 10.0, max_extrapolation: float = 0.0,
+                 max_samples: int | None = None) -> None:
         cache_time = float(cache_time)
         max_extrapolation = float(max_extrapolation)
         if not cache_time > 0:
             raise InputError(f'cache_time must be > 0 s (math.inf keeps all samples), got {cache_time}')
         if not max_extrapolation >= 0:
             raise InputError(f'max_extrapolation must be >= 0 s, got {max_extrapolation}')
+        if max_samples is not None and not int(max_samples) >= 2:
+            raise InputError(f'max_samples must be >= 2 (two samples to interpolate between), got {max_samples}')
         self.cache_time = cache_time
         self.max_extrapolation = max_extrapolation
+        self.max_samples = None if max_samples is None else int(max_samples)
         self._keep_ns: int | None = None if math.isinf(cache_time) else int(round(cache_time * 1e9))
         self._hold_ns: float = math.inf if math.isinf(max_extrapolation) else int(round(max_extrapolation * 1e9))
         self._lock = threading.RLock()
@@ -403,7 +414,7 @@ class TransformBuffer:
                         f'transform "{p}" -> "{c}" at {_seconds(stamp)} s is older than the cache keeps '
                         f'({self.cache_time:g} s before the newest sample, {_seconds(track.last)} s): ignored')
                 track.insert(stamp, t, q)
-                track.prune(self._keep_ns)
+                track.prune(self._keep_ns, self.max_samples)
             self._parent[c] = p
 
     def set_transforms(self, parents: str | Sequence[str], children: str | Sequence[str], stamps_ns: Any,
@@ -516,7 +527,7 @@ class TransformBuffer:
                     if track is None:
                         track = self._tracks[c] = _Track()
                     track.merge(stamps[good[rows]], trans[good[rows]], quats_good[rows])
-                    track.prune(self._keep_ns)
+                    track.prune(self._keep_ns, self.max_samples)
                 self._parent[c] = p
             return int(good.size)
 
