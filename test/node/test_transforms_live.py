@@ -24,6 +24,9 @@ rclpy = pytest.importorskip('rclpy')
 pytest.importorskip('uncertain_facade_map.srv')
 pytest.importorskip('tf2_msgs.msg')
 
+from support import assert_same_maps  # noqa: E402
+from test_node import Client, NodeProcess, diagnostics, node_config  # noqa: E402
+
 import msg_adapters as ma  # noqa: E402
 from msg_adapters import transforms as mt  # noqa: E402
 from uncertain_facade_map.io.map_file import save_map  # noqa: E402
@@ -33,9 +36,6 @@ from uncertain_facade_map.mapping.worker import map_scans  # noqa: E402
 from uncertain_facade_map.params import map_params  # noqa: E402
 from uncertain_facade_map.simulation.export import split_scans  # noqa: E402
 from uncertain_facade_map.transforms import TransformBuffer, rotations  # noqa: E402
-
-from support import assert_same_maps  # noqa: E402
-from test_node import Client, NodeProcess, diagnostics, node_config  # noqa: E402
 
 #: Clouds published per run (3 s at 10 Hz).
 CLOUDS = 30
