@@ -161,3 +161,14 @@ def test_the_old_rule_warns_on_every_sweep_of_the_64_beam_lidar(residential):
         assert selection_warning(select_building_points(xyz, origins)) is None
         old = selection_warning(select_building_points(xyz, origins, OLD), OLD)
         assert old is not None and 'most were dropped by selection.min_structure_height = 3 m' in old
+
+
+def test_evaluation_prints_the_simulated_figures(monkeypatch, capsys):
+    from uncertain_facade_map.selection import evaluation
+
+    monkeypatch.setattr(evaluation, 'SIMULATED', (('residential/hdl64', 'residential', None, 0.1, 100.0),))
+    assert evaluation.main(['--simulated']) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 2 and lines[0].startswith('residential/hdl64: 1 clouds, ')
+    assert lines[1].startswith('residential/hdl64 (without the field-of-view rule): 1 clouds, ')
+    assert all('recall' in line and 'precision' in line for line in lines)
