@@ -357,6 +357,9 @@ class ScanPoints:
         sensor_origins: (N, 3) float64 sensor positions, metres, or None.
         nonfinite: number of points skipped for NaN or infinite coordinates.
         not_building: number of finite points of another class, or not selected.
+        selection: what the selection found (why it dropped what it dropped, for
+            :func:`uncertain_facade_map.selection.selection_warning`) when the scan was
+            reduced by it, else None.
     """
 
     xyz: np.ndarray
@@ -364,6 +367,7 @@ class ScanPoints:
     sensor_origins: np.ndarray | None
     nonfinite: int
     not_building: int
+    selection: Selection | None = None
 
 
 def select_scan_points(points: np.ndarray, config: InputConfig, selection: SelectionConfig | None = None,
@@ -407,6 +411,7 @@ def select_scan_points(points: np.ndarray, config: InputConfig, selection: Selec
     keep = np.isfinite(xyz).all(axis=1)
     nonfinite = int((~keep).sum())
     not_building = 0
+    found = None
     origin_fields = all(c in names for c in ('origin_x', 'origin_y', 'origin_z'))
     if _selects(names, config, selection):
         origins = sensor_origin
@@ -416,7 +421,8 @@ def select_scan_points(points: np.ndarray, config: InputConfig, selection: Selec
         from ..selection import select_building_points as select_walls
 
         selected = np.zeros(len(keep), dtype=bool)
-        selected[keep] = select_walls(xyz[keep], origins, selection).mask
+        found = select_walls(xyz[keep], origins, selection)
+        selected[keep] = found.mask
         not_building = int((keep & ~selected).sum())
         keep = selected
     elif config.class_field in names:
@@ -432,4 +438,4 @@ def select_scan_points(points: np.ndarray, config: InputConfig, selection: Selec
         origins = np.stack([points[c][keep].astype(np.float64) for c in ('origin_x', 'origin_y', 'origin_z')], 1)
         if not np.isfinite(origins).all():
             origins = None
-    return ScanPoints(xyz[keep], ids, origins, nonfinite, not_building)
+    return ScanPoints(xyz[keep], ids, origins, nonfinite, not_building, found)
