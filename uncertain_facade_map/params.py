@@ -474,8 +474,20 @@ class SelectionConfig(Section):
                                           '(sqrt(12) standard deviations; poles are narrower)', unit='m',
                                      allowed=_closed(0.0, 100.0))
     min_structure_height: float = param(3.0, "top of a wall window's band points above the ground at least (cars "
-                                             'and hedges are lower)', unit='m', allowed=_closed(0.0, 1000.0))
-    min_extent: float = param(1.0, "vertical extent of a wall window's band points at least (cables, eaves)",
+                                             'and hedges are lower), unless the window is cut off by the top of the '
+                                             "sensor's vertical field of view (selection.fov_margin, "
+                                             'selection.min_cut_distance)', unit='m', allowed=_closed(0.0, 1000.0))
+    fov_margin: float = param(0.5, 'with sensor origins: a window with a band point within this angle below the top '
+                                   "of the sensor's vertical field of view (the highest elevation of the points from "
+                                   'their origins, when seen all around) is cut off by it: seen as high as the sensor '
+                                   'could see there, a wall however low (0: no such rule)', unit='degrees',
+                              allowed=_closed(0.0, 10.0))
+    min_cut_distance: float = param(7.0, 'a window cut off by the field of view is a wall only if its plane passes at '
+                                         'least this far from the sensor: the side of a van parked along the road '
+                                         'passes nearer, the front of a house behind its front yard farther', unit='m',
+                                    allowed=_closed(0.0, 1000.0))
+    min_extent: float = param(1.0, "vertical extent of a wall window's band points at least (cables, eaves); half of "
+                                   'it for a window cut off by the field of view (hedges and cars hide its foot)',
                               unit='m', allowed=_closed(0.0, 1000.0))
     segment_angle: float = param(25.0, 'wall windows whose planes differ by less than this angle ...',
                                  unit='degrees', allowed=_closed(0.0, 90.0))
@@ -483,6 +495,9 @@ class SelectionConfig(Section):
                                       "each other's band are one wall segment", unit='m', allowed=_closed(0.0, 100.0))
     min_segment_length: float = param(2.5, 'a wall segment shorter than this along its plane is no wall (tree '
                                            'crowns, signs, poles)', unit='m', allowed=_closed(0.0, 1000.0))
+    warn_kept_share: float = param(0.05, 'warn when a cloud keeps less than this share of its non-ground points, '
+                                         'naming the parameter that dropped most of them (0: never)',
+                                   allowed=_closed(0.0, 1.0))
 
 
 @dataclass(frozen=True)

@@ -481,12 +481,16 @@ def test_scan_points_of_a_scan_without_classes() -> None:
     assert np.array_equal(scan.xyz, cloud.xyz[finite][expected])
     assert np.array_equal(scan.sensor_origins, cloud.sensor_origins[finite][expected])
     assert (labels[finite][expected] == WALL).mean() >= 0.99
+    # What the selection found comes along, for its warning (the node logs it).
+    assert scan.selection is not None and scan.selection.kept == len(scan.xyz)
+    assert sum(scan.selection.dropped_by.values()) == scan.selection.non_ground - scan.selection.kept
     # Without origin fields the given sensor origin (the node: the scan's own frame) is used.
     plain = points[['x', 'y', 'z']]
     assert np.array_equal(select_scan_points(plain, InputConfig(), SelectionConfig(),
                                              sensor_origin=np.array([0.0, 0.0, 1.8])).xyz, scan.xyz)
     # No selection: all building, as before.
     assert len(select_scan_points(points, InputConfig()).xyz) == finite.sum()
+    assert select_scan_points(points, InputConfig()).selection is None
 
 
 # ----------------------------------------------------------------------------------------

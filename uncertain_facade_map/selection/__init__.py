@@ -5,8 +5,9 @@ become "buildings" of their own. This sub-package picks the façade points of su
 cloud (numpy, scipy and, imported inside the function that needs it, ``pypatchworkpp``):
 
 - ``building_points``: :func:`select_building_points`, (N, 3) points in, an (N,) mask of
-  building points out, with :class:`Selection` saying what was found; parameters in
-  :class:`~uncertain_facade_map.params.SelectionConfig`;
+  building points out, with :class:`Selection` saying what was found and why points were
+  dropped, and :func:`selection_warning`, a one-line warning when a cloud kept too little;
+  parameters in :class:`~uncertain_facade_map.params.SelectionConfig`;
 - ``evaluation``: an independent wall picker and the selection's figures against it on
   real sweeps (``python -m uncertain_facade_map.selection.evaluation``).
 
@@ -14,6 +15,6 @@ cloud (numpy, scipy and, imported inside the function that needs it, ``pypatchwo
 (``selection.mode``), for the command line and the node alike.
 """
 
-from .building_points import Selection, select_building_points
+from .building_points import DROP_RULES, Selection, select_building_points, selection_warning
 
-__all__ = ['Selection', 'select_building_points']
+__all__ = ['DROP_RULES', 'Selection', 'select_building_points', 'selection_warning']

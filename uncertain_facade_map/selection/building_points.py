@@ -22,10 +22,31 @@ their sensor origins) in any frame with z up, and keeps the points of façades:
    points within ``band`` of the last line). The window is a wall if its band points are
    at least ``min_window_points`` and ``min_share`` of its points, lie within
    ``max_thickness`` of the plane (RMS; tree crowns are thicker), extend at least
-   ``min_window_length`` along it (poles are narrower) and ``min_extent`` up it (cables),
-   and reach ``min_structure_height`` above the ground (cars are lower). The ground here
-   is the lower of the ground height and the window's lowest band point, so a wall with
-   no ground around it is measured from its foot.
+   ``min_window_length`` along it (poles are narrower), reach ``min_structure_height``
+   above the ground (cars and hedges are lower) and extend ``min_extent`` up it (cables).
+   The ground here is the lower of the ground height and the window's lowest band point,
+   so a wall with no ground around it is measured from its foot.
+
+   A car's lidar sees a wall only as high as its vertical field of view reaches: a
+   Velodyne HDL-64E 1.73 m up with its top beam at +2 degrees sees a house 10 m away up
+   to 2.1 m, below ``min_structure_height``. So, when the points have sensor origins, the
+   selection finds the top of the field of view: the 10th highest elevation of the points
+   from their origins (of those at least 3 m away in x, y), if the points within
+   ``fov_margin`` below it lie in at least 90 distinct degrees of azimuth (a
+   spinning lidar's top beam hits walls all around; the top of one tall object alone, or
+   a profile scanner's zenith, is no such edge). A window with a band point within
+   ``fov_margin`` below that top is **cut off by the field of view**: the sensor saw it as
+   high as it could see at that distance, so it may be a wall however low it looks. It
+   passes ``min_structure_height`` if its plane passes at least ``min_cut_distance`` from
+   the sensor (the mean origin of those top points): a van parked along the road reaches
+   the top of the view too, but its side lies along the road, near the sensor's path,
+   while a house front stands behind its front yard; and it needs half of
+   ``min_extent`` (hedges and cars hide the lower part of such a wall). A car or a hedge
+   lies below what the sensor could see above it and stays judged by
+   ``min_structure_height``. Sensors that see whole walls (profile scanners, the
+   Argoverse 2 car's lidars with top beams at +15 and +25 degrees) show no such top, or
+   see their walls taller than ``min_structure_height`` before its top: the rule changes
+   nothing for them. Without sensor origins only ``min_structure_height`` applies.
 4. **Wall segments**: wall windows whose planes differ by less than ``segment_angle``,
    whose centre cells are within ``link_distance`` and whose centroids lie in each other's
    band are linked; a connected set shorter than ``min_segment_length`` along its mean
@@ -38,10 +59,19 @@ but building points cut already (a wall picker's output, a segmented file): it i
 whole (:attr:`Selection.applied` is False), so the selection never thins a cloud that
 needs none.
 
+Every call says why it dropped what it dropped (:attr:`Selection.dropped_by`: each
+non-ground point not kept, under the first rule of :data:`DROP_RULES` its own window
+failed), and :func:`selection_warning` turns a cloud that kept less than
+``warn_kept_share`` of its non-ground points into a one-line warning naming the rule that
+dropped most of them, for the node and the command line to log.
+
 On the Argoverse sweeps of ``../shared/data/real/`` it keeps 96-99.5 % of the wall points
 an independent RANSAC wall picker finds, and 81-82 % of what it keeps lies within 0.4 m of
-them (85-94 % within the picker's 40 m); see docs/selection.md for the
-figures and the command that prints them (:mod:`.evaluation`).
+them (85-94 % within the picker's 40 m); see docs/selection.md for the figures and the command that prints them (:mod:`.evaluation`). On the simulated
+``residential`` street scanned by the ``hdl64`` sensor, sweep by sweep, it keeps 82-88 %
+of the wall points and 98-100 % of what it keeps is building (without the field-of-view
+rule: under 3 % of the wall points; ``python -m uncertain_facade_map.selection.evaluation
+--simulated``).
 """
 
 from __future__ import annotations
@@ -51,7 +81,7 @@ import math
 import os
 import sys
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Iterator
 
 import numpy as np
@@ -62,7 +92,7 @@ from scipy.spatial import cKDTree
 from ..errors import InputError
 from ..params import SelectionConfig
 
-__all__ = ['Selection', 'select_building_points']
+__all__ = ['DROP_RULES', 'Selection', 'select_building_points', 'selection_warning']
 
 #: Radius (m) around a scan's centre in which its ground level is taken, and the cell (m)
 #: whose lowest point is one sample of it.
@@ -72,6 +102,21 @@ _LEVEL_CELL = 1.0
 _PASSES = 3
 #: Patchwork++ prints to the C++ standard output when built; one scan is built at a time.
 _STDOUT_LOCK = threading.Lock()
+#: The top of the field of view is sought among the points at least this far (m, in x, y)
+#: from their origins (closer, a centimetre of noise or quantisation turns the elevation).
+_FOV_MIN_RANGE = 3.0
+#: It is the elevation of the ``_FOV_RANK``-th highest of them (a few stray returns aside) ...
+_FOV_RANK = 10
+#: ... if the points within ``fov_margin`` below it lie in at least this many distinct
+#: degrees of azimuth around their origins: a spinning lidar's top beam hits walls all
+#: around, while the top of one tall object alone is no field of view.
+_FOV_MIN_AZIMUTH = 90
+
+#: The rules of :attr:`Selection.dropped_by`, in the order a dropped point is attributed.
+DROP_RULES = (
+    'selection.min_window_points', 'selection.min_share', 'selection.max_thickness', 'selection.min_window_length',
+    'selection.min_structure_height', 'selection.min_extent', 'selection.min_segment_length', 'selection.band',
+)
 
 
 @dataclass(frozen=True, eq=False)
@@ -84,17 +129,38 @@ class Selection:
         applied: False when the cloud had less than ``min_ground_share`` of ground and was
             kept whole as building points cut already (``mask`` all True).
         walls: number of wall segments kept (0 when not applied).
+        dropped_by: the non-ground points not kept, by the rule that dropped them: full
+            parameter names in :data:`DROP_RULES` order, each with its count (all of them,
+            zeros too, when applied; empty when not). A point is counted under the first
+            rule its own window (the one centred on its cell) failed; a point whose window
+            is a wall of a kept segment but that lies outside every kept band is counted
+            under ``selection.band``. The counts add up to ``non_ground - kept``.
+        fov_top: top of the sensor's vertical field of view found in the cloud, degrees of
+            elevation from the sensor origins; None without origins, or when no top is seen
+            all around (then only ``min_structure_height`` judges the height of a wall).
     """
 
     mask: np.ndarray
     ground: np.ndarray
     applied: bool
     walls: int
+    dropped_by: dict[str, int] = field(default_factory=dict)
+    fov_top: float | None = None
 
     @property
     def ground_share(self) -> float:
         """Share of the points taken as ground (0 for an empty cloud)."""
         return float(self.ground.mean()) if len(self.ground) else 0.0
+
+    @property
+    def non_ground(self) -> int:
+        """Number of points not taken as ground."""
+        return int(len(self.ground) - np.count_nonzero(self.ground))
+
+    @property
+    def kept(self) -> int:
+        """Number of points kept as building points."""
+        return int(np.count_nonzero(self.mask))
 
 
 def select_building_points(xyz: np.ndarray, sensor_origins: np.ndarray | None = None,
@@ -124,7 +190,7 @@ def select_building_points(xyz: np.ndarray, sensor_origins: np.ndarray | None = 
             raise InputError(f'{len(origins)} sensor origins for {n} points')
     if n == 0:
         empty = np.zeros(0, dtype=bool)
-        return Selection(empty, empty.copy(), True, 0)
+        return Selection(empty, empty.copy(), True, 0, dict.fromkeys(DROP_RULES, 0))
     # Local coordinates: a city frame's 1e6 m would cost the float32 Patchwork++ its millimetres.
     offset = np.round(np.median(xyz, axis=0))
     local = xyz - offset
@@ -133,13 +199,49 @@ def select_building_points(xyz: np.ndarray, sensor_origins: np.ndarray | None = 
     ground, level = _ground(local, origins, params)
     if ground.sum() < params.min_ground_share * n:
         return Selection(np.ones(n, dtype=bool), ground, False, 0)
+    view = _field_of_view(local, origins, params)
     rest = np.flatnonzero(~ground)
     mask = np.zeros(n, dtype=bool)
     walls = 0
+    dropped = np.zeros(len(DROP_RULES), dtype=np.int64)
     if len(rest):
-        keep, walls = _walls(local[rest], local[ground], level, params)
+        keep, walls, reason = _walls(local[rest], local[ground], level, None if view is None else view.subset(rest),
+                                     params)
         mask[rest[keep]] = True
-    return Selection(mask, ground, True, walls)
+        dropped = np.bincount(reason[~keep], minlength=len(DROP_RULES))
+    return Selection(mask, ground, True, walls, dict(zip(DROP_RULES, (int(k) for k in dropped))),
+                     None if view is None else math.degrees(view.top))
+
+
+def selection_warning(selection: Selection, params: SelectionConfig | None = None) -> str | None:
+    """A one-line warning when a selection kept less than ``warn_kept_share`` of the
+    non-ground points, naming the rule that dropped most of them; None otherwise.
+
+    Args:
+        selection: what :func:`select_building_points` found in one cloud.
+        params: the parameters it was called with (their ``warn_kept_share`` and the value
+            of the rule named); defaults if None.
+
+    Returns:
+        E.g. ``'the building selection kept 292 of 61,204 non-ground points (0.5 %, below
+        selection.warn_kept_share 5 %); most were dropped by selection.min_structure_height
+        = 3 m (58,310 points)'``, or None (enough kept, nothing to select from, the cloud
+        kept whole, or ``warn_kept_share`` 0).
+    """
+    params = params or SelectionConfig()
+    total = selection.non_ground
+    if not selection.applied or total == 0 or selection.kept >= params.warn_kept_share * total:
+        return None
+    line = (f'the building selection kept {selection.kept:,} of {total:,} non-ground points '
+            f'({100 * selection.kept / total:.1f} %, below selection.warn_kept_share '
+            f'{100 * params.warn_kept_share:g} %)')
+    if not selection.dropped_by or not any(selection.dropped_by.values()):
+        return line
+    rule, count = max(selection.dropped_by.items(), key=lambda item: item[1])
+    name = rule.split('.', 1)[1]
+    unit = SelectionConfig.__dataclass_fields__[name].metadata['param'].unit
+    value = f'{getattr(params, name):g}' + (f' {unit}' if unit else '')
+    return f'{line}; most were dropped by {rule} = {value} ({count:,} points)'
 
 
 def _points(values: np.ndarray, what: str, single: bool = False) -> np.ndarray:
@@ -262,6 +364,56 @@ def _ground_height(xy: np.ndarray, ground: np.ndarray, fallback: float, cell: fl
     return height[nearest]
 
 
+@dataclass(frozen=True, eq=False)
+class _View:
+    """The top of the sensor's vertical field of view, as the points show it.
+
+    Attributes:
+        top: its elevation from the sensor origins, radians.
+        at_top: (N,) bool, the points seen within ``fov_margin`` below it.
+        origin: (N, 2) x, y of each point's sensor origin, metres.
+    """
+
+    top: float
+    at_top: np.ndarray
+    origin: np.ndarray
+
+    def subset(self, idx: np.ndarray) -> _View:
+        """The same view for the points ``idx``."""
+        return _View(self.top, self.at_top[idx], self.origin[idx])
+
+
+def _field_of_view(xyz: np.ndarray, origins: np.ndarray | None, params: SelectionConfig) -> _View | None:
+    """The top of the sensor's vertical field of view, if the cloud shows one (see the
+    module docstring, step 3).
+
+    Args:
+        xyz: (N, 3) points, metres, z up.
+        origins: (N, 3) or (3,) their sensor origins, same frame; None if unknown.
+        params: ``fov_margin`` is used.
+
+    Returns:
+        The view; None without origins, with ``fov_margin`` 0, or when no top is seen all
+        around.
+    """
+    if origins is None or params.fov_margin <= 0:
+        return None
+    origins = np.broadcast_to(origins, xyz.shape)
+    rel = xyz - origins
+    reach = np.hypot(rel[:, 0], rel[:, 1])
+    elevation = np.arctan2(rel[:, 2], reach)
+    far = np.flatnonzero(reach >= _FOV_MIN_RANGE)
+    if len(far) < _FOV_RANK:
+        return None
+    top = float(np.partition(elevation[far], len(far) - _FOV_RANK)[len(far) - _FOV_RANK])
+    at_top = elevation >= top - math.radians(params.fov_margin)
+    near = far[at_top[far]]
+    azimuth = np.floor(np.degrees(np.arctan2(rel[near, 1], rel[near, 0]))).astype(np.int64) % 360
+    if np.count_nonzero(np.bincount(azimuth, minlength=360)) < _FOV_MIN_AZIMUTH:
+        return None
+    return _View(top, at_top, origins[:, :2])
+
+
 # ----------------------------------------------------------------------------------------
 # 3.-5. Walls
 # ----------------------------------------------------------------------------------------
@@ -289,8 +441,22 @@ class _Cells:
         return np.where(self.codes[pos] == codes, pos, -1)
 
 
-def _walls(q: np.ndarray, ground: np.ndarray, level: float, params: SelectionConfig) -> tuple[np.ndarray, int]:
-    """(M,) bool mask of the non-ground points ``q`` that lie on walls, and the number of wall segments."""
+def _walls(q: np.ndarray, ground: np.ndarray, level: float, view: _View | None,
+           params: SelectionConfig) -> tuple[np.ndarray, int, np.ndarray]:
+    """Which of the non-ground points ``q`` (M, 3) lie on walls.
+
+    Args:
+        q: (M, 3) non-ground points, metres, local frame.
+        ground: (G, 3) ground points, same frame.
+        level: fallback ground height, metres.
+        view: the field of view, for the points ``q``; None if none was found.
+        params: the selection's parameters.
+
+    Returns:
+        ``(keep, segments, reason)``: (M,) bool wall points, the number of wall segments
+        kept, and (M,) int the index in :data:`DROP_RULES` of the rule each point's own
+        window failed (``selection.band`` when it failed none; meaningless where kept).
+    """
     link = math.ceil(params.link_distance / params.cell)
     cells = _Cells(q[:, :2], params.cell, max(params.window_radius, link) + 1)
     n_cells = len(cells.codes)
@@ -330,21 +496,42 @@ def _walls(q: np.ndarray, ground: np.ndarray, level: float, params: SelectionCon
     np.maximum.at(top, wi[band], z)
     np.minimum.at(bottom, wi[band], z)
     foot = np.minimum(_ground_height(cells.centres, ground, level, params.ground_cell), bottom)
-    wall = ((count >= params.min_window_points) & (count >= params.min_share * points)
-            & (thickness <= params.max_thickness) & (length >= params.min_window_length)
-            & (top - bottom >= params.min_extent) & (top - foot >= params.min_structure_height))
-    wall, segments = _segments(wall, cells, cells.centres + mean, normal, link, params)
+    tall = top - foot >= params.min_structure_height
+    cut = np.zeros(n_cells, dtype=bool)
+    if view is not None:
+        # Cut off by the field of view: seen as high as the sensor could see it. A wall if its
+        # plane passes far enough from the sensor: a van's side, along the road, passes near.
+        seen = band & view.at_top[pi]
+        n_top = np.bincount(wi[seen], minlength=n_cells)
+        rows = np.flatnonzero(n_top)
+        origin = np.stack([np.bincount(wi[seen], view.origin[pi[seen], k], n_cells)[rows] for k in (0, 1)],
+                          axis=1) / n_top[rows, None]
+        plane = np.abs(np.einsum('ij,ij->i', cells.centres[rows] + mean[rows] - origin, normal[rows]))
+        cut[rows] = plane >= params.min_cut_distance
+    # A wall cut off at the top shows its lower part only where hedges and cars leave it.
+    extent = np.where(cut & ~tall, 0.5 * params.min_extent, params.min_extent)
+    checks = (count >= params.min_window_points, count >= params.min_share * points,
+              thickness <= params.max_thickness, length >= params.min_window_length, tall | cut,
+              top - bottom >= extent)
+    failed = np.full(n_cells, len(checks))  # index of the first check failed (in DROP_RULES order)
+    for k in range(len(checks) - 1, -1, -1):
+        failed[~checks[k]] = k
+    wall = failed == len(checks)
+    kept, segments, short = _segments(wall, cells, cells.centres + mean, normal, link, params)
+    failed[short] = DROP_RULES.index('selection.min_segment_length')
+    failed[kept] = DROP_RULES.index('selection.band')
     keep = np.zeros(len(q), dtype=bool)
-    keep[pi[band & wall[wi]]] = True
-    return keep, segments
+    keep[pi[band & kept[wi]]] = True
+    return keep, segments, failed[cells.of_point]
 
 
 def _segments(wall: np.ndarray, cells: _Cells, centroid: np.ndarray, normal: np.ndarray, link: int,
-              params: SelectionConfig) -> tuple[np.ndarray, int]:
-    """The wall windows in segments of at least ``min_segment_length``, and the number of those."""
+              params: SelectionConfig) -> tuple[np.ndarray, int, np.ndarray]:
+    """The wall windows in segments of at least ``min_segment_length``, the number of those,
+    and (C,) bool the wall windows dropped for their segment's length."""
     idx = np.flatnonzero(wall)
     if not len(idx):
-        return wall, 0
+        return wall, 0, np.zeros_like(wall)
     cos_max = math.cos(math.radians(params.segment_angle))
     reach2 = (params.link_distance / params.cell) ** 2
     a_all, b_all = [idx], [idx]
@@ -381,4 +568,4 @@ def _segments(wall: np.ndarray, cells: _Cells, centroid: np.ndarray, normal: np.
     long = (hi - lo + params.cell) >= params.min_segment_length
     out = np.zeros_like(wall)
     out[idx[long[segment]]] = True
-    return out, int(long.sum())
+    return out, int(long.sum()), wall & ~out

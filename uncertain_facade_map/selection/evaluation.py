@@ -1,6 +1,6 @@
 """Figures of the selection on real sweeps, against an independent wall picker.
 
-``python -m uncertain_facade_map.selection.evaluation [PLY ...] [--map]`` prints, for each
+``python -m uncertain_facade_map.selection.evaluation [PLY ...] [--map] [--simulated]`` prints, for each
 cloud (default: the Argoverse sweeps in ``../shared/data/real/`` beside the repository),
 the points in and selected, the ground, the share of the picked wall points the selection
 keeps (recall), the share of the selected points within 0.4 m of a picked wall point
@@ -16,6 +16,17 @@ within 40 m of the sensor; a plane takes the points within 0.4 m of it, and its 
 piece without a gap of 1 m along it is a wall if it is 3 m wide, 2 m tall and holds 300
 points. It shares no code and no step with the selection (no ground model, no windows), so
 the figures measure one against the other.
+
+``--simulated`` prints the selection's figures on simulated clouds against the simulator's
+truth (:func:`simulated_figures`), each cloud selected alone as the node selects a scan: in
+the map frame, with each point's sensor origin: the ``residential`` street scanned by the
+``hdl64`` lidar (12 sweeps of 0.1 s, 2 s apart), the ``street`` scene scanned by the
+mobile-mapping system (10 pieces of 3 s) and by the ``av2`` lidars (11 sweeps, 3 s apart),
+each with the field-of-view rule and without it (``selection.fov_margin`` 0, the rule of
+before). Recall is the share of the true wall points kept: the points of class building
+on a façade (``gt_facade`` >= 0: the walls and their detail, not the roofs) that are no
+clutter outlier (``gt_outlier`` 0); precision is the share of the kept points of class
+building.
 """
 
 from __future__ import annotations
@@ -136,13 +147,91 @@ def evaluate(path: Path, params: SelectionConfig | None = None, with_map: bool =
     return out
 
 
+#: The simulated set-ups of ``--simulated``: name, scene, sensor preset (None: the scene's),
+#: seconds of each cloud, seconds between their starts.
+SIMULATED = (('residential/hdl64', 'residential', None, 0.1, 2.0), ('street/mms', 'street', None, 3.0, 3.0),
+             ('street/av2', 'street', 'av2', 0.1, 3.0))
+
+
+def simulated_clouds(scene: str, sensor: str | None = None, period: float = 0.1, every: float = 2.0, seed: int = 0,
+                     index: int = 0) -> list[np.ndarray]:
+    """Clouds of one simulated drive, as a sensor sends them.
+
+    Args:
+        scene: a scene of :data:`~uncertain_facade_map.simulation.scenes.SCENES`.
+        sensor: a preset of :data:`~uncertain_facade_map.simulation.presets.SENSOR_PRESETS`;
+            None for the scene's own.
+        period: seconds of each cloud (0.1: a sweep of a 10 Hz lidar).
+        every: seconds between the starts of the clouds (from 0.5 s into the drive on).
+        seed: the scene's seed.
+        index: the campaign.
+
+    Returns:
+        The clouds' points (structured arrays with the simulator's fields, map frame).
+    """
+    from ..simulation.campaign import campaign, drive_duration, simulate_campaign
+    from ..simulation.presets import SCENE_SENSORS, SENSOR_PRESETS
+    from ..simulation.scenes import build_scene
+
+    built = build_scene(scene, seed)
+    preset = SENSOR_PRESETS[sensor] if sensor else SCENE_SENSORS[scene]
+    duration = drive_duration(built, campaign(built, index), preset)
+    return [simulate_campaign(built, index, preset, window=(t, t + period)).points
+            for t in np.arange(0.5, duration - period, every)]
+
+
+def simulated_figures(clouds: list[np.ndarray], params: SelectionConfig | None = None) -> dict[str, float]:
+    """The selection's figures on simulated clouds, each selected alone (see the module docstring).
+
+    Args:
+        clouds: structured arrays with ``x, y, z``, ``origin_x, origin_y, origin_z``,
+            ``class``, ``gt_facade`` and ``gt_outlier`` (the simulator's fields).
+        params: the selection's parameters; defaults if None.
+
+    Returns:
+        ``recall`` and ``precision`` over all clouds, ``kept``, ``walls`` (true wall points),
+        ``points``, ``seconds`` (median time of one selection) and ``kept_share`` (the least
+        share of its non-ground points a cloud kept).
+    """
+    kept = kept_building = walls = found = 0
+    seconds, shares = [], []
+    for p in clouds:
+        xyz = np.stack([p['x'], p['y'], p['z']], axis=1)
+        origins = np.stack([p['origin_x'], p['origin_y'], p['origin_z']], axis=1)
+        started = time.perf_counter()
+        selection = select_building_points(xyz, origins, params)
+        seconds.append(time.perf_counter() - started)
+        wall = (p['class'] == 1) & (p['gt_facade'] >= 0) & (p['gt_outlier'] == 0)
+        walls += int(wall.sum())
+        found += int((selection.mask & wall).sum())
+        kept += selection.kept
+        kept_building += int((selection.mask & (p['class'] == 1)).sum())
+        shares.append(selection.kept / max(selection.non_ground, 1))
+    return {'recall': found / max(walls, 1), 'precision': kept_building / max(kept, 1), 'kept': kept, 'walls': walls,
+            'points': sum(len(p) for p in clouds), 'seconds': float(np.median(seconds)),
+            'kept_share': float(min(shares))}
+
+
 def main(argv: list[str] | None = None) -> int:
     """Print the figures of each cloud (see the module docstring)."""
     parser = argparse.ArgumentParser(prog='python -m uncertain_facade_map.selection.evaluation',
                                      description=__doc__.split('\n\n')[0])
     parser.add_argument('clouds', nargs='*', type=Path, help='cloud files (default: ../shared/data/real/*.ply)')
     parser.add_argument('--map', action='store_true', help='also build maps from all and from the selected points')
+    parser.add_argument('--simulated', action='store_true',
+                        help='the figures on simulated clouds against their truth instead (see above)')
     args = parser.parse_args(argv)
+    if args.simulated:
+        for name, scene, sensor, period, every in SIMULATED:
+            clouds = simulated_clouds(scene, sensor, period, every)
+            for rule, params in (('', SelectionConfig()), (' (without the field-of-view rule)',
+                                                           SelectionConfig(fov_margin=0.0))):
+                r = simulated_figures(clouds, params)
+                print(f'{name}{rule}: {len(clouds)} clouds, {r["points"]:,} points, {r["walls"]:,} true wall points, '
+                      f'{r["kept"]:,} kept: recall {r["recall"]:.3f}, precision {r["precision"]:.3f}, least kept '
+                      f'share of the non-ground points {r["kept_share"]:.3f}, {r["seconds"]:.2f} s a cloud (median)',
+                      flush=True)
+        return 0
     paths = args.clouds or sorted(REAL_DATA.glob('*.ply'))
     if not paths:
         print(f'no clouds given and none in {REAL_DATA}', file=sys.stderr)

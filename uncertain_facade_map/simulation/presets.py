@@ -27,6 +27,24 @@ Sensors (:data:`SENSOR_PRESETS`, :class:`~.sensor.SensorConfig`):
   laser of sigma 1 cm, beam divergence 3 mrad (the Puck family's figure, VLP-16 manual;
   the VLP-32C manual gives none), coordinates stored as float16 in the vehicle frame (as
   Argoverse does), registration offsets as ``vmx250``, 1 % clutter, 5 m/s.
+- ``hdl64``: a Velodyne HDL-64E on a car roof, as on the KITTI car (Geiger, Lenz, Stiller
+  and Urtasun, "Vision meets robotics: the KITTI dataset", IJRR 2013: one HDL-64E spinning
+  at 10 Hz, 64 beams, mounted 1.73 m above the ground). Beam elevations: the 64
+  ``vert_correction`` angles of a calibrated HDL-64E S3 (ros-drivers/velodyne,
+  ``velodyne_pointcloud/params/64e_s3-xiesc.yaml``, radians, here in degrees rounded to
+  0.01), +1.96 to -24.56 degrees: the upper block of 32 lasers about 1/3 degree apart down
+  to -8.56, the lower block about 1/2 degree apart (the data sheet, whose specification list
+  github:ZahraArj/SLAM-papers ``15_KITTI.md`` reproduces: vertical field of view +2.0 to
+  -24.9 degrees, 64 channels, about 0.4 degree apart). Azimuth step 0.17 degrees:
+  the data sheet gives 0.08 degrees at 5 Hz to 0.35 at 20 Hz, in proportion to the spin
+  rate, and about 1.3 million points/s, i.e. 2,030 shots per beam and turn at 10 Hz (0.177
+  degrees). Range 0.9 m (the manual: returns closer than about three feet are to be
+  ignored, HDL-64E User's Manual, "Usage") to 120 m (data sheet), Gaussian range noise of
+  2 cm (data sheet: accuracy up to +-2 cm), 1 % clutter, 5 m/s, coordinates in float64
+  (KITTI stores float32: sub-millimetre at these ranges). The top beam at +1.96 degrees
+  from 1.73 m sees a wall 10 m away up to 2.07 m, 20 m away up to 2.41 m: the walls of a
+  residential street only low (``residential``). One sweep holds about 130,000 returns
+  there, a drive of its 120 m at 5 m/s 240 sweeps: simulate a few with ``window``.
 
 Walls (:data:`WALL_PRESETS`, :class:`~.walls.WallRealism`): ``hard``: bow 1-4 cm, lean
 0.5-3 mm per metre, two undulations of 1-4 mm, plaster texture of 2 mm on a 2 cm grid,
@@ -38,7 +56,8 @@ a half it was 47 %. The other figures are from the data sheets or the measured g
 
 Scenes: ``street``, ``zurich`` and ``small`` are the clean scenes; ``street_hard``,
 ``zurich_hard`` and ``small_hard`` are the same geometry with ``hard`` walls and the
-``vmx250-thin`` (``vmx250-small``) sensor (:data:`HARD_SCENES`, :data:`SCENE_SENSORS`).
+``vmx250-thin`` (``vmx250-small``) sensor (:data:`HARD_SCENES`, :data:`SCENE_SENSORS`);
+``residential`` (detached houses behind front yards) is scanned by ``hdl64``.
 """
 
 from __future__ import annotations
@@ -55,6 +74,16 @@ VLP32C_ELEVATIONS_DEG = (
     10.333, 15.0,
 )
 
+#: Elevations of the 64 beams of a Velodyne HDL-64E, degrees, highest first: the calibrated
+#: vertical corrections of one HDL-64E S3 (ros-drivers/velodyne, params/64e_s3-xiesc.yaml).
+HDL64E_ELEVATIONS_DEG = (
+    1.96, 1.56, 1.29, 0.89, 0.59, 0.2, -0.09, -0.45, -0.76, -1.14, -1.46, -1.81, -2.09, -2.49, -2.79, -3.12,
+    -3.47, -3.82, -4.16, -4.53, -4.81, -5.13, -5.48, -5.89, -6.19, -6.56, -6.85, -7.23, -7.55, -7.94, -8.22, -8.56,
+    -8.77, -9.3, -9.74, -10.18, -10.75, -11.3, -11.91, -12.29, -12.83, -13.16, -13.81, -14.29, -14.93, -15.38,
+    -15.91, -16.27, -16.8, -17.37, -17.96, -18.43, -18.92, -19.25, -19.89, -20.43, -21.06, -21.49, -21.98, -22.36,
+    -22.97, -23.55, -24.15, -24.56,
+)
+
 _MMS = SensorConfig()
 _VMX250 = SensorConfig(
     scan_rate_hz=100.0, angular_step_deg=0.12, range_min=1.5, range_max=60.0, range_noise=0.004,
@@ -66,6 +95,10 @@ _AV2 = SensorConfig(
     scan_rate_hz=10.0, angular_step_deg=0.2, elevation_min_deg=-90.0, range_min=1.0, range_max=100.0,
     range_noise=0.015, beam_divergence_mrad=3.0, beam_bias=0.01, quantise='float16', outlier_share=0.01,
     registration_sigma=(0.03, 0.02, 0.01))
+_HDL64 = SensorConfig(
+    pattern='spinning', scanner_yaws_deg=(0.0,), mount=((0.0, 0.0, 1.73),), beam_elevations_deg=(HDL64E_ELEVATIONS_DEG,),
+    scan_rate_hz=10.0, angular_step_deg=0.17, elevation_min_deg=-90.0, range_min=0.9, range_max=120.0,
+    range_noise=0.02, outlier_share=0.01)
 
 #: Sensors by name (see the module docstring for where the numbers come from).
 SENSOR_PRESETS: dict[str, SensorConfig] = {
@@ -75,6 +108,7 @@ SENSOR_PRESETS: dict[str, SensorConfig] = {
     'vmx250-thin': replace(_VMX250, scan_rate_hz=50.0, angular_step_deg=0.2),
     'vmx250-small': replace(_VMX250, scan_rate_hz=15.0, angular_step_deg=0.5),
     'av2': _AV2,
+    'hdl64': _HDL64,
 }
 
 #: Walls by name.
@@ -93,4 +127,5 @@ SCENE_SENSORS: dict[str, SensorConfig] = {
     'street_hard': SENSOR_PRESETS['vmx250-thin'],
     'zurich_hard': SENSOR_PRESETS['vmx250-thin'],
     'small_hard': SENSOR_PRESETS['vmx250-small'],
+    'residential': SENSOR_PRESETS['hdl64'],
 }

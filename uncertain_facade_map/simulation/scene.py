@@ -30,6 +30,7 @@ from .raycast import (
 )
 from .walls import FacadeRelief, WallRealism, on_pane, panes
 
+CLASS_OTHER = 0
 CLASS_GROUND = 2
 CLASS_VEGETATION = 3
 CLASS_VEHICLE = 4
@@ -209,7 +210,22 @@ class Pole:
     sign: bool = False
 
 
-Occluder = Car | Tree | Pole
+@dataclass(frozen=True)
+class Hedge:
+    """A hedge or a fence: a box ``length`` x ``width`` x ``height`` standing on the ground,
+    centred at (x, y), its length along heading ``yaw`` rad; a hedge is vegetation, a fence
+    (``kind='fence'``) is of class other."""
+
+    x: float
+    y: float
+    yaw: float
+    length: float
+    width: float
+    height: float
+    kind: str = 'hedge'
+
+
+Occluder = Car | Tree | Pole | Hedge
 
 
 # ----------------------------------------------------------------------------------------
@@ -446,20 +462,27 @@ def _feature_solid(facade: Facade, f: Feature) -> _Node | None:
     return None  # recesses are part of the body
 
 
+def _ground_box(occ: Car | Hedge, label: int) -> _Convex:
+    """The box of a car or a hedge: on the ground, turned by its yaw."""
+    c, s = np.cos(occ.yaw), np.sin(occ.yaw)
+    ax, ay = np.array([c, s, 0.0]), np.array([-s, c, 0.0])
+    centre = np.array([occ.x, occ.y, occ.height / 2])
+    half = np.array([occ.length, occ.width, occ.height]) / 2
+    planes, corners = [], []
+    for axis, h in ((ax, half[0]), (ay, half[1]), (np.array([0.0, 0.0, 1.0]), half[2])):
+        planes += [(axis, float(axis @ centre + h)), (-axis, float(-axis @ centre + h))]
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            for sz in (-1, 1):
+                corners.append(centre + sx * half[0] * ax + sy * half[1] * ay + sz * half[2] * np.array([0, 0, 1.0]))
+    return _Convex(planes, np.array(corners), label)
+
+
 def _occluder_nodes(occ: Occluder) -> list[_Node]:
     if isinstance(occ, Car):
-        c, s = np.cos(occ.yaw), np.sin(occ.yaw)
-        ax, ay = np.array([c, s, 0.0]), np.array([-s, c, 0.0])
-        centre = np.array([occ.x, occ.y, occ.height / 2])
-        half = np.array([occ.length, occ.width, occ.height]) / 2
-        planes, corners = [], []
-        for axis, h in ((ax, half[0]), (ay, half[1]), (np.array([0.0, 0.0, 1.0]), half[2])):
-            planes += [(axis, float(axis @ centre + h)), (-axis, float(-axis @ centre + h))]
-        for sx in (-1, 1):
-            for sy in (-1, 1):
-                for sz in (-1, 1):
-                    corners.append(centre + sx * half[0] * ax + sy * half[1] * ay + sz * half[2] * np.array([0, 0, 1.0]))
-        return [_Convex(planes, np.array(corners), CLASS_VEHICLE)]
+        return [_ground_box(occ, CLASS_VEHICLE)]
+    if isinstance(occ, Hedge):
+        return [_ground_box(occ, CLASS_VEGETATION if occ.kind == 'hedge' else CLASS_OTHER)]
     if isinstance(occ, Tree):
         top = occ.trunk_height + occ.crown_radius
         return [_Cylinder(np.array([occ.x, occ.y]), occ.trunk_radius, 0.0, occ.trunk_height + 0.5 * occ.crown_radius,
@@ -522,10 +545,15 @@ class Street:
     Attributes:
         centreline: (K, 2) metres, map frame, in driving order.
         lanes: lateral offsets (metres, left positive) of the lanes campaigns drive in.
+        kerb: distance from the centreline of the line the parked cars keep 0.8 to 1.1 m
+            beyond (their centres), metres.
+        van_share: share of the parked vehicles that are vans (5-5.5 m long, 2.0-2.5 m tall).
     """
 
     centreline: np.ndarray
     lanes: tuple[float, ...] = (-1.75, 1.75)
+    kerb: float = 5.6
+    van_share: float = 0.0
 
 
 @dataclass(eq=False)

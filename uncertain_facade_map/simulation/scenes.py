@@ -1,10 +1,12 @@
-"""Built-in scenes: ``street`` (default), ``small`` (for tests) and ``zurich`` (real footprints),
-and their hard variants ``street_hard``, ``small_hard`` and ``zurich_hard`` (the same
-geometry with walls as built: relief, plaster, glass; see :mod:`.walls` and :mod:`.presets`).
+"""Built-in scenes: ``street`` (default), ``small`` (for tests), ``zurich`` (real footprints) and
+``residential`` (detached houses behind front yards, for a car's lidar), and the hard variants
+``street_hard``, ``small_hard`` and ``zurich_hard`` (the same geometry with walls as built:
+relief, plaster, glass; see :mod:`.walls` and :mod:`.presets`).
 
 Every scene is a straight street along +x with its centreline on y = 0, façade lines at
-y = +-``FACADE_LINE`` and buildings behind them; trees and poles stand on the pavements,
-cars are parked along the kerbs (drawn per campaign, see :mod:`.campaign`).
+y = +-``FACADE_LINE`` (``residential``: set back 3 to 8 m behind ``PROPERTY_LINE``) and
+buildings behind them; trees and poles stand on the pavements, cars are parked along the
+kerbs (drawn per campaign, see :mod:`.campaign`).
 """
 
 from __future__ import annotations
@@ -17,12 +19,15 @@ import numpy as np
 from ..errors import InputError
 from .facades import FacadeStyle, decorate
 from .presets import HARD_SCENES, WALL_PRESETS
-from .scene import Building, Car, Facade, FacadeFrame, Occluder, Pole, Scene, Street, Tree
+from .scene import Building, Car, Facade, FacadeFrame, Hedge, Occluder, Pole, Scene, Street, Tree
 
 #: Distance from the street centreline to the façade lines, metres.
 FACADE_LINE = 9.0
-#: Distance from the centreline to the kerb where cars park, metres.
+#: Distance from the centreline to the kerb where cars park, metres (``Street.kerb``'s default).
 KERB = 5.6
+#: ``residential``: distance from the centreline to the property line (the kerb is 5.5 m
+#: out, the pavement 2 m wide), metres.
+PROPERTY_LINE = 7.5
 
 #: Default CityJSON file of the ``zurich`` scene: the Zurich LoD2 subset shipped with the
 #: package (cjio project's test data, MIT; see ``data/README.md`` and ``data/LICENSE-cjio-MIT.txt``).
@@ -96,11 +101,18 @@ def parked_cars(scene: Scene, rng: np.random.Generator, share: float = 0.45) -> 
         Cars with their long side along the street.
     """
     x0, x1 = float(scene.street.centreline[0, 0]), float(scene.street.centreline[-1, 0])
+    kerb, vans = scene.street.kerb, scene.street.van_share
     cars = []
     for side in (1.0, -1.0):
         for x in np.arange(x0 + 6.0, x1 - 6.0, 6.0):
             if rng.random() < share:
-                cars.append(Car(float(x + rng.normal(0, 0.5)), side * float(KERB + rng.uniform(0.8, 1.1)),
+                # Vans draw from the stream only in streets that have them: the others keep their cars.
+                if vans > 0 and rng.random() < vans:
+                    length, width, height = rng.uniform(5.0, 5.5), rng.uniform(1.9, 2.1), rng.uniform(2.0, 2.5)
+                    cars.append(Car(float(x + rng.normal(0, 0.3)), side * float(kerb + 0.1 + width / 2),
+                                    float(rng.normal(0, 0.03)), float(length), float(width), float(height)))
+                    continue
+                cars.append(Car(float(x + rng.normal(0, 0.5)), side * float(kerb + rng.uniform(0.8, 1.1)),
                                 float(rng.normal(0, 0.03)), float(rng.uniform(4.0, 5.0)),
                                 float(rng.uniform(1.7, 1.9)), float(rng.uniform(1.4, 1.9))))
     return cars
@@ -159,6 +171,70 @@ def small_scene(seed: int = 0) -> Scene:
     occluders: list[Occluder] = [Tree(9.0, 7.0, 0.2, 3.0, 2.2, 0.6), Pole(31.0, 6.2, 0.08, 5.0, sign=True)]
     street = Street(np.array([[-5.0, 0.0], [45.0, 0.0]]))
     return Scene('small', seed, buildings, occluders, street, map_origin=np.array([550_000.0, 5_804_000.0, 55.0]))
+
+
+def residential_scene(seed: int = 0) -> Scene:
+    """A residential street of detached houses behind front yards, for a car's lidar.
+
+    110 m of street along +x (x from -10 to 110; the campaigns drive two lanes 1.6 m either
+    side of the centreline at 5 m/s). On each side, lots 15 to 19 m wide along the street
+    from x = 0 to about 100 m, each with a detached two-storey house: a flat-roofed box (the
+    scene model has no pitched roofs; a car's lidar never sees a roof from the street) 9 to
+    12.5 m wide and 8 to 11 m deep, eaves 5 to 7 m, set back 3 to 8 m behind the property
+    line at ``PROPERTY_LINE`` = 7.5 m (the kerb at 5.5 m, the pavement 2 m wide), with 2.5 m
+    or more between neighbours; windows on every wall. Along the property line of most lots a
+    hedge (1.0-1.5 m tall, 0.5-0.8 m thick) or a fence (1.0-1.4 m, 5 cm), broken by a 3 m
+    gate or driveway; street trees on the pavement every 12 to 18 m, a tree in some front
+    yards, a street lamp every 25 m. Cars and vans (a quarter; 2.0-2.5 m tall) park along
+    both kerbs, drawn per campaign (:func:`parked_cars`).
+
+    With the ``hdl64`` sensor (1.73 m up, top beam +1.96 degrees) the street façades, 8 to
+    17 m from the lanes, are seen up to 2.0-2.3 m across the street and a little higher
+    down it: hedges, fences and cars hide their feet, the field of view their upper floors.
+    """
+    rng = _rng(seed, 4)
+    buildings: list[Building] = []
+    occluders: list[Occluder] = []
+    for side in (1.0, -1.0):
+        x = float(rng.uniform(0.0, 3.0))
+        while x < 95.0:
+            lot = float(rng.uniform(15.0, 19.0))
+            width = float(rng.uniform(9.0, 12.5))
+            depth = float(rng.uniform(8.0, 11.0))
+            eave = float(rng.uniform(5.0, 7.0))
+            setback = float(rng.uniform(3.0, 8.0))
+            x0 = x + float(rng.uniform(1.25, lot - width - 1.25))
+            front = PROPERTY_LINE + setback
+            if side > 0:  # wall 0 runs along +x at the front, outward normal -y: the street façade
+                poly = _rect(x0, x0 + width, front, front + depth)
+            else:  # wall 2 runs along -x at the front, outward normal +y
+                poly = _rect(x0, x0 + width, -front - depth, -front)
+            buildings.append(make_building(len(buildings), sum(len(b.facades) for b in buildings), poly, eave, {}, rng))
+            # Hedge, fence or nothing along the property line, with a 3 m gate or driveway.
+            kind = rng.choice(['hedge', 'fence', 'open'], p=[0.45, 0.35, 0.2])
+            if kind != 'open':
+                gate = float(rng.uniform(x + 1.0, x + lot - 4.0))
+                thick = float(rng.uniform(0.5, 0.8)) if kind == 'hedge' else 0.05
+                height = float(rng.uniform(1.0, 1.5)) if kind == 'hedge' else float(rng.uniform(1.0, 1.4))
+                y = side * (PROPERTY_LINE + 0.05 + thick / 2)
+                for a, b in ((x, gate), (gate + 3.0, x + lot)):
+                    if b - a > 0.5:
+                        occluders.append(Hedge((a + b) / 2, y, 0.0, b - a, thick, height, str(kind)))
+            if rng.random() < 0.4:  # a tree in the front yard
+                occluders.append(Tree(float(rng.uniform(x + 2.0, x + lot - 2.0)),
+                                      side * (PROPERTY_LINE + float(rng.uniform(1.5, max(1.6, setback - 1.5)))),
+                                      float(rng.uniform(0.12, 0.2)), float(rng.uniform(2.0, 3.0)),
+                                      float(rng.uniform(1.5, 2.5)), float(rng.uniform(0.4, 0.8))))
+            x += lot
+        for tx in np.arange(float(rng.uniform(2.0, 12.0)), 105.0, float(rng.uniform(12.0, 18.0))):
+            occluders.append(Tree(float(tx + rng.normal(0, 0.5)), side * float(rng.uniform(6.3, 6.8)),
+                                  float(rng.uniform(0.15, 0.25)), float(rng.uniform(2.5, 3.5)),
+                                  float(rng.uniform(1.8, 2.8)), float(rng.uniform(0.4, 0.8))))
+        for px in np.arange(float(rng.uniform(5.0, 20.0)), 105.0, 25.0):
+            occluders.append(Pole(float(px), side * float(rng.uniform(5.7, 5.9)), float(rng.uniform(0.06, 0.1)),
+                                  float(rng.uniform(4.5, 6.0)), sign=False))
+    street = Street(np.array([[-10.0, 0.0], [110.0, 0.0]]), lanes=(-1.6, 1.6), kerb=3.6, van_share=0.25)
+    return Scene('residential', seed, buildings, occluders, street, map_origin=np.array([550_000.0, 5_804_000.0, 55.0]))
 
 
 def zurich_scene(seed: int = 0, path: str | Path | None = None, count: int = 8) -> Scene:
@@ -238,7 +314,8 @@ def with_walls(scene: Scene, walls: str = 'hard', name: str | None = None) -> Sc
                  map_origin=scene.map_origin, walls=realism)
 
 
-SCENES: dict[str, Callable[[int], Scene]] = {'street': street_scene, 'small': small_scene, 'zurich': zurich_scene}
+SCENES: dict[str, Callable[[int], Scene]] = {'street': street_scene, 'small': small_scene, 'zurich': zurich_scene,
+                                             'residential': residential_scene}
 SCENES.update({hard: (lambda seed, clean=clean, walls=walls, hard=hard: with_walls(SCENES[clean](seed), walls, hard))
                for hard, (clean, walls) in HARD_SCENES.items()})
 
