@@ -232,6 +232,26 @@ def bilinear_weights(uv: np.ndarray, origin: np.ndarray, spacing: float, shape: 
     return nodes, weights
 
 
+#: A point this close below a cell boundary (in cells) counts in the cell above it.
+GRID_GUARD = 1e-9
+
+
+def grid_index(x: np.ndarray, origin: float, cell: float) -> np.ndarray:
+    """Index of the cell of side ``cell`` from ``origin`` that each coordinate lies in (int64).
+
+    A raster's origin is set from its points' extreme (minus a margin of whole cells), so
+    the extreme points lie on a cell boundary, where round-off (1e-13 m) of how the points
+    were moved into the map frame would pick the cell: a point within :data:`GRID_GUARD`
+    cells below a boundary is counted above it, so the cell does not depend on it.
+
+    Args:
+        x: (N,) coordinates, metres.
+        origin: the raster's origin along that axis, metres.
+        cell: cell side, metres (> 0).
+    """
+    return np.floor((np.asarray(x, dtype=np.float64) - origin) / cell + GRID_GUARD).astype(np.int64)
+
+
 @dataclass(frozen=True, eq=False)
 class Facets:
     """Facets of a façade on a raster.
@@ -258,8 +278,8 @@ class Facets:
 
     def cells_of(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Raster (row, column) of (N, 2) points and a mask of those inside the raster."""
-        col = np.floor((uv[:, 0] - self.origin[0]) / self.cell).astype(np.int64)
-        row = np.floor((uv[:, 1] - self.origin[1]) / self.cell).astype(np.int64)
+        col = grid_index(uv[:, 0], self.origin[0], self.cell)
+        row = grid_index(uv[:, 1], self.origin[1], self.cell)
         inside = (row >= 0) & (row < self.facet.shape[0]) & (col >= 0) & (col < self.facet.shape[1])
         return row, col, inside
 

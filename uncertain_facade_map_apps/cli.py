@@ -5,6 +5,7 @@ Sub-commands:
     build      build a façade map from classified point clouds or bags
     query      answer point queries against a map
     replay     replay bags into a map (offline) or to a running facade_mapper (publish)
+    inspect    what a bag holds (clouds, frames, transforms) and whether its clouds can be mapped
     plot       draw a map's façades and an overview as PNG figures
     evaluate   compare the map's occupancy with the baselines' against a reference scan
     benchmark  hold points out of a cloud, map the rest, score the held-out points beside reference maps
@@ -194,10 +195,15 @@ def cmd_build(args: argparse.Namespace) -> int:
     stats = [f.stats for f in fmap.facades]
     print(f'read     {len(cloud):,} points ({len(points):,} building) from {len(args.inputs)} input(s) in {read_s:.1f} s')
     if points.selection is not None:
+        from uncertain_facade_map.selection import selection_warning
+
         found = points.selection
         print(f'selected {len(points):,} points on {found.walls} wall segments, {found.ground.sum():,} ground'
               if found.applied else
               f'selected all: no class field, but {found.ground_share:.1%} ground, so building points cut already')
+        warning = selection_warning(found, selection)
+        if warning is not None:
+            print(f'warning: {warning}', file=sys.stderr)
     print(f'mapped   {len(fmap.buildings)} buildings, {len(fmap.facades)} façades in {build_s:.1f} s '
           f'({len(cloud) / max(build_s, 1e-9):,.0f} points/s)')
     print(f'gp       {sum(s["training"] for s in stats):,} training points, '
@@ -331,12 +337,16 @@ def cmd_replay(args: argparse.Namespace) -> int:
     frames = ', '.join(f'{f} ({n})' for f, n in bag.cloud_frames().items())
     print(f'replayed {summary.scans:,} scans of {bag.topic}: {summary.points:,} points, {summary.building_points:,} '
           f'building, {summary.nonfinite:,} skipped (NaN/Inf)')
-    print(f'frames   clouds in {frames}; map frame "{map_frame}"'
-          + (f'; transforms from {", ".join(bag.pose_topics)}: {buffer!r}'.replace('\n', '; ') if bag.pose_topics
-             else ''))
+    print(f'frames   clouds in {frames}; map frame "{map_frame}"')
+    if bag.pose_topics:
+        tree = repr(buffer).split('\n')[1:]
+        print(f'poses    {len(bag.transforms):,} transforms from {", ".join(bag.pose_topics)}:')
+        print('\n'.join(f'       {line}' for line in tree))
     if summary.non_ground:
         print(f'selected {summary.selected:,} of {summary.non_ground:,} non-ground points '
               f'({_share(summary.selected, summary.non_ground)}) as building')
+    if summary.thin_selections:
+        print(f'warning: in {summary.thin_selections} scans {summary.selection_warning}', file=sys.stderr)
     for note, count in summary.notes.items():
         print(f'placed   {count} scans: {note}')
     if summary.rejected:
@@ -347,6 +357,70 @@ def cmd_replay(args: argparse.Namespace) -> int:
         save_map(fmap, args.out)
         print(f'map      {args.out}')
     return 0
+
+
+def cmd_inspect(args: argparse.Namespace) -> int:
+    """What a bag holds and whether its clouds can be mapped (see ``inspect --help``)."""
+    from collections import Counter
+
+    import numpy as np
+
+    from msg_adapters.bag_io import list_topics, read_bag
+    from uncertain_facade_map.errors import InputError
+    from uncertain_facade_map.io.parameter_file import load_config
+    from uncertain_facade_map.io.scans import Scan, frames_without_transform
+
+    config = load_config(args.config)
+    map_frame = config.input.frame_id
+    topics = list_topics(args.bag)
+    print(f'bag      {args.bag}')
+    for name, kind in topics.items():
+        print(f'  {name:<30s} {kind}')
+    bag = read_bag(args.bag, topic=args.topic, poses=_poses_option(args.poses))
+    if not bag.scans:
+        raise CliError(f'{args.bag}: no messages on {bag.topic}')
+    fields = bag.scans[0][1].dtype.names or ()
+    stamps = [s for s, _ in bag.scans]
+    span = (max(stamps) - min(stamps)) / 1e9
+    rates = []
+    for frame in bag.cloud_frames():
+        own = [s for s, f in zip(stamps, bag.frame_ids) if f == frame]
+        if len(own) > 1 and max(own) > min(own):
+            rates.append((len(own) - 1) / ((max(own) - min(own)) / 1e9))
+    rate = f', {float(np.median(rates)):.1f} Hz per frame' if rates else ''
+    print(f'clouds   {len(bag.scans):,} on {bag.topic} over {span:.1f} s{rate}, '
+          f'{sum(len(p) for _, p in bag.scans) / len(bag.scans):,.0f} points each on average')
+    print(f'fields   {", ".join(fields)}')
+    classes = config.input.class_field in fields
+    print(f'classes  {"field " + repr(config.input.class_field) + " (input.class_field)" if classes else "none: the building points are selected (selection.mode: " + config.selection.mode + ")"}'
+          + (f'; times from field {config.input.time_field!r} (input.time_field)' if config.input.time_field in fields
+             else '; no per-point time field: one pose per cloud'))
+    print(f'frames   {", ".join(f"{f} ({n})" for f, n in bag.cloud_frames().items())}; map frame "{map_frame}" '
+          '(input.frame_id)')
+    buffer, refused = bag.transform_buffer()
+    if bag.pose_topics:
+        print(f'poses    {len(bag.transforms):,} transforms from {", ".join(bag.pose_topics)}:')
+        print('\n'.join(f'         {line}' for line in repr(buffer).split('\n')[1:]))
+    else:
+        print('poses    none (no tf2_msgs/TFMessage, TransformStamped or Odometry topic)')
+    for why in refused[:3]:
+        print(f'refused  {why}')
+    missing = frames_without_transform(bag.cloud_frames(), buffer, map_frame)
+    placed, failed = 0, Counter()
+    for stamp, points, frame in bag.located_scans:
+        try:
+            Scan.of(points, frame, stamp, config.input).place(buffer, map_frame, config.node.pose_tolerance)
+            placed += 1
+        except InputError as exc:
+            failed[str(exc).splitlines()[0]] += 1
+    print(f'placed   {placed:,} of {len(bag.scans):,} clouds can be put into "{map_frame}"')
+    for why, n in failed.most_common(3):
+        print(f'         {n} cannot: {why}')
+    if missing:
+        print(f'hint     no transform connects {", ".join(missing)} with "{map_frame}": set input.frame_id to the root of '
+              'the transforms above, or record /tf and /tf_static (or sensor_pose) with the clouds')
+    print(f'origin   {bag.map_origin.tolist()} (the map frame\'s georeference, /map_origin)')
+    return 0 if placed else 2
 
 
 def _facade_ids(text: str) -> list[int]:
@@ -709,6 +783,17 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument('--best-effort', action='store_true', help='publish: best-effort QoS (default reliable)')
     replay.add_argument('--quiet', action='store_true', help='no progress bar')
     replay.set_defaults(func=cmd_replay)
+
+    inspect = sub.add_parser('inspect', help='what a bag holds and whether its clouds can be mapped',
+                             description='List the topics of a bag, its PointCloud2 clouds (rate, fields, frames), '
+                                         'the transforms of its pose topics as a tree, and how many clouds can be put '
+                                         'into the map frame (input.frame_id) as replay and the node would. Exit '
+                                         'status 2 when none can.')
+    inspect.add_argument('bag', metavar='BAG', help='ROS 1 (.bag) or ROS 2 (folder, .db3, .mcap) bag')
+    inspect.add_argument('--topic', help='PointCloud2 topic (default: the only one)')
+    inspect.add_argument('--poses', metavar='TOPICS', help='pose topics to read, comma-separated, or none (default: all)')
+    inspect.add_argument('--config', metavar='YAML', help='ROS 2 parameter file (default: config/facade_mapper.yaml)')
+    inspect.set_defaults(func=cmd_inspect)
 
     plot = sub.add_parser('plot', help="draw a map's façades and an overview as PNG figures",
                           description='Write per façade facade_<id>.png (points by GMM layer, GP training points '

@@ -536,11 +536,16 @@ class FacadeMapperNode(Node):
 
     def _selection_note(self, found: ScanPoints) -> None:
         """Count what the selection kept of a cloud without classes, and warn when it kept little."""
+        from uncertain_facade_map.selection import selection_warning
+
         sel = found.selection
         if sel is None or not sel.applied:
             return
-        self._interval['non_ground'] += int((~sel.ground).sum())
-        self._interval['selected'] += int(sel.mask.sum())
+        self._interval['non_ground'] += sel.non_ground
+        self._interval['selected'] += sel.kept
+        warning = selection_warning(sel, self.config.selection)
+        if warning is not None:
+            self._warn(warning, 'selection share', period=30.0)
 
     def _cloud_line(self, item: _Waiting, placement: Placement, found: ScanPoints) -> str:
         """One debug line per cloud: its frame, points kept, pose and wait."""
@@ -552,7 +557,7 @@ class FacadeMapperNode(Node):
                     + (f', {len(placement.pose.translations)} poses over its points\' times' if not placement.pose.single
                        else ''))
         sel = found.selection
-        kept = (f', the selection kept {int(sel.mask.sum()):,} of {int((~sel.ground).sum()):,} non-ground points'
+        kept = (f', the selection kept {sel.kept:,} of {sel.non_ground:,} non-ground points'
                 if sel is not None and sel.applied else '')
         return (f'cloud at {scan.stamp_ns / 1e9:.3f} s: {item.points:,} points, {len(found.xyz):,} building{kept}; '
                 f'{pose}; waited {time.monotonic() - item.arrived:.3f} s'

@@ -438,6 +438,9 @@ class ReplaySummary:
             one pose for a sweep), with a count of each note.
         non_ground: non-ground points of the scans that went through the selection.
         selected: of those, the points the selection kept.
+        thin_selections: scans of which the selection kept less than
+            ``selection.warn_kept_share`` of the non-ground points.
+        selection_warning: the first such scan's warning (``selection_warning``), '' if none.
     """
 
     scans: int
@@ -452,6 +455,8 @@ class ReplaySummary:
     notes: dict[str, int] = field(default_factory=dict)
     non_ground: int = 0
     selected: int = 0
+    thin_selections: int = 0
+    selection_warning: str = ''
 
 
 def map_scans(fmap: FacadeMap, scans: Any, config: Any, progress: Callable[[int], None] | None = None,
@@ -487,6 +492,7 @@ def map_scans(fmap: FacadeMap, scans: Any, config: Any, progress: Callable[[int]
         The summary.
     """
     from ..io.scans import Scan
+    from ..selection import selection_warning
 
     frame = config.frame_id if map_frame is None else map_frame
     started = time.perf_counter()
@@ -494,6 +500,8 @@ def map_scans(fmap: FacadeMap, scans: Any, config: Any, progress: Callable[[int]
     rejected: Counter[str] = Counter()
     notes: Counter[str] = Counter()
     non_ground = selected = 0
+    warnings: Counter[str] = Counter()
+    first_warning = ''
     for item in scans:
         stamp, points, scan_frame = (0, item, frame) if isinstance(item, np.ndarray) else item
         n_scans += 1
@@ -509,8 +517,12 @@ def map_scans(fmap: FacadeMap, scans: Any, config: Any, progress: Callable[[int]
                 notes[placement.note] += 1
             n_bad += found.nonfinite
             if found.selection is not None and found.selection.applied:
-                non_ground += int((~found.selection.ground).sum())
-                selected += int(found.selection.mask.sum())
+                non_ground += found.selection.non_ground
+                selected += found.selection.kept
+                warning = selection_warning(found.selection, selection)
+                if warning is not None:
+                    warnings[warning.split(';')[-1].strip()] += 1
+                    first_warning = first_warning or warning
             if len(found.xyz):
                 n_building += len(found.xyz)
                 fmap.add_points(found.xyz, found.building_id, found.sensor_origins, defer=True)
@@ -519,4 +531,4 @@ def map_scans(fmap: FacadeMap, scans: Any, config: Any, progress: Callable[[int]
     fmap.flush()
     return ReplaySummary(n_scans, n_points, n_building, n_bad, len(fmap.points), len(fmap.facades),
                          time.perf_counter() - started, sum(rejected.values()), dict(rejected), dict(notes),
-                         non_ground, selected)
+                         non_ground, selected, sum(warnings.values()), first_warning)

@@ -28,7 +28,7 @@ from scipy.signal import find_peaks
 from scipy.sparse.linalg import spsolve
 from sklearn.mixture import GaussianMixture
 
-from ..datatypes import DepthLayers, Facets, Relief, bilinear_weights
+from ..datatypes import DepthLayers, Facets, Relief, bilinear_weights, grid_index
 from ..errors import InputError
 from ..params import LayerParams
 
@@ -183,8 +183,8 @@ def find_facets(uv: np.ndarray, labels: np.ndarray, n_layers: int, extent: tuple
     origin = np.array([extent[0], extent[2]])
     width = max(1, int(np.ceil((extent[1] - extent[0]) / cell)))
     height = max(1, int(np.ceil((extent[3] - extent[2]) / cell)))
-    col = np.clip(((uv[:, 0] - origin[0]) / cell).astype(np.int64), 0, width - 1)
-    row = np.clip(((uv[:, 1] - origin[1]) / cell).astype(np.int64), 0, height - 1)
+    col = np.clip(grid_index(uv[:, 0], origin[0], cell), 0, width - 1)
+    row = np.clip(grid_index(uv[:, 1], origin[1], cell), 0, height - 1)
     votes = np.zeros((height * width, n_layers), dtype=np.int32)
     np.add.at(votes, (row * width + col, labels), 1)
     voted = votes.sum(axis=1) > 0

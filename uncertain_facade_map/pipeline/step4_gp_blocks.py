@@ -84,6 +84,31 @@ def _tri_solve(lower: np.ndarray, rhs: np.ndarray, transpose: bool = False) -> n
     return x
 
 
+#: Neighbours this close to tied (relative distance) count as tied: round-off, not geometry.
+TIE_TOLERANCE = 1e-9
+#: Neighbours looked at to break ties of the nearest one.
+_TIE_CANDIDATES = 4
+
+
+def _nearest(uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each point's nearest other point: (N,) distance and (N,) index.
+
+    Quantised coordinates (Argoverse 2 stores float16 in the vehicle frame: a 7.8 mm grid)
+    give many equidistant neighbours, and a rigid transform keeps the tie only up to
+    round-off (1e-13 m): which one a k-d tree returns would then depend on how the points
+    were moved into the map frame. Among the neighbours within :data:`TIE_TOLERANCE`
+    (relative) of the nearest, the one with the lowest index is taken, so the pairing is
+    the same for points moved by any rounding of the same transform.
+    """
+    k = min(_TIE_CANDIDATES, len(uv))
+    dist, idx = cKDTree(uv).query(uv, k=k)
+    dist, idx = dist[:, 1:], idx[:, 1:]
+    tied = dist <= dist[:, :1] * (1.0 + TIE_TOLERANCE) + 1e-12
+    pick = np.argmin(np.where(tied, idx, np.iinfo(np.int64).max), axis=1)
+    rows = np.arange(len(uv))
+    return dist[rows, pick], idx[rows, pick]
+
+
 def estimate_noise(uv: np.ndarray, depth: np.ndarray, max_lag: float, fallback: float) -> float:
     """sigma_eta from the data: the nugget of the depths' variogram at the shortest lags.
 
@@ -105,11 +130,10 @@ def estimate_noise(uv: np.ndarray, depth: np.ndarray, max_lag: float, fallback: 
     """
     if len(uv) < 31:
         return fallback
-    dist, idx = cKDTree(uv).query(uv, k=2)
+    lag_of, j = _nearest(uv)
     i = np.arange(len(uv))
-    j = idx[:, 1]
     pairs, first = np.unique(np.stack([np.minimum(i, j), np.maximum(i, j)], axis=1), axis=0, return_index=True)
-    lag = dist[first, 1]
+    lag = lag_of[first]
     # The pairs within max_lag; on sparse data, the 30 closest pairs up to 4 max_lag.
     close = lag <= max(max_lag, min(np.sort(lag)[min(29, len(lag) - 1)], 4 * max_lag))
     if close.sum() < 30:
