@@ -188,6 +188,29 @@ def _bag_typestore(ros1: bool) -> Any:
     return typestore
 
 
+def pose_message(topic: str, msgtype: str, transforms: Sequence[StampedTransform]) -> ExtraMessage:
+    """An extra message for :func:`write_bag` holding poses: a ``tf2_msgs/msg/TFMessage`` of
+    ``transforms``, or a ``geometry_msgs/msg/TransformStamped`` or ``nav_msgs/msg/Odometry``
+    of the one transform given (:mod:`msg_adapters.transforms` builds it from the bag's
+    typestore). Stamped with the first transform's stamp.
+
+    Raises:
+        InputError: another message type, no transform, or several for a single-pose type.
+    """
+    from .transforms import odometry_msg, tf_message, transform_stamped_msg, transform_types_rosbags
+
+    items = list(transforms)
+    if not items:
+        raise InputError(f'no transform for a {msgtype} on {topic}')
+    if msgtype == TFMESSAGE:
+        return topic, msgtype, items[0].stamp_ns, lambda store: tf_message(items, transform_types_rosbags(store))
+    if len(items) != 1 or msgtype not in (TRANSFORMSTAMPED, ODOMETRY):
+        raise InputError(f'a {msgtype} on {topic} holds one pose of type {TRANSFORMSTAMPED} or {ODOMETRY}, '
+                         f'got {len(items)}')
+    build = transform_stamped_msg if msgtype == TRANSFORMSTAMPED else odometry_msg
+    return topic, msgtype, items[0].stamp_ns, lambda store: build(items[0], transform_types_rosbags(store))
+
+
 def _latched_qos() -> list[Any]:
     """Reliable, transient-local, keep last 1: a latched topic such as ``/map_origin``."""
     from rosbags.interfaces import (

@@ -50,6 +50,9 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from msg_adapters.bag_io import ODOMETRY, TFMESSAGE, pose_message
+from msg_adapters.bag_io import TRANSFORMSTAMPED as TRANSFORM_STAMPED
+from msg_adapters.transforms import StampedTransform
 from uncertain_facade_map.errors import FacadeMapError, InputError
 from uncertain_facade_map.io.av2 import (
     LIDARS,
@@ -59,6 +62,7 @@ from uncertain_facade_map.io.av2 import (
     read_av2_log,
     reference_clouds,
 )
+from uncertain_facade_map.transforms import rotations
 
 PROG = 'python -m uncertain_facade_map_apps.av2_bag'
 POSE_MODES = ('tf', 'pose', 'odometry')
@@ -69,80 +73,8 @@ TF_TOPIC = '/tf'
 TF_STATIC_TOPIC = '/tf_static'
 POSE_TOPIC = '/sensor_pose'
 ODOM_TOPIC = '/odom'
-TFMESSAGE = 'tf2_msgs/msg/TFMessage'
-TRANSFORM_STAMPED = 'geometry_msgs/msg/TransformStamped'
-ODOMETRY = 'nav_msgs/msg/Odometry'
 #: Ego poses go into the bag from this long before the first sweep to this long after the last.
 POSE_MARGIN_NS = 200_000_000
-
-
-def quaternion_product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product ``a * b`` of quaternions (4,) x, y, z, w: rotation by b, then by a."""
-    ax, ay, az, aw = a
-    bx, by, bz, bw = b
-    return np.array([aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx,
-                     aw * bz + ax * by - ay * bx + az * bw,
-                     aw * bw - ax * bx - ay * by - az * bz])
-
-
-def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Vector (3,) rotated by the unit quaternion q (4,) x, y, z, w."""
-    u, w = q[:3], q[3]
-    return v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
-
-
-# --------------------------------------------------------------------------------------
-# messages (rosbags typestore classes; ROS 1 headers carry a sequence number)
-# --------------------------------------------------------------------------------------
-
-
-class _Messages:
-    """Builds the bag's messages from a rosbags typestore (ROS 2 Jazzy or ROS 1 Noetic)."""
-
-    def __init__(self, typestore: Any) -> None:
-        self.types = typestore.types
-        self.ros1 = 'seq' in self.types['std_msgs/msg/Header'].__dataclass_fields__
-
-    def header(self, stamp_ns: int, frame: str) -> Any:
-        sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
-        stamp = self.types['builtin_interfaces/msg/Time'](sec=sec, nanosec=nanosec)
-        extra = {'seq': 0} if self.ros1 else {}
-        return self.types['std_msgs/msg/Header'](stamp=stamp, frame_id=frame, **extra)
-
-    def transform(self, stamp_ns: int, parent: str, child: str, translation: np.ndarray, rotation: np.ndarray) -> Any:
-        t = self.types
-        x, y, z, w = (float(v) for v in rotation)
-        return t[TRANSFORM_STAMPED](
-            header=self.header(stamp_ns, parent), child_frame_id=child,
-            transform=t['geometry_msgs/msg/Transform'](
-                translation=t['geometry_msgs/msg/Vector3'](*(float(v) for v in translation)),
-                rotation=t['geometry_msgs/msg/Quaternion'](x=x, y=y, z=z, w=w)))
-
-    def tf(self, transforms: list[Any]) -> Any:
-        return self.types[TFMESSAGE](transforms=transforms)
-
-    def odometry(self, stamp_ns: int, parent: str, child: str, translation: np.ndarray, rotation: np.ndarray) -> Any:
-        t = self.types
-        x, y, z, w = (float(v) for v in rotation)
-        pose = t['geometry_msgs/msg/Pose'](position=t['geometry_msgs/msg/Point'](*(float(v) for v in translation)),
-                                           orientation=t['geometry_msgs/msg/Quaternion'](x=x, y=y, z=z, w=w))
-        zero = t['geometry_msgs/msg/Vector3'](0.0, 0.0, 0.0)
-        return t[ODOMETRY](
-            header=self.header(stamp_ns, parent), child_frame_id=child,
-            pose=t['geometry_msgs/msg/PoseWithCovariance'](pose=pose, covariance=np.zeros(36)),
-            twist=t['geometry_msgs/msg/TwistWithCovariance'](
-                twist=t['geometry_msgs/msg/Twist'](linear=zero, angular=zero), covariance=np.zeros(36)))
-
-
-def _make(build: Callable[[_Messages], Any]) -> Callable[[Any], Any]:
-    """A ``make_msg(typestore)`` for write_bag's extra messages."""
-    return lambda typestore: build(_Messages(typestore))
-
-
-# --------------------------------------------------------------------------------------
-# the bag
-# --------------------------------------------------------------------------------------
 
 
 def pose_stamps(log: Av2Log) -> np.ndarray:
@@ -189,28 +121,24 @@ def bag_contents(log: Av2Log, *, poses: str = 'tf', map_frame: str = 'map',
         return (int(log.poses.stamps_ns[k]), log.poses.translations[k] - origin, log.poses.quaternions[k])
 
     if poses in ('tf', 'odometry'):
-        static = [(EGO_FRAME, name, e.translation, e.quaternion) for name, e in extrinsics.items()]
-        extra.append((TF_STATIC_TOPIC, TFMESSAGE, start, _make(
-            lambda m: m.tf([m.transform(start, *row) for row in static]))))
+        static = [StampedTransform(EGO_FRAME, name, start, e.translation, e.quaternion)
+                  for name, e in extrinsics.items()]
+        extra.append(pose_message(TF_STATIC_TOPIC, TFMESSAGE, static))
         qos[TF_STATIC_TOPIC] = 'latched'
-    if poses == 'tf':
-        for stamp, t, q in map(ego_pose, ego):
-            extra.append((TF_TOPIC, TFMESSAGE, stamp, _make(
-                lambda m, s=stamp, t=t, q=q: m.tf([m.transform(s, map_frame, EGO_FRAME, t, q)]))))
-        qos[TF_TOPIC] = 'reliable'
-    elif poses == 'odometry':
-        for stamp, t, q in map(ego_pose, ego):
-            extra.append((ODOM_TOPIC, ODOMETRY, stamp, _make(
-                lambda m, s=stamp, t=t, q=q: m.odometry(s, map_frame, EGO_FRAME, t, q))))
-        qos[ODOM_TOPIC] = 'reliable'
+    if poses in ('tf', 'odometry'):
+        topic, kind = (TF_TOPIC, TFMESSAGE) if poses == 'tf' else (ODOM_TOPIC, ODOMETRY)
+        for k in ego:
+            stamp, t, q = ego_pose(k)
+            extra.append(pose_message(topic, kind, [StampedTransform(map_frame, EGO_FRAME, stamp, t, q)]))
+        qos[topic] = 'reliable'
     else:
         for sweep in log.sweeps:
             t_ego, q_ego = log.poses.at(sweep.stamp_ns)
             for name, e in extrinsics.items():
-                t = _rotate(q_ego, e.translation) + t_ego - origin
-                q = quaternion_product(q_ego, e.quaternion)
-                extra.append((POSE_TOPIC, TRANSFORM_STAMPED, sweep.stamp_ns, _make(
-                    lambda m, s=sweep.stamp_ns, n=name, t=t, q=q: m.transform(s, map_frame, n, t, q))))
+                t = rotations.rotate(q_ego, e.translation) + t_ego - origin
+                q = rotations.multiply(q_ego, e.quaternion)
+                extra.append(pose_message(POSE_TOPIC, TRANSFORM_STAMPED,
+                                          [StampedTransform(map_frame, name, sweep.stamp_ns, t, q)]))
         qos[POSE_TOPIC] = 'reliable'
     return {'scans': scans, 'extra': extra, 'extra_qos': qos, 'map_origin': origin, 'frame_id': map_frame,
             'topic': POINTS_TOPIC}

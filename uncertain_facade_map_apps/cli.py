@@ -137,6 +137,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                 write_npz(path, cloud)
             elif fmt == 'ply':
                 write_ply(path, cloud)
+            elif args.robot:
+                _write_robot_bag(path, fmt, cloud, scene, drive, sensor, args)
             else:
                 from msg_adapters.bag_io import write_bag
 
@@ -152,6 +154,22 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     scene_json = write_scene_json(out / 'scene.json', scene_description(scene, sensor, written))
     print(f'scene    {scene_json}  ({len(scene.buildings)} buildings, {len(scene.facades)} façades, seed {scene.seed})')
     return 0
+
+
+def _write_robot_bag(path: Path, storage: str, cloud, scene, drive, sensor, args: argparse.Namespace) -> None:
+    """A campaign as a robot records it: clouds in the lidar frame, /tf map -> base_link, /tf_static."""
+    from msg_adapters.bag_io import TFMESSAGE, pose_message, write_bag
+    from msg_adapters.transforms import StampedTransform
+    from uncertain_facade_map.simulation.export import LIDAR_FRAME, VEHICLE_FRAME, robot_recording
+
+    rec = robot_recording(cloud, scene, drive, sensor, args.scan_period)
+    stamps, translations, quaternions = rec.vehicle
+    extra = [pose_message('/tf_static', TFMESSAGE, [StampedTransform(VEHICLE_FRAME, LIDAR_FRAME, int(stamps[0]),
+                                                                      *rec.mount)])]
+    extra += [pose_message('/tf', TFMESSAGE, [StampedTransform('map', VEHICLE_FRAME, int(s), t, q)])
+              for s, t, q in zip(stamps, translations, quaternions)]
+    write_bag(path, rec.scans, storage=storage, topic=args.topic, frame_id='map', map_origin=tuple(cloud.map_origin),
+              extra=extra, extra_qos={'/tf_static': 'latched', '/tf': 'reliable'})
 
 
 def cmd_build(args: argparse.Namespace) -> int:
@@ -711,6 +729,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help='coordinate type: f8 (float64) or f4 (float32, map frame near the map origin)')
     sim.add_argument('--scan-period', type=float, default=0.1, help='seconds of data per bag message (default 0.1)')
     sim.add_argument('--topic', default='/points', help='PointCloud2 topic in bags (default /points)')
+    sim.add_argument('--robot', action='store_true',
+                     help='bags as a robot records them: each cloud in the lidar frame (every point moved by the '
+                          'vehicle pose at its own time), /tf map -> base_link at 50 Hz and /tf_static base_link -> '
+                          'lidar (default: clouds in the map frame)')
     sim.add_argument('--range-noise', type=float, help='range noise sigma, metres (default 0.02)')
     sim.add_argument('--outlier-share', type=float, help='share of building returns turned into outliers (default 0.01)')
     sim.add_argument('--range-max', type=float, help='range limit, metres (default 60)')

@@ -1,9 +1,11 @@
-"""Scene description as JSON, and splitting a campaign into sensor messages."""
+"""Scene description as JSON, splitting a campaign into sensor messages, and a campaign as a robot
+records it (clouds in the lidar frame at each point's time, vehicle poses for /tf)."""
 
 from __future__ import annotations
 
 import dataclasses
 import json
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -121,3 +123,103 @@ def split_scans(cloud: Cloud, period: float) -> Iterator[tuple[int, np.ndarray]]
     ends = np.concatenate([bounds, [len(t)]])
     for a, b in zip(starts, ends):
         yield int(t_ns[0] + slot[a] * period_ns), cloud.points[a:b]
+
+
+#: Frames of a drive recorded as a robot records it: the vehicle, and its lidar (scanner 0's mount).
+VEHICLE_FRAME = 'base_link'
+LIDAR_FRAME = 'lidar'
+
+
+@dataclass(frozen=True, eq=False)
+class RobotRecording:
+    """A simulated drive as a robot records it (:func:`robot_recording`).
+
+    Attributes:
+        scans: ``[(stamp_ns, points, LIDAR_FRAME)]``: each message's points in the lidar frame
+            at their own time (x, y, z and the sensor origin fields moved; ``time`` kept).
+        vehicle: (K,) int64 stamps, (K, 3) translations and (K, 4) quaternions (x, y, z, w)
+            of ``map -> base_link`` (for /tf).
+        mount: (3,) translation and (4,) quaternion of ``base_link -> lidar`` (for /tf_static).
+    """
+
+    scans: list[tuple[int, np.ndarray, str]]
+    vehicle: tuple[np.ndarray, np.ndarray, np.ndarray]
+    mount: tuple[np.ndarray, np.ndarray]
+
+
+def vehicle_poses(scene: Scene, drive: Campaign, sensor: SensorConfig, stamps_ns: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """``map -> base_link`` at absolute times: the drive's path on the ground, heading as yaw,
+    moved by the campaign's registration offset.
+
+    Args:
+        stamps_ns: (K,) int64 nanoseconds since the UNIX epoch.
+
+    Returns:
+        (K, 3) translations (metres, map frame) and (K, 4) quaternions (x, y, z, w).
+    """
+    from .campaign import _registration, poses
+
+    t = (np.asarray(stamps_ns, dtype=np.int64) - int(round(drive.start_time * 1e9))) / 1e9
+    xy, yaw = poses(scene, drive, sensor, t)
+    position = np.column_stack([xy, np.zeros(len(xy))])
+    offset = _registration(scene, drive, sensor)
+    if offset is not None:
+        from .campaign import _move
+
+        position = _move(position, offset)
+        yaw = yaw + offset[2]
+    quat = np.column_stack([np.zeros((len(yaw), 2)), np.sin(yaw / 2), np.cos(yaw / 2)])
+    return position, quat
+
+
+def robot_recording(cloud: Cloud, scene: Scene, drive: Campaign, sensor: SensorConfig, period: float,
+                    tf_rate: float = 50.0) -> RobotRecording:
+    """A simulated campaign as a robot records it: clouds in the lidar frame, poses on /tf.
+
+    Each point is moved from the map frame into the lidar frame by the vehicle's pose at the
+    point's own time (as a lidar measures it, the vehicle moving), so a mapper must place
+    every point at its time (motion compensation) to get the map frame back. The vehicle
+    poses are sampled at ``tf_rate`` from one period before the first point to one after the
+    last; the drive is straight at constant speed between the street's bends, so
+    interpolating them (linear in position, slerp in yaw) gives the pose at any time.
+
+    Args:
+        cloud: the campaign (map frame, with ``time``, seconds since the UNIX epoch).
+        scene, drive, sensor: what simulated it.
+        period: seconds of data per message.
+        tf_rate: vehicle poses per second (> 0).
+
+    Returns:
+        The :class:`RobotRecording`.
+
+    Raises:
+        InputError: no ``time`` field, a non-positive period or rate.
+    """
+    if not tf_rate > 0:
+        raise InputError(f'the rate of the vehicle poses must be positive, got {tf_rate}')
+    from ..transforms import rotations
+
+    mount_t = np.asarray(sensor.mount[0], dtype=np.float64)
+    mount_q = np.array([0.0, 0.0, 0.0, 1.0])
+    scans = []
+    for stamp, points in split_scans(cloud, period):
+        times = np.round(points['time'] * 1e9).astype(np.int64)
+        t, q = vehicle_poses(scene, drive, sensor, times)
+        inverse = rotations.conjugate(q)
+        local = points.copy()
+        for fields in (('x', 'y', 'z'), ('origin_x', 'origin_y', 'origin_z')):
+            if not all(f in (points.dtype.names or ()) for f in fields):
+                continue
+            xyz = np.stack([points[f].astype(np.float64) for f in fields], axis=1)
+            moved = rotations.rotate(inverse, xyz - t) - mount_t  # base_link, then the lidar (no rotation)
+            for k, f in enumerate(fields):
+                local[f] = moved[:, k]
+        scans.append((stamp, local, LIDAR_FRAME))
+    if not scans:
+        raise InputError('the campaign has no points to record')
+    step = int(round(1e9 / tf_rate))
+    first, last = scans[0][0] - int(period * 1e9), int(np.round(cloud.points['time'].max() * 1e9)) + int(period * 1e9)
+    stamps = np.arange(first, last + step, step, dtype=np.int64)
+    t, q = vehicle_poses(scene, drive, sensor, stamps)
+    return RobotRecording(scans, (stamps, t, q), (mount_t, mount_q))
