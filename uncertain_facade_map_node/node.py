@@ -206,6 +206,7 @@ class FacadeMapperNode(Node):
         self.transforms = TransformBuffer(cache_time=cfg.node.transform_cache, max_samples=cfg.node.pose_buffer)
         self._waiting: deque[_Waiting] = deque()  # clouds waiting for their transform, in arrival order
         self._interval = self._new_interval()  # what the next summary line tells
+        self._summary_version = -1  # the map version the last summary line told of
         self._grid: tuple[int, Any] | None = None
         self._facades_size: tuple[int, float] = (-1, 0.0)  # (snapshot version, MB of its façade arrays)
         self._published_bytes = 0  # of the latest published maps (serialized; the grid's cells)
@@ -565,13 +566,15 @@ class FacadeMapperNode(Node):
 
     @_guarded
     def summary_callback(self) -> None:
-        """Every ``node.log_period`` s while clouds come: one info line of what happened."""
+        """Every ``node.log_period`` s while clouds come or the map changed: one info line of what happened."""
         with self._count_lock:
             interval, self._interval = self._interval, self._new_interval()
             waiting = len(self._waiting)
-        if not interval['in'] and not interval['mapped'] and not interval['rejected']:
-            return
         snap = self.worker.snapshot
+        if not interval['in'] and not interval['mapped'] and not interval['rejected'] \
+                and snap.version == self._summary_version:
+            return
+        self._summary_version = snap.version
         rejected = sum(interval['rejected'].values())
         why = '; '.join(f'{n} {kind}' for kind, n in interval['rejected'].most_common(3))
         parts = [f'last {self.config.node.log_period:g} s: {interval["in"]} clouds in, {interval["mapped"]} mapped',

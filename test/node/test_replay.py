@@ -165,3 +165,32 @@ def test_a_drive_recorded_as_a_robot_replays_to_the_map_frame_drives_map(recordi
                 assert np.abs(fmap.points[k] - reference.points[k]).max() < 2e-6
     assert (errors['compensated'] < 1e-3).mean() > 0.98 and np.median(errors['compensated']) < 1e-6
     assert (errors['one_pose'] < 1e-3).mean() < 0.5 and np.median(errors['one_pose']) > 5e-3
+
+
+class _FakeWatch:
+    """A node's diagnostics as publish mode reads them: a fixed count of clouds received."""
+
+    def __init__(self, received: int) -> None:
+        self.values = {'clouds_received': str(received), 'clouds_mapped': str(received), 'clouds_waiting': '0',
+                       'clouds_dropped': '0', 'clouds_rejected': '0'}
+
+    def received(self) -> int:
+        return int(self.values['clouds_received'])
+
+
+def test_publish_mode_says_how_many_clouds_the_node_received_and_why_some_may_be_lost(monkeypatch):
+    from uncertain_facade_map_node.replay import _received
+
+    line, warnings = _received(_FakeWatch(10), 0, 10, 0.2, 5_000_000, True)
+    assert line.startswith('the node received 10 of the 10 clouds published') and warnings == []
+    monkeypatch.delenv('FASTRTPS_DEFAULT_PROFILES_FILE', raising=False)
+    line, warnings = _received(_FakeWatch(7), 0, 10, 0.2, 5_000_000, True)
+    assert 'received 7 of the 10' in line and warnings[0] == '3 of 10 clouds never reached the node'
+    assert 'DDS fragmentation' in warnings[1] and 'fastdds_large_clouds.xml' in warnings[1]
+    monkeypatch.setenv('FASTRTPS_DEFAULT_PROFILES_FILE', '/profile.xml')
+    _, warnings = _received(_FakeWatch(7), 0, 10, 0.2, 5_000_000, False)
+    assert len(warnings) == 2 and '--best-effort' in warnings[1]
+    line, warnings = _received(None, None, 10, 0.0, 0, True)
+    assert 'not asked' in line and warnings == []
+    line, _ = _received(_FakeWatch(0), None, 10, 0.2, 0, True)
+    assert 'no facade_mapper diagnostics' in line

@@ -4,9 +4,11 @@ A node in its own process is fed 10 Hz clouds of the small scene in a lidar fram
 moves (a straight drive with a constant yaw rate) with their poses as robots send them: on
 ``sensor_pose`` 5 ms before each cloud, on ``sensor_pose`` 20 ms after it, and only on
 ``/tf`` (map -> base_link at 20 Hz, out of step with the clouds, so each cloud's pose is
-interpolated) with ``/tf_static`` (base_link -> lidar, transient local). No cloud may be
-rejected for its transform (issue 25), and the map of the /tf run must equal, bit for bit,
-offline replay's of the same clouds and transforms.
+interpolated) with ``/tf_static`` (base_link -> lidar, transient local), and on odometry
+(``node.odometry_topic``). No cloud may be rejected for its transform (issue 25), and the map
+of the /tf run must equal, bit for bit, offline replay's of the same clouds and transforms.
+Clouds whose transform never comes are rejected naming the frames, the oldest first when
+more than ``node.transform_queue`` wait.
 """
 
 from __future__ import annotations
@@ -86,7 +88,7 @@ def running(tmp_path_factory, drive):
     domain = 100 + (os.getpid() + 37) % 100
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
     work = tmp_path_factory.mktemp('transforms_live')
-    params = node_config(work, **{'update.batch_points': 3000, 'node.idle_flush': 2.0})
+    params = node_config(work, **{'update.batch_points': 3000, 'node.idle_flush': 2.0, 'node.odometry_topic': '/odom'})
     client = Client(domain)
     node = NodeProcess(params, env, work / 'node.log')
     try:
@@ -211,3 +213,44 @@ def with_origin(points: np.ndarray, origin: np.ndarray) -> np.ndarray:
     out = recfunctions.append_fields(points, ['origin_x', 'origin_y', 'origin_z'],
                                      [np.full(len(points), v) for v in origin], usemask=False)
     return np.ascontiguousarray(out)
+
+
+def test_poses_on_odometry_reject_none(running, drive):
+    """nav_msgs/Odometry on node.odometry_topic (map -> base_odom at 20 Hz) with /tf_static."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    client, _node, _work, _params = running
+    types = mt.transform_types_rclpy()
+    t0 = drive[0][0]
+    odom = client.node.create_publisher(types.Odometry, '/odom', 100)
+    static_pub = client.node.create_publisher(
+        types.TFMessage, '/tf_static',
+        QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE))
+    mount = mt.StampedTransform('base_odom', 'velodyne_odom', 0, MOUNT.translation, MOUNT.rotation)
+    static_pub.publish(mt.tf_message([mount], types))
+
+    def publish(k, stamp, moment):
+        if moment != 'after':
+            return
+        for offset in ((-25_000_000, 25_000_000, 75_000_000) if k == 0 else (25_000_000, 75_000_000)):
+            v = vehicle(stamp + offset, t0)
+            odom.publish(mt.odometry_msg(mt.StampedTransform('map', 'base_odom', v.stamp_ns, v.translation,
+                                                             v.rotation), types))
+
+    _assert_all_placed(_run(client, drive, publish, 'velodyne_odom'))
+
+
+def test_clouds_whose_transform_never_comes_are_rejected_naming_the_frames(running, drive):
+    """25 clouds in a frame nobody publishes: node.transform_queue (20) wait, the 5 oldest are given
+    up at once, the others after node.transform_timeout; each one counted and named."""
+    client, node, _work, _params = running
+    start = diagnostics(client)
+    types = ma.rclpy_types()
+    for stamp, _points, local in drive[:25]:
+        client.pub.publish(ma.pointcloud2_from_structured(local, stamp_ns=stamp, frame_id='nowhere', msg_types=types))
+    values = diagnostics(client, until=lambda v: int(v['clouds_no_transform']) >= int(start['clouds_no_transform'])
+                         + 25, timeout=60)
+    assert int(values['clouds_rejected']) - int(start['clouds_rejected']) == 25
+    assert int(values['clouds_waiting']) == 0
+    log = node.log.read_text()
+    assert 'no transform from "nowhere" into the map frame "map"' in log and 'node.transform_queue = 20' in log
