@@ -84,6 +84,7 @@ class Scan:
         frame_id: the frame of the points (``header.frame_id``).
         stamp_ns: the header stamp, integer nanoseconds.
         finite: (M,) bool, the points with finite coordinates.
+        xyz: (M, 3) float64 coordinates of all points, the scan's frame (read once).
         time_field: ``input.time_field``: the per-point times are read (once, by
             :attr:`times`) only for a scan that must be moved into the map frame.
     """
@@ -93,6 +94,7 @@ class Scan:
     stamp_ns: int
     finite: np.ndarray
     time_field: str = ''
+    xyz: np.ndarray | None = None
     _times: tuple[np.ndarray | None] | None = None
 
     @classmethod
@@ -102,8 +104,8 @@ class Scan:
         Raises:
             InputError: no numeric x, y or z field.
         """
-        finite = np.isfinite(_xyz(points)).all(axis=1)
-        return cls(points, str(frame_id), int(stamp_ns), finite, config.time_field)
+        xyz = _xyz(points)
+        return cls(points, str(frame_id), int(stamp_ns), np.isfinite(xyz).all(axis=1), config.time_field, xyz)
 
     @property
     def times(self) -> np.ndarray | None:
@@ -150,7 +152,8 @@ class Scan:
     def building_points(self, placement: Placement, config: InputConfig, selection: SelectionConfig | None,
                         max_coordinate: float | None) -> ScanPoints:
         """Its building points in the map frame (:func:`select_scan_points` with the placement's pose)."""
-        return select_scan_points(self.points, config, selection, pose=placement.pose, max_coordinate=max_coordinate)
+        return select_scan_points(self.points, config, selection, pose=placement.pose, max_coordinate=max_coordinate,
+                                  xyz=self.xyz)
 
 
 def _origin_fields(points: np.ndarray, keep: np.ndarray) -> np.ndarray | None:
@@ -164,7 +167,7 @@ def _origin_fields(points: np.ndarray, keep: np.ndarray) -> np.ndarray | None:
 
 def select_scan_points(points: np.ndarray, config: InputConfig, selection: SelectionConfig | None = None,
                        sensor_origin: np.ndarray | None = None, *, pose: ScanPose | None = None,
-                       max_coordinate: float | None = None) -> ScanPoints:
+                       max_coordinate: float | None = None, xyz: np.ndarray | None = None) -> ScanPoints:
     """Building points of one scan (a PointCloud2 as a structured array), tolerant of gaps.
 
     Unlike :func:`~uncertain_facade_map.io.inputs.select_building_points` (whole inputs,
@@ -189,6 +192,7 @@ def select_scan_points(points: np.ndarray, config: InputConfig, selection: Selec
         max_coordinate: metres (``node.max_coordinate``): a finite point (or sensor origin)
             farther than this from the map origin in x, y or z refuses the whole scan; None
             for no check.
+        xyz: (M, 3) float64 coordinates of ``points`` when read already (:class:`Scan`).
 
     Returns:
         The building points, in the map frame when a pose is given.
@@ -200,7 +204,7 @@ def select_scan_points(points: np.ndarray, config: InputConfig, selection: Selec
         ScanRejected: a point or sensor origin beyond ``max_coordinate`` (the message says
             when the other byte order would make the points plausible).
     """
-    xyz = _xyz(points)
+    xyz = _xyz(points) if xyz is None else xyz
     names = points.dtype.names or ()
     keep = np.isfinite(xyz).all(axis=1)
     nonfinite = int((~keep).sum())
