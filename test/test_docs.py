@@ -1,4 +1,5 @@
-"""The README and docs/: a short README that links every page, and no broken relative link.
+"""The README and docs/: a short README that links every page, no broken relative link, and
+the result tables in docs/results.md only (each linked from the page that explains it).
 
 Anchors follow GitHub's rules: a heading's text (markup and HTML dropped), lower case,
 every character but letters, digits, ``_``, ``-`` and spaces removed, spaces turned into
@@ -22,6 +23,7 @@ _COMMENT = re.compile(r'<!--.*?-->', re.DOTALL)
 _CODE_SPAN = re.compile(r'`[^`]*`')
 _LINK = re.compile(r'!?\[([^\]]*)\]\(\s*<?([^)\s>]*)>?(?:\s+"[^"]*")?\s*\)')
 _HEADING = re.compile(r'^ {0,3}(#{1,6})\s+(.*?)\s*#*\s*$')
+_DELIMITER = re.compile(r'^\|(\s*:?-{3,}:?\s*\|)+$')
 
 
 def _prose(text: str) -> str:
@@ -120,10 +122,56 @@ def test_relative_links_resolve(path):
     assert not broken, f'{path.name}: ' + '; '.join(broken)
 
 
-def test_results_rows_are_in_their_pages():
-    """docs/results.md copies tables: every row must still be a row of another page."""
-    others = {line.strip() for p in PAGES if p.name != 'results.md' for line in p.read_text().split('\n')}
-    rows = [line.strip() for line in (DOCS / 'results.md').read_text().split('\n') if line.startswith('|')]
+def table_rows(path: Path) -> list[str]:
+    """The data rows of a Markdown file's tables (outside code and comments), stripped: the
+    rows after each table's header and delimiter row."""
+    rows, previous = [], ''
+    in_table = False
+    for line in _prose(path.read_text()).split('\n'):
+        stripped = line.strip()
+        if not stripped.startswith('|'):
+            in_table = False
+        elif in_table:
+            rows.append(stripped)
+        elif _DELIMITER.match(stripped) and previous.startswith('|'):
+            in_table = True
+        previous = stripped
+    return rows
+
+
+def test_table_rows(tmp_path):
+    page = tmp_path / 'p.md'
+    page.write_text('| a | b |\n|---|---:|\n| 1 | 2 |\n|  | 3 |\n\ntext | x\n\n```\n| a |\n|---|\n| 9 |\n```\n'
+                    '  | c |\n  | --- |\n  | 4 |\n')
+    assert table_rows(page) == ['| 1 | 2 |', '|  | 3 |', '| 4 |']
+
+
+def test_results_tables_live_in_results_only():
+    """docs/results.md is the one home of the result tables: no row of its tables stands in
+    another page (a copy would go stale); the pages explain the figures and link there."""
+    rows = set(table_rows(DOCS / 'results.md'))
     assert rows
-    stale = [row for row in rows if row not in others]
-    assert not stale, f'rows of docs/results.md found in no other page (update both): {stale[:3]}'
+    copied = [(p.name, row) for p in [README, *PAGES] if p.name != 'results.md' for row in table_rows(p) if row in rows]
+    assert not copied, f'rows of docs/results.md copied into other pages (link to the table instead): {copied[:3]}'
+
+
+def test_pages_link_their_results_tables():
+    """Every section of docs/results.md that holds a table is linked from another page."""
+    linked = {t.split('#', 1)[1] for p in [README, *PAGES] if p.name != 'results.md'
+              for t in links(p) if _relative(t) and t.split('#')[0].endswith('results.md') and '#' in t}
+    results = DOCS / 'results.md'
+    heading = None
+    seen: dict[str, int] = {}
+    with_table: list[str] = []
+    for line in _prose(results.read_text()).split('\n'):
+        match = _HEADING.match(line)
+        if match:
+            anchor = github_anchor(match.group(2))
+            count = seen.get(anchor, 0)
+            seen[anchor] = count + 1
+            heading = anchor if count == 0 else f'{anchor}-{count}'
+        elif _DELIMITER.match(line.strip()) and heading and heading not in with_table:
+            with_table.append(heading)
+    missing = [h for h in with_table if h not in linked]
+    assert with_table
+    assert not missing, f'result tables no other page links to: {missing}'
