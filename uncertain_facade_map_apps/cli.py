@@ -341,7 +341,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         print(done['received'])
         for line in done['warnings']:
             print(f'warning: {line}', file=sys.stderr)
-        return 0
+        return 1 if done['lost'] else 0
     if args.start or args.duration is not None or args.loop:
         from uncertain_facade_map_node.replay import select_window
 
@@ -410,15 +410,21 @@ def cmd_inspect(args: argparse.Namespace) -> int:
           f'{sum(len(p) for _, p in bag.scans) / len(bag.scans):,.0f} points each on average')
     print(f'fields   {", ".join(fields)}')
     classes = config.input.class_field in fields
+    moved = any(f != map_frame for f in bag.frame_ids)
+    times = ('; clouds in the map frame: no pose needed' if not moved else
+             f'; each point placed at its time from field {config.input.time_field!r} (input.time_field)'
+             if config.input.time_field and config.input.time_field in fields else
+             '; no per-point time field (input.time_field): one pose per cloud, at its stamp')
     print(f'classes  {"field " + repr(config.input.class_field) + " (input.class_field)" if classes else "none: the building points are selected (selection.mode: " + config.selection.mode + ")"}'
-          + (f'; times from field {config.input.time_field!r} (input.time_field)' if config.input.time_field in fields
-             else '; no per-point time field: one pose per cloud'))
+          + times)
     print(f'frames   {", ".join(f"{f} ({n})" for f, n in bag.cloud_frames().items())}; map frame "{map_frame}" '
           '(input.frame_id)')
     buffer, refused = bag.transform_buffer()
     if bag.pose_topics:
         print(f'poses    {len(bag.transforms):,} transforms from {", ".join(bag.pose_topics)}:')
         print('\n'.join(f'         {line}' for line in repr(buffer).split('\n')[1:]))
+    elif args.poses is not None:
+        print('poses    none read (--poses)')
     else:
         print('poses    none (no tf2_msgs/TFMessage, TransformStamped or Odometry topic)')
     for why in refused[:3]:
@@ -713,8 +719,9 @@ def build_parser() -> argparse.ArgumentParser:
                                      'Campaign 0 is the mapped one, the others are the reference.')
     sim.add_argument('--scene', default='street', choices=tuple(SCENES),
                      help='street: ~1.7 M points, 7 buildings (default); small: < 50 000 points; '
-                          'zurich: real CityJSON footprints; NAME_hard: the same with walls as built and '
-                          'a real error model (see docs/simulator.md, "Hard simulator")')
+                          'zurich: real CityJSON footprints; residential: detached houses behind front yards, '
+                          'scanned by the hdl64 car lidar (walls seen to 2-3 m); NAME_hard: the same with walls as '
+                          'built and a real error model (see docs/simulator.md)')
     sim.add_argument('--sensor', choices=tuple(SENSOR_PRESETS),
                      help="sensor preset (default: the scene's; see docs/simulator.md, \"Hard simulator\")")
     sim.add_argument('--seed', type=int, default=0, help='scene seed (default 0)')
@@ -787,7 +794,9 @@ def build_parser() -> argparse.ArgumentParser:
                                         'with their recorded timing.')
     replay.add_argument('bags', nargs='+', metavar='BAG', help='bags, replayed one after the other')
     replay.add_argument('--topic', help='PointCloud2 topic to read (default: the only one)')
-    replay.add_argument('--mode', choices=('offline', 'publish'), default='offline', help='default offline')
+    replay.add_argument('--mode', choices=('offline', 'publish'), default='offline',
+                        help='default offline; publish exits with status 1 when the node\'s diagnostics count fewer '
+                             'clouds than were published')
     replay.add_argument('--out', metavar='MAP', help='offline: map file to write')
     replay.add_argument('--config', metavar='YAML', help='ROS 2 parameter file (default: config/facade_mapper.yaml)')
     replay.add_argument('--rate', type=float, default=1.0, help='publish: speed factor of the recorded timing')

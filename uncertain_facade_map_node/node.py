@@ -196,8 +196,12 @@ class FacadeMapperNode(Node):
         self.frame_id = cfg.input.frame_id
         self.counters = {'clouds_received': 0, 'points_received': 0, 'clouds_rejected': 0, 'points_rejected': 0,
                          'clouds_no_building': 0, 'points_nonfinite': 0, 'points_not_building': 0,
-                         'clouds_missed_estimate': 0, 'poses_rejected': 0, 'queries': 0, 'queries_failed': 0,
-                         'saves': 0, 'callback_errors': 0, 'clouds_no_transform': 0, 'transforms_received': 0}
+                         'clouds_missed_estimate': 0, 'queries': 0, 'queries_failed': 0,
+                         'saves': 0, 'callback_errors': 0, 'clouds_no_transform': 0}
+        # The pose callbacks count under a lock of their own: _count_lock is held while a cloud
+        # is placed and selected, and a pose must never wait for that.
+        self.pose_counters = {'poses_rejected': 0, 'transforms_received': 0}
+        self._pose_count_lock = threading.Lock()
         self._count_lock = threading.Lock()
         self._events: deque[tuple[float, str, str]] = deque(maxlen=1000)  # (monotonic, kind, text)
         self._last_stamp: dict[str, tuple[int, deque[int]]] = {}  # frame -> (last stamp, recent periods)
@@ -206,7 +210,7 @@ class FacadeMapperNode(Node):
         self.transforms = TransformBuffer(cache_time=cfg.node.transform_cache, max_samples=cfg.node.pose_buffer)
         self._waiting: deque[_Waiting] = deque()  # clouds waiting for their transform, in arrival order
         self._interval = self._new_interval()  # what the next summary line tells
-        self._summary_version = -1  # the map version the last summary line told of
+        self._summary_version = -1  # the map version the last summary line told of (set at the end)
         self._grid: tuple[int, Any] | None = None
         self._facades_size: tuple[int, float] = (-1, 0.0)  # (snapshot version, MB of its façade arrays)
         self._published_bytes = 0  # of the latest published maps (serialized; the grid's cells)
@@ -236,8 +240,13 @@ class FacadeMapperNode(Node):
         self.pub_grid = self.create_publisher(OccupancyGrid, 'occupancy_grid', latched)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
 
-        qos = qos_profile_sensor_data if cfg.node.qos == 'sensor_data' else QoSProfile(
-            depth=max(10, cfg.node.queue_size), reliability=ReliabilityPolicy.RELIABLE)
+        # Best effort (sensor data) or reliable; either way the reader keeps as many clouds as the
+        # node's queue, so that a cloud placed or selected for a while (0.1-0.5 s) does not make
+        # DDS drop the ones behind it unseen (sensor data's own depth is 5).
+        depth = max(10, cfg.node.queue_size)
+        qos = QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE) if cfg.node.qos == 'reliable' else \
+            QoSProfile(depth=depth, reliability=qos_profile_sensor_data.reliability,
+                       durability=qos_profile_sensor_data.durability, history=qos_profile_sensor_data.history)
         # Clouds (and their wait for a transform) in one group, poses in another: a cloud's
         # selection must never hold up the pose it waits for.
         inputs = MutuallyExclusiveCallbackGroup()
@@ -274,6 +283,7 @@ class FacadeMapperNode(Node):
         self._service_check = self.create_timer(SERVICE_CHECK_DELAY, self.service_check_callback,
                                                 callback_group=MutuallyExclusiveCallbackGroup())
         snap = self.worker.snapshot
+        self._summary_version = snap.version
         self.get_logger().info(f'mapping clouds on "{self.resolve_topic_name("points")}" into frame "{self.frame_id}" '
                                f'with the transforms of {", ".join(self._pose_sources)}; '
                                f'{len(snap.facades)} façades, {snap.points} points to start with')
@@ -363,8 +373,8 @@ class FacadeMapperNode(Node):
         self._pose_sources += ['/tf', '/tf_static']
 
     def _reject_pose(self, source: str, why: str) -> None:
-        with self._count_lock:
-            self.counters['poses_rejected'] += 1
+        with self._pose_count_lock:
+            self.pose_counters['poses_rejected'] += 1
         self._event('rejected', f'{source} rejected: {why}')
         self._warn(f'{source} rejected: {why}', f'pose {source} {why[:20]}')
 
@@ -386,8 +396,8 @@ class FacadeMapperNode(Node):
             except TransformError as exc:
                 self._reject_pose(source, str(exc))
                 continue
-            with self._count_lock:
-                self.counters['transforms_received'] += 1
+            with self._pose_count_lock:
+                self.pose_counters['transforms_received'] += 1
 
     @_guarded
     def pose_callback(self, msg: Any) -> None:
@@ -705,6 +715,8 @@ class FacadeMapperNode(Node):
             c = dict(self.counters)
             w = self.worker.accounts()
             waiting, waiting_points = len(self._waiting), sum(item.points for item in self._waiting)
+        with self._pose_count_lock:
+            poses = dict(self.pose_counters)
         return {
             'clouds_received': c['clouds_received'], 'clouds_mapped': w['clouds_mapped'] + c['clouds_no_building'],
             'clouds_dropped': w['clouds_dropped'], 'clouds_rejected': c['clouds_rejected'],
@@ -716,8 +728,8 @@ class FacadeMapperNode(Node):
             'points_dropped': w['points_dropped'], 'points_rejected': c['points_rejected'],
             'points_failed': w['points_failed'],
             'points_waiting': w['points_waiting'] + waiting_points,
-            'points_pending': w['points_pending'], 'poses_rejected': c['poses_rejected'],
-            'transforms_received': c['transforms_received'],
+            'points_pending': w['points_pending'], 'poses_rejected': poses['poses_rejected'],
+            'transforms_received': poses['transforms_received'],
             'flushes': w['flushes'], 'queries': c['queries'], 'queries_failed': c['queries_failed'],
             'saves': c['saves'], 'callback_errors': c['callback_errors'],
         }

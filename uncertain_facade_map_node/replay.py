@@ -143,7 +143,8 @@ def publish_recording(scans: Sequence[tuple[int, np.ndarray, str]],
         ``published`` (scans), ``transforms`` (published), ``seconds`` (wall time),
         ``subscribers``, ``topic``, ``pose_topics`` (published), ``received`` (a line: how
         many clouds the node counted, from its /diagnostics), ``warnings`` (lines: clouds
-        that never reached the node, and why that may be).
+        that never reached the node, and why that may be), ``lost`` (True when the node's
+        diagnostics counted fewer clouds than were published).
 
     Raises:
         InputError: a non-positive rate, or no subscriber within ``wait_subscriber``.
@@ -247,7 +248,8 @@ def publish_recording(scans: Sequence[tuple[int, np.ndarray, str]],
         received, warnings = _received(watch, before, published, wait_node, largest, reliable)
         return {'published': published, 'seconds': seconds, 'subscribers': pub.get_subscription_count(),
                 'topic': pub.topic_name, 'transforms': sent_transforms + sum(len(t) for t in statics.values()),
-                'pose_topics': sorted(pose_pubs), 'received': received, 'warnings': warnings}
+                'pose_topics': sorted(pose_pubs), 'received': received, 'warnings': warnings,
+                'lost': bool(warnings) and warnings[0].endswith('never reached the node')}
     finally:
         if watch is not None:
             watch.close()

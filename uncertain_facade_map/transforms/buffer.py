@@ -631,7 +631,7 @@ class TransformBuffer:
     def _require(self, frame: str) -> None:
         if frame not in self._parent and frame not in self._parent.values():
             known = tuple(sorted(self._known()))
-            listing = ', '.join(known) if known else 'none: no transform received yet'
+            listing = ', '.join(known) if known else 'none, no transform is known'
             raise UnknownFrameError(f'frame "{frame}" is unknown: no transform names it (known frames: {listing})',
                                     frame=frame, known=known)
 
