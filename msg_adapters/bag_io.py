@@ -144,36 +144,21 @@ def _parse_origin_text(text: str) -> np.ndarray | None:
     return values if values.shape == (3,) and np.isfinite(values).all() else None
 
 
-def _sensor_qos() -> list[Any]:
-    """rclcpp's sensor-data QoS (best effort, volatile, keep last 5) as rosbags Qos."""
-    from rosbags.interfaces import (
-        Qos,
-        QosDurability,
-        QosHistory,
-        QosLiveliness,
-        QosReliability,
-        QosTime,
-    )
+def _qos(profile: str) -> list[Any]:
+    """A QoS profile of :data:`QOS_PROFILES` as rosbags Qos, for a connection's offered profiles:
+    ``'sensor'``, rclcpp's sensor data (best effort, volatile, keep last 5); ``'reliable'``,
+    rclcpp's default (reliable, volatile, keep last 10: /tf, poses, odometry); ``'latched'``
+    (reliable, transient local, keep last 1: ``/map_origin``, ``/tf_static``)."""
+    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 
+    depth, reliability, durability = {
+        'sensor': (5, QosReliability.BEST_EFFORT, QosDurability.VOLATILE),
+        'reliable': (10, QosReliability.RELIABLE, QosDurability.VOLATILE),
+        'latched': (1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL),
+    }[profile]
     zero = QosTime(0, 0)
-    return [Qos(QosHistory.KEEP_LAST, 5, QosReliability.BEST_EFFORT, QosDurability.VOLATILE,
-                zero, zero, QosLiveliness.AUTOMATIC, zero, False)]
-
-
-def _reliable_qos() -> list[Any]:
-    """rclcpp's default QoS (reliable, volatile, keep last 10) as rosbags Qos: /tf, poses, odometry."""
-    from rosbags.interfaces import (
-        Qos,
-        QosDurability,
-        QosHistory,
-        QosLiveliness,
-        QosReliability,
-        QosTime,
-    )
-
-    zero = QosTime(0, 0)
-    return [Qos(QosHistory.KEEP_LAST, 10, QosReliability.RELIABLE, QosDurability.VOLATILE,
-                zero, zero, QosLiveliness.AUTOMATIC, zero, False)]
+    return [Qos(QosHistory.KEEP_LAST, depth, reliability, durability, zero, zero, QosLiveliness.AUTOMATIC, zero,
+                False)]
 
 
 def _bag_typestore(ros1: bool) -> Any:
@@ -209,22 +194,6 @@ def pose_message(topic: str, msgtype: str, transforms: Sequence[StampedTransform
                          f'got {len(items)}')
     build = transform_stamped_msg if msgtype == TRANSFORMSTAMPED else odometry_msg
     return topic, msgtype, items[0].stamp_ns, lambda store: build(items[0], transform_types_rosbags(store))
-
-
-def _latched_qos() -> list[Any]:
-    """Reliable, transient-local, keep last 1: a latched topic such as ``/map_origin``."""
-    from rosbags.interfaces import (
-        Qos,
-        QosDurability,
-        QosHistory,
-        QosLiveliness,
-        QosReliability,
-        QosTime,
-    )
-
-    zero = QosTime(0, 0)
-    return [Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL,
-                zero, zero, QosLiveliness.AUTOMATIC, zero, False)]
 
 
 def write_bag(
@@ -320,13 +289,12 @@ def write_bag(
 
     try:
         with writer:
-            points_conn = connect(topic, POINTCLOUD2, _sensor_qos())
-            origin_conn = connect(ORIGIN_TOPIC, POINTSTAMPED, _latched_qos(), latched=True)
-            profiles = {'sensor': _sensor_qos, 'reliable': _reliable_qos, 'latched': _latched_qos}
+            points_conn = connect(topic, POINTCLOUD2, _qos('sensor'))
+            origin_conn = connect(ORIGIN_TOPIC, POINTSTAMPED, _qos('latched'), latched=True)
             extra_conns = {(t, m): None for t, m, _s, _f in extra_list}
             for key in extra_conns:
                 profile = qos_of.get(key[0])
-                extra_conns[key] = connect(*key, profiles[profile]() if profile else None,
+                extra_conns[key] = connect(*key, _qos(profile) if profile else None,
                                            latched=profile == 'latched')
 
             origin_written = False

@@ -413,15 +413,21 @@ def rosbags_types(typestore: Any = None) -> SimpleNamespace:
         classes = {key: store.types[msgtype] for key, msgtype in names.items()}
     except KeyError as err:
         raise InputError(f'typestore has no message type {err.args[0]}') from None
-    header_cls = classes['Header']
-    if 'seq' in {f.name for f in dataclasses.fields(header_cls)}:
-
-        def ros1_header(**kwargs: Any) -> Any:  # ROS 1: std_msgs/Header has a sequence number
-            kwargs.setdefault('seq', 0)
-            return header_cls(**kwargs)
-
-        classes['Header'] = ros1_header
+    classes['Header'] = header_maker(classes['Header'])
     return SimpleNamespace(**classes, encode_data=_encode_numpy, typestore=store)
+
+
+def header_maker(header_cls: Any) -> Any:
+    """A rosbags typestore's ``std_msgs/msg/Header`` class, or for ROS 1 (whose header has a
+    sequence number) a maker that sets ``seq=0``, so that builders call it alike."""
+    if 'seq' not in {f.name for f in dataclasses.fields(header_cls)}:
+        return header_cls
+
+    def ros1_header(**kwargs: Any) -> Any:
+        kwargs.setdefault('seq', 0)
+        return header_cls(**kwargs)
+
+    return ros1_header
 
 
 def rclpy_types() -> SimpleNamespace:

@@ -22,7 +22,6 @@ The message builders take a ``types`` namespace of message classes, as
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from types import SimpleNamespace
 from typing import Any, Iterable, Sequence
@@ -33,6 +32,7 @@ from uncertain_facade_map.errors import InputError, TransformError
 from uncertain_facade_map.transforms import TransformBuffer
 
 from .map_messages import _header
+from .pointcloud2 import header_maker
 
 
 @dataclass(eq=False)
@@ -300,14 +300,7 @@ def transform_types_rosbags(typestore: Any = None) -> SimpleNamespace:
     except KeyError as err:
         raise InputError(f'typestore has no message type {err.args[0]}') from None
     classes['TFMessage'] = store.types.get(TRANSFORM_TYPES['TFMessage'])
-    header_cls = classes['Header']
-    if 'seq' in {f.name for f in dataclasses.fields(header_cls)}:
-
-        def ros1_header(**kwargs: Any) -> Any:  # ROS 1: std_msgs/Header has a sequence number
-            kwargs.setdefault('seq', 0)
-            return header_cls(**kwargs)
-
-        classes['Header'] = ros1_header
+    classes['Header'] = header_maker(classes['Header'])
     return SimpleNamespace(**classes, typestore=store)
 
 

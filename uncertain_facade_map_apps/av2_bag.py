@@ -53,7 +53,7 @@ import numpy as np
 from msg_adapters.bag_io import ODOMETRY, TFMESSAGE, pose_message
 from msg_adapters.bag_io import TRANSFORMSTAMPED as TRANSFORM_STAMPED
 from msg_adapters.transforms import StampedTransform
-from uncertain_facade_map.errors import FacadeMapError, InputError
+from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.io.av2 import (
     LIDARS,
     Av2Log,
@@ -230,16 +230,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command; returns the exit status (0 ok, 2 bad input, 1 I/O failure)."""
+    from .cli import run_reporting
+
     args = build_parser().parse_args(argv)
-    try:
-        summary = write_av2_bag(args.raw_dir, args.out, storage=args.storage, poses=args.poses,
-                                map_frame=args.map_frame, reference=args.reference)
-    except FacadeMapError as exc:
-        print(f'{PROG}: error: {exc}', file=sys.stderr)
-        return 2
-    except OSError as exc:
-        print(f'{PROG}: error: {exc.strerror or exc}{f": {exc.filename}" if exc.filename else ""}', file=sys.stderr)
-        return 1
+    return run_reporting(PROG, lambda: _write(args))
+
+
+def _write(args: argparse.Namespace) -> int:
+    summary = write_av2_bag(args.raw_dir, args.out, storage=args.storage, poses=args.poses,
+                            map_frame=args.map_frame, reference=args.reference)
     origin = ' '.join(f'{v:g}' for v in summary['map_origin'])
     print(f'wrote {summary["bag"]}: {summary["sweeps"]} sweeps, {summary["points"]:,} points, map origin {origin}')
     for topic, count in sorted(summary['topics'].items()):
@@ -247,7 +246,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     if summary['reference']:
         print(f'wrote the reference {summary["reference"]}')
     return 0
-
 
 if __name__ == '__main__':
     sys.exit(main())

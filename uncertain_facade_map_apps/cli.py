@@ -905,28 +905,37 @@ def _linalg_error() -> type[Exception]:
     return np.linalg.LinAlgError
 
 
+def run_reporting(prog: str, command: Callable[[], int]) -> int:
+    """Run a command; every error a user can cause ends in one line on stderr, none in a traceback.
+
+    Returns:
+        The command's exit status; 2 for bad input (a FacadeMapError), 1 for an I/O failure
+        or a fit that failed anyway, 130 when interrupted.
+    """
+    try:
+        return int(command())
+    except FacadeMapError as exc:
+        print(f'{prog}: error: {exc}', file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f'{prog}: error: {exc.strerror or exc}{f": {exc.filename}" if exc.filename else ""}', file=sys.stderr)
+        return 1
+    except (ArithmeticError, _linalg_error()) as exc:  # a fit failed on data the checks let through
+        print(f'{prog}: error: a fit failed ({type(exc).__name__}: {exc}); the input may hold corrupted points '
+              '(see input.max_distance)', file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f'{prog}: interrupted', file=sys.stderr)
+        return 130
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit status (0 ok, 2 bad input, 1 I/O failure)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if getattr(args, 'campaigns', 1) < 1:
         parser.error('--campaigns must be at least 1')
-    try:
-        return int(args.func(args))
-    except FacadeMapError as exc:
-        print(f'{PROG}: error: {exc}', file=sys.stderr)
-        return 2
-    except OSError as exc:
-        print(f'{PROG}: error: {exc.strerror or exc}{f": {exc.filename}" if exc.filename else ""}', file=sys.stderr)
-        return 1
-    except (ArithmeticError, _linalg_error()) as exc:  # a fit failed on data the checks let through
-        print(f'{PROG}: error: a fit failed ({type(exc).__name__}: {exc}); the input may hold corrupted points '
-              '(see input.max_distance)', file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print(f'{PROG}: interrupted', file=sys.stderr)
-        return 130
-
+    return run_reporting(PROG, lambda: args.func(args))
 
 if __name__ == '__main__':
     sys.exit(main())
