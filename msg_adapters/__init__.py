@@ -5,6 +5,12 @@ serves rclpy's message classes and rosbags' typestore classes. This package impo
 rosbags but never rclpy at import time (:func:`rclpy_types` and :func:`rclpy_map_types`
 import the ROS 2 message packages when called); the core package ``uncertain_facade_map``
 imports neither.
+
+Modules: ``pointcloud2`` (PointCloud2 <-> structured arrays), ``transforms`` (TFMessage,
+TransformStamped, Odometry <-> :class:`~msg_adapters.transforms.StampedTransform` <-> the
+core's transform buffer), ``map_messages`` (the published maps, services, diagnostics),
+``bag_io`` (bags: clouds with their frames and poses), ``parameters`` (ROS parameter
+descriptors), ``published_maps``.
 """
 
 from .bag_io import BagClouds, list_topics, load_inputs, read_bag, read_bag_cloud, write_bag

@@ -8,5 +8,5 @@ deterministic by seed.
 The hard simulator: :mod:`.walls` (walls as built: relief, plaster, glass), :mod:`.sensor`
 (scan patterns and the error model), :mod:`.presets` (every sensor, walls and scene preset,
 as data). Also :mod:`.scene` (geometry and truth), :mod:`.facades` (façade detail),
-:mod:`.cityjson` (real footprints) and :mod:`.export` (scene.json, scans).
+:mod:`.cityjson` (real footprints) and :mod:`.export` (scene.json, scans, a drive as a robot records it).
 """
