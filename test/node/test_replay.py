@@ -194,3 +194,22 @@ def test_publish_mode_says_how_many_clouds_the_node_received_and_why_some_may_be
     assert 'not asked' in line and warnings == []
     line, _ = _received(_FakeWatch(0), None, 10, 0.2, 0, True)
     assert 'no facade_mapper diagnostics' in line
+
+
+def test_replay_refuses_absurd_and_byte_swapped_scans_as_the_node_does(recording, tmp_path, capsys):
+    """A scan with points at 1e30 m, one with finite but absurd ones, and one byte-swapped are
+    refused and counted by reason (node.max_coordinate, as the node refuses them); the rest
+    are mapped; one line each, never a traceback (issue 25 item 6)."""
+    out, scans, bags, params, origin = recording
+    bad = [(stamp, points.copy()) for stamp, points in scans[:12]]
+    bad[3][1]['x'][:5] = 1e30
+    bad[5][1]['z'][:1] = -3e9
+    swapped = bad[7][1]
+    for c in ('x', 'y', 'z'):
+        swapped[c] = swapped[c].byteswap()
+    bag = write_bag(tmp_path / 'bad_mcap', bad, storage='mcap', map_origin=origin)
+    assert main(['replay', str(bag), '--config', str(params), '--quiet']) == 0
+    printed = capsys.readouterr().out
+    assert 'replayed 12 scans' in printed
+    assert 'rejected 3 scans' in printed and printed.count('beyond node.max_coordinate = 100000 m') == 3
+    assert 'is is_bigendian wrong?' in printed
