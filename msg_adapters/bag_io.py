@@ -15,7 +15,7 @@ Reading: :func:`read_bag` opens ROS 1 bags (a list of ``.bag`` files) or one ROS
 directory with ``metadata.yaml``, or a single ``.db3`` / ``.mcap`` file) with
 ``rosbags.highlevel.AnyReader`` and decodes the PointCloud2 topic with each cloud's frame,
 and the poses a robot records beside it: every ``tf2_msgs/msg/TFMessage`` topic (``/tf``;
-a topic named ``tf_static`` holds static transforms), ``geometry_msgs/msg/TransformStamped``
+a topic named ``tf_static`` holds static transforms; ROS 1's ``tf/tfMessage`` too), ``geometry_msgs/msg/TransformStamped``
 topic (such as the node's ``sensor_pose``) and ``nav_msgs/msg/Odometry`` topic
 (:data:`POSE_TYPES`), so that the clouds can be put into the map frame exactly as the node
 does (:meth:`BagClouds.transform_buffer`). :func:`read_bag_cloud` joins the scans of a bag
@@ -30,7 +30,7 @@ import sqlite3
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Iterator, Mapping, Sequence
 
 import numpy as np
 
@@ -64,7 +64,11 @@ _TFMESSAGE_DEFINITION = 'geometry_msgs/TransformStamped[] transforms\n'
 TRANSFORMSTAMPED = 'geometry_msgs/msg/TransformStamped'
 ODOMETRY = 'nav_msgs/msg/Odometry'
 #: The message types read as poses of frames: transforms, the node's sensor_pose, odometry.
-POSE_TYPES = (TFMESSAGE, TRANSFORMSTAMPED, ODOMETRY)
+#: ROS 1's tf (before tf2) recorded /tf as tf/tfMessage, the same fields as tf2_msgs/TFMessage.
+TF1MESSAGE = 'tf/msg/tfMessage'
+#: Transform lists: tf2_msgs/TFMessage and ROS 1's tf/tfMessage.
+TF_TYPES = (TFMESSAGE, TF1MESSAGE)
+POSE_TYPES = (TFMESSAGE, TF1MESSAGE, TRANSFORMSTAMPED, ODOMETRY)
 
 
 def is_static_topic(topic: str) -> bool:
@@ -86,6 +90,7 @@ class BagClouds:
         transforms: the poses of the bag's pose topics (:data:`POSE_TYPES`) in bag order,
             as ``(topic, static, transform)``.
         pose_topics: topic -> message type of the pose topics read.
+        n_clouds: clouds on the topic (``len(scans)`` unless only the first were read).
     """
 
     scans: list[tuple[int, np.ndarray]]
@@ -94,6 +99,7 @@ class BagClouds:
     frame_ids: list[str] = field(default_factory=list)
     transforms: list[tuple[str, bool, StampedTransform]] = field(default_factory=list)
     pose_topics: dict[str, str] = field(default_factory=dict)
+    n_clouds: int = 0
 
     def transform_buffer(self, cache_time: float = math.inf) -> tuple[TransformBuffer, list[str]]:
         """Every transform of the bag in one buffer (as the node's, but keeping them all).
@@ -410,11 +416,16 @@ def _custom_origin(reader: Any) -> np.ndarray | None:
     return None
 
 
+#: Clouds whose frames :func:`read_bag` reads without keeping the clouds (``clouds=False``).
+PEEK_CLOUDS = 50
+
+
 def read_bag(
     paths: str | Path | Sequence[str | Path],
     *,
     topic: str | None = None,
     poses: Sequence[str] | None = None,
+    clouds: bool = True,
 ) -> BagClouds:
     """Read every PointCloud2 scan of one topic of a bag, its frames, poses and map origin.
 
@@ -424,6 +435,10 @@ def read_bag(
         topic: the PointCloud2 topic; None to use the bag's only PointCloud2 topic.
         poses: the pose topics to read; None for every topic of a type in
             :data:`POSE_TYPES`, ``[]`` for none.
+        clouds: False to read the poses and the map origin only, with the first
+            :data:`PEEK_CLOUDS` clouds (their frames and fields: ``frame_ids``, ``scans``)
+            and the number of clouds (``n_clouds``); the clouds themselves are then
+            streamed by :func:`stream_scans`, so that a long bag never sits in memory.
 
     Returns:
         :class:`BagClouds` with the scans and their frames in bag order, the transforms of
@@ -462,11 +477,17 @@ def read_bag(
                 raise InputError(f'{", ".join(bad)}: no pose topic of the bag (types {", ".join(POSE_TYPES)}); '
                                  f'topics: {_topics_text(topics)}')
             pose_topics = {t: topics[t] for t in poses}
-        wanted = [c for c in reader.connections if c.topic in (topic, ORIGIN_TOPIC) or c.topic in pose_topics]
+        n_clouds = sum(int(getattr(c, 'msgcount', 0) or 0) for c in reader.connections if c.topic == topic)
+        wanted = [c for c in reader.connections
+                  if (c.topic == topic and clouds) or c.topic == ORIGIN_TOPIC or c.topic in pose_topics]
         scans: list[tuple[int, np.ndarray]] = []
         frames: list[str] = []
         transforms: list[tuple[str, bool, StampedTransform]] = []
         origin: np.ndarray | None = None
+        if not clouds:
+            for stamp_ns, points, frame in _scans_of(reader, topic, PEEK_CLOUDS):
+                scans.append((stamp_ns, points))
+                frames.append(frame)
         for conn, _time, raw in reader.messages(connections=wanted):
             try:
                 msg = reader.deserialize(raw, conn.msgtype)
@@ -474,12 +495,11 @@ def read_bag(
                 raise InputError(
                     f'cannot decode a {conn.msgtype} on {conn.topic}: {err}') from None
             if conn.topic == topic:
-                stamp = msg.header.stamp
-                stamp_ns = int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
-                scans.append((stamp_ns, structured_from_pointcloud2(msg)))
-                frames.append(str(msg.header.frame_id))
+                stamp_ns, points, frame = _scan(msg)
+                scans.append((stamp_ns, points))
+                frames.append(frame)
             elif conn.topic in pose_topics:
-                static = conn.msgtype == TFMESSAGE and is_static_topic(conn.topic)
+                static = conn.msgtype in TF_TYPES and is_static_topic(conn.topic)
                 transforms += [(conn.topic, static, t) for t in stamped_transforms(msg)]
             elif origin is None and conn.msgtype == POINTSTAMPED:
                 p = msg.point
@@ -491,7 +511,41 @@ def read_bag(
     if origin is None:
         origin = np.zeros(3)
     return BagClouds(scans=scans, map_origin=origin, topic=topic, frame_ids=frames, transforms=transforms,
-                     pose_topics=pose_topics)
+                     pose_topics=pose_topics, n_clouds=n_clouds if not clouds else len(scans))
+
+
+def _scan(msg: Any) -> tuple[int, np.ndarray, str]:
+    """(stamp_ns, points, frame_id) of a PointCloud2 message."""
+    stamp = msg.header.stamp
+    return (int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec), structured_from_pointcloud2(msg),
+            str(msg.header.frame_id))
+
+
+def _scans_of(reader: Any, topic: str, limit: int | None = None) -> Iterator[tuple[int, np.ndarray, str]]:
+    """The clouds of a topic of an open reader, decoded one at a time (the first ``limit``)."""
+    conns = [c for c in reader.connections if c.topic == topic]
+    for k, (conn, _time, raw) in enumerate(reader.messages(connections=conns)):
+        if limit is not None and k >= limit:
+            return
+        try:
+            msg = reader.deserialize(raw, conn.msgtype)
+        except Exception as err:  # rosbags raises several types for corrupt data
+            raise InputError(f'cannot decode a {conn.msgtype} on {conn.topic}: {err}') from None
+        yield _scan(msg)
+
+
+def stream_scans(paths: str | Path | Sequence[str | Path], topic: str) -> Iterator[tuple[int, np.ndarray, str]]:
+    """The clouds of a bag's PointCloud2 topic, ``(stamp_ns, points, frame_id)`` one at a time in
+    bag order, never all in memory (for replay of long bags).
+
+    Raises:
+        InputError: a path is missing or not a bag, or a message cannot be decoded.
+    """
+    reader = _open_reader(_paths(paths))
+    try:
+        yield from _scans_of(reader, topic)
+    finally:
+        reader.close()
 
 
 def no_transform_message(path: str, bag: BagClouds, missing: dict[str, str], map_frame: str,

@@ -269,13 +269,13 @@ def cmd_query(args: argparse.Namespace) -> int:
 
 
 def _read_bags(paths: Sequence[str], topic: str | None, poses: Sequence[str] | None = None):
-    """The bags' scans as ``(stamp_ns, points, frame_id)`` in order, their transforms, map origin,
-    topic and pose topics; checks the fields."""
+    """The bags' transforms, map origin, topic and pose topics, with their first clouds (the
+    frames and fields; the clouds are streamed by :func:`_stream_bags`); checks the fields."""
     from msg_adapters.bag_io import BagClouds, list_topics, read_bag
 
     joined, origin = BagClouds([]), None
     for path in paths:
-        bag = read_bag(path, topic=topic, poses=poses)
+        bag = read_bag(path, topic=topic, poses=poses, clouds=False)
         if not bag.scans:
             raise CliError(f'{path}: no messages on {bag.topic}')
         names = bag.scans[0][1].dtype.names or ()
@@ -286,12 +286,34 @@ def _read_bags(paths: Sequence[str], topic: str | None, poses: Sequence[str] | N
                            f'{", ".join(names)}); topics: {topics}')
         joined.scans += bag.scans
         joined.frame_ids += bag.frame_ids
+        joined.n_clouds += bag.n_clouds
         joined.transforms += bag.transforms
         joined.pose_topics.update(bag.pose_topics)
         origin = bag.map_origin if origin is None else origin
         joined.topic = bag.topic
     joined.map_origin = origin
     return joined
+
+
+def _stream_bags(paths: Sequence[str], topic: str, start: float = 0.0, duration: float | None = None):
+    """A function streaming the bags' clouds ``(stamp_ns, points, frame_id)`` one after the other,
+    from ``start`` seconds after the first cloud for ``duration`` seconds (None: to the end)."""
+    from msg_adapters.bag_io import stream_scans
+
+    if start < 0:
+        raise CliError(f'--start must be >= 0 s, got {start}')
+    if duration is not None and duration <= 0:
+        raise CliError(f'--duration must be > 0 s, got {duration}')
+
+    def scans():
+        first = None
+        for path in paths:
+            for item in stream_scans(path, topic):
+                first = item[0] if first is None else first
+                t = (item[0] - first) / 1e9
+                if t >= start and (duration is None or t < start + duration):
+                    yield item
+    return scans
 
 
 def _poses_option(text: str | None) -> list[str] | None:
@@ -325,34 +347,38 @@ def cmd_replay(args: argparse.Namespace) -> int:
         print(f'warning: transform refused: {why}', file=sys.stderr)
     if len(refused) > 3:
         print(f'warning: {len(refused) - 3} more transforms refused', file=sys.stderr)
-    scans = bag.located_scans
+    if args.loop and args.mode != 'publish':
+        raise CliError('--loop is for --mode publish')
+    windowed = bool(args.start) or args.duration is not None
+    scans = _stream_bags(args.bags, bag.topic, args.start, args.duration)
+    total = None if windowed else bag.n_clouds
     if args.mode == 'publish':
-        from uncertain_facade_map_node.replay import publish_recording, select_window
+        from uncertain_facade_map_node.replay import publish_recording
 
-        window = select_window(scans, args.start, args.duration)
-        span = (window[-1][0] - window[0][0]) / 1e9
-        with _counter('published', 'scan', args.quiet, len(window)) as update:
-            done = publish_recording(window, bag.transforms, pose_types=bag.pose_topics,
+        first = bag.scans[0][0] + int(round(args.start * 1e9))
+        window = (first, first + int(round(args.duration * 1e9))) if args.duration is not None else None
+        with _counter('published', 'scan', args.quiet, total) as update:
+            done = publish_recording(scans, bag.transforms, pose_types=bag.pose_topics,
                                      topic=args.publish_topic or bag.topic, rate=args.rate, loop=args.loop,
-                                     reliable=not args.best_effort, progress=update, wait_node=args.wait_node)
-        print(f'published {done["published"]:,} scans of {bag.topic} ({span:.1f} s of recording) on '
-              f'{done["topic"]} in {done["seconds"]:.1f} s (rate {args.rate:g}), with {done["transforms"]:,} '
-              f'transforms ({", ".join(done["pose_topics"]) or "none"})')
+                                     reliable=not args.best_effort, progress=update, wait_node=args.wait_node,
+                                     window=window if windowed else None)
+        if not done['published']:
+            raise CliError(f'no scans between {args.start} s and '
+                           f'{"the end" if args.duration is None else f"{args.start + args.duration} s"} of the recording')
+        print(f'published {done["published"]:,} scans of {bag.topic} on {done["topic"]} in {done["seconds"]:.1f} s '
+              f'(rate {args.rate:g}), with {done["transforms"]:,} transforms ({", ".join(done["pose_topics"]) or "none"})')
         print(done['received'])
         for line in done['warnings']:
             print(f'warning: {line}', file=sys.stderr)
         return 1 if done['lost'] else 0
-    if args.start or args.duration is not None or args.loop:
-        from uncertain_facade_map_node.replay import select_window
-
-        if args.loop:
-            raise CliError('--loop is for --mode publish')
-        scans = select_window(scans, args.start, args.duration)
     fmap = FacadeMap(map_params(config), bag.map_origin)
-    with _counter('mapped', 'scan', args.quiet, len(scans)) as update:
-        summary = map_scans(fmap, scans, config.input, update, config.selection, buffer=buffer,
+    with _counter('mapped', 'scan', args.quiet, total) as update:
+        summary = map_scans(fmap, scans(), config.input, update, config.selection, buffer=buffer,
                             tolerance=config.node.pose_tolerance, max_coordinate=config.node.max_coordinate)
-    frames = ', '.join(f'{f} ({n})' for f, n in bag.cloud_frames().items())
+    if not summary.scans:
+        raise CliError(f'no scans between {args.start} s and '
+                       f'{"the end" if args.duration is None else f"{args.start + args.duration} s"} of the recording')
+    frames = ', '.join(f'{f} ({n})' for f, n in summary.frames.items())
     print(f'replayed {summary.scans:,} scans of {bag.topic}: {summary.points:,} points, {summary.building_points:,} '
           f'building, {summary.nonfinite:,} skipped (NaN/Inf)')
     print(f'frames   clouds in {frames}; map frame "{map_frame}"')

@@ -14,7 +14,7 @@ from __future__ import annotations
 import os
 import threading
 import time
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -27,37 +27,6 @@ _STATUS_SUFFIX = 'facade_mapper: map'
 LARGE_CLOUD_BYTES = 116_000
 #: Seconds of transforms kept around a window of scans, so the node can interpolate at its ends.
 TRANSFORM_MARGIN = 1.0
-
-
-def select_window(scans: Sequence[tuple[Any, ...]], start: float = 0.0,
-                  duration: float | None = None) -> list[tuple[Any, ...]]:
-    """The scans from ``start`` seconds after the first one, for ``duration`` seconds.
-
-    Args:
-        scans: ``(stamp_ns, points, ...)`` in recorded order.
-        start: seconds into the recording, >= 0.
-        duration: seconds to take, > 0; None for the rest.
-
-    Returns:
-        The scans whose stamp lies in the window, in recorded order.
-
-    Raises:
-        InputError: a negative start, a non-positive duration, or an empty window.
-    """
-    if start < 0:
-        raise InputError(f'--start must be >= 0 s, got {start}')
-    if duration is not None and duration <= 0:
-        raise InputError(f'--duration must be > 0 s, got {duration}')
-    if not scans:
-        raise InputError('the recording has no scans')
-    t0 = scans[0][0] + int(round(start * 1e9))
-    t1 = None if duration is None else t0 + int(round(duration * 1e9))
-    out = [s for s in scans if s[0] >= t0 and (t1 is None or s[0] < t1)]
-    if not out:
-        length = (scans[-1][0] - scans[0][0]) / 1e9
-        raise InputError(f'no scans between {start} s and {"the end" if t1 is None else f"{start + duration} s"} '
-                         f'of a recording of {length:.1f} s')
-    return out
 
 
 class _NodeWatch:
@@ -116,17 +85,20 @@ def _groups(transforms: Sequence[tuple[str, bool, Any]]) -> list[tuple[int, str,
     return out
 
 
-def publish_recording(scans: Sequence[tuple[int, np.ndarray, str]],
+def publish_recording(scans: Sequence[tuple[int, np.ndarray, str]] | Callable[[], Iterable[tuple[int, np.ndarray, str]]],
                       transforms: Sequence[tuple[str, bool, Any]] = (), *, pose_types: dict[str, str] | None = None,
                       topic: str = '/points', rate: float = 1.0, loop: bool = False, reliable: bool = True,
-                      wait_subscriber: float = 10.0, wait_node: float = 10.0,
+                      wait_subscriber: float = 10.0, wait_node: float = 10.0, window: tuple[int, int] | None = None,
                       progress: Callable[[int], None] | None = None) -> dict[str, Any]:
     """Publish clouds in their own frames and the recording's transforms, with their recorded spacing / ``rate``.
 
     Args:
-        scans: ``(stamp_ns, points, frame_id)`` in recorded order (structured arrays).
+        scans: ``(stamp_ns, points, frame_id)`` in recorded order (structured arrays), or a
+            function returning an iterator of them (a bag streamed: called once per lap).
         transforms: ``(topic, static, StampedTransform)`` of the recording's pose topics
-            (``msg_adapters.bag_io.BagClouds.transforms``).
+            (``msg_adapters.bag_io.BagClouds.transforms``); the dynamic ones are sent in
+            stamp order between the clouds, from :data:`TRANSFORM_MARGIN` before the first
+            cloud to as long after the last.
         pose_types: topic -> message type of those topics (``BagClouds.pose_topics``); a
             topic missing here is published as tf2_msgs/TFMessage.
         topic: topic of the clouds.
@@ -137,6 +109,8 @@ def publish_recording(scans: Sequence[tuple[int, np.ndarray, str]],
         wait_subscriber: seconds to wait for a subscriber of the clouds (0: don't).
         wait_node: seconds to wait, after the last cloud, for the node's diagnostics to
             count every cloud published (0: don't read them).
+        window: ``(first, last)`` stamps (ns) of the clouds, when they are a window of the
+            recording: only the poses within :data:`TRANSFORM_MARGIN` of it are sent.
         progress: called with the number of scans published after each one.
 
     Returns:
@@ -158,6 +132,10 @@ def publish_recording(scans: Sequence[tuple[int, np.ndarray, str]],
 
     if not rate > 0:
         raise InputError(f'--rate must be > 0, got {rate}')
+    if not callable(scans):
+        recorded = list(scans)
+        scans = lambda: iter(recorded)  # noqa: E731 - one lap of a list
+    margin = int(TRANSFORM_MARGIN * 1e9)
     pose_types = dict(pose_types or {})
     context = rclpy.Context()
     rclpy.init(context=context)
@@ -169,7 +147,7 @@ def publish_recording(scans: Sequence[tuple[int, np.ndarray, str]],
         types = ma.rclpy_types()
         groups = _groups(transforms)
         ttypes = mt.transform_types_rclpy(require_tf2_msgs=any(
-            pose_types.get(t, mt.TRANSFORM_TYPES['TFMessage']) == mt.TRANSFORM_TYPES['TFMessage'] for _, t, _, _ in groups))
+            pose_types.get(t, 'TFMessage').split('/')[-1].lower() == 'tfmessage' for _, t, _, _ in groups))
         pose_pubs: dict[str, tuple[Any, Callable[[list[Any]], Any]]] = {}
         latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                              reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
@@ -177,7 +155,7 @@ def publish_recording(scans: Sequence[tuple[int, np.ndarray, str]],
             if name in pose_pubs:
                 continue
             kind = pose_types.get(name, mt.TRANSFORM_TYPES['TFMessage'])
-            if kind == mt.TRANSFORM_TYPES['TFMessage']:
+            if kind.split('/')[-1].lower() == 'tfmessage':  # tf2_msgs/msg/TFMessage, ROS 1's tf/msg/tfMessage
                 pose_pubs[name] = (node.create_publisher(ttypes.TFMessage, name, latched if static else 100),
                                    lambda ts: mt.tf_message(ts, ttypes))
             elif kind == mt.TRANSFORM_TYPES['Odometry']:
@@ -206,40 +184,59 @@ def publish_recording(scans: Sequence[tuple[int, np.ndarray, str]],
                     statics.setdefault(name, {})[(t.parent, t.child)] = t
         for name, table in statics.items():
             pose_pubs[name][0].publish(pose_pubs[name][1](list(table.values())))
-        first, last = scans[0][0], scans[-1][0]
-        dynamic = [g for g in groups if not g[2] and first - TRANSFORM_MARGIN * 1e9 <= g[0] <= last + TRANSFORM_MARGIN * 1e9]
-        # One timeline of clouds and poses by stamp (a pose before a cloud of the same stamp).
-        events = sorted([(g[0], 0, i) for i, g in enumerate(dynamic)] + [(s[0], 1, i) for i, s in enumerate(scans)])
-        t0 = events[0][0]
-        length = last - first + (int(np.median(np.diff([s[0] for s in scans]))) if len(scans) > 1 else 0)
+        dynamic = sorted((g for g in groups if not g[2] and (window is None or window[0] - margin <= g[0]
+                                                              <= window[1] + margin)), key=lambda g: g[0])
         published = sent_transforms = lap = 0
         largest = 0
         started = time.monotonic()
+        shift, t0, length = 0, None, 0
+
+        def wait_until(stamp: int) -> None:
+            wait = lap_start + (stamp - t0) / 1e9 / rate - time.monotonic()
+            if wait > 0:
+                time.sleep(wait)
+
+        def send_poses(upto: int | None) -> int:
+            """Publish the dynamic poses stamped up to ``upto`` (None: all), in time; returns how many."""
+            nonlocal next_pose, sent_transforms
+            while next_pose < len(dynamic) and (upto is None or dynamic[next_pose][0] <= upto):
+                stamp, name, _, ts = dynamic[next_pose]
+                wait_until(stamp)
+                if shift:
+                    ts = [mt.StampedTransform(t.parent, t.child, t.stamp_ns + shift, t.translation, t.rotation)
+                          for t in ts]
+                pose_pubs[name][0].publish(pose_pubs[name][1](ts))
+                sent_transforms += len(ts)
+                next_pose += 1
+            return next_pose
+
         while True:
-            shift = lap * length
+            next_pose = 0
             lap_start = time.monotonic()
-            for stamp, kind, i in events:
-                wait = lap_start + (stamp - t0) / 1e9 / rate - time.monotonic()
-                if wait > 0:
-                    time.sleep(wait)
-                if kind == 0:
-                    _, name, _, ts = dynamic[i]
-                    if shift:
-                        ts = [mt.StampedTransform(t.parent, t.child, t.stamp_ns + shift, t.translation, t.rotation)
-                              for t in ts]
-                    pose_pubs[name][0].publish(pose_pubs[name][1](ts))
-                    sent_transforms += len(ts)
-                    continue
-                stamp_ns, points, frame = scans[i][0], scans[i][1], scans[i][2]
+            first = last = None
+            for stamp_ns, points, frame in scans():
+                if first is None:
+                    first = stamp_ns
+                    while next_pose < len(dynamic) and dynamic[next_pose][0] < stamp_ns - margin:
+                        next_pose += 1  # poses long before the first cloud
+                    if t0 is None:  # the timeline starts with the first pose sent, or the first cloud
+                        t0 = min(stamp_ns, dynamic[next_pose][0]) if next_pose < len(dynamic) else stamp_ns
+                send_poses(stamp_ns)  # a pose before a cloud of the same stamp
+                wait_until(stamp_ns)
                 pub.publish(ma.pointcloud2_from_structured(points, stamp_ns=stamp_ns + shift, frame_id=frame,
                                                            msg_types=types))
                 largest = max(largest, points.nbytes)
+                last = stamp_ns
                 published += 1
                 if progress is not None:
                     progress(published)
+            if last is not None:
+                send_poses(last + margin)  # the poses just after the last cloud: the node interpolates to it
             lap += 1
-            if not loop:
+            if not loop or first is None:
                 break
+            length = length or (last - first + int(1e8))  # the next lap's stamps follow this one's
+            shift = lap * length
         if reliable:
             from rclpy.duration import Duration
 

@@ -441,6 +441,7 @@ class ReplaySummary:
         thin_selections: scans of which the selection kept less than
             ``selection.warn_kept_share`` of the non-ground points.
         selection_warning: the first such scan's warning (``selection_warning``), '' if none.
+        frames: the scans' frames, with the number of scans in each.
     """
 
     scans: int
@@ -457,6 +458,7 @@ class ReplaySummary:
     selected: int = 0
     thin_selections: int = 0
     selection_warning: str = ''
+    frames: dict[str, int] = field(default_factory=dict)
 
 
 def map_scans(fmap: FacadeMap, scans: Any, config: Any, progress: Callable[[int], None] | None = None,
@@ -501,9 +503,11 @@ def map_scans(fmap: FacadeMap, scans: Any, config: Any, progress: Callable[[int]
     notes: Counter[str] = Counter()
     non_ground = selected = 0
     warnings: Counter[str] = Counter()
+    frames: Counter[str] = Counter()
     first_warning = ''
     for item in scans:
         stamp, points, scan_frame = (0, item, frame) if isinstance(item, np.ndarray) else item
+        frames[scan_frame] += 1
         n_scans += 1
         n_points += len(points)
         try:
@@ -531,4 +535,4 @@ def map_scans(fmap: FacadeMap, scans: Any, config: Any, progress: Callable[[int]
     fmap.flush()
     return ReplaySummary(n_scans, n_points, n_building, n_bad, len(fmap.points), len(fmap.facades),
                          time.perf_counter() - started, sum(rejected.values()), dict(rejected), dict(notes),
-                         non_ground, selected, sum(warnings.values()), first_warning)
+                         non_ground, selected, sum(warnings.values()), first_warning, dict(frames))
