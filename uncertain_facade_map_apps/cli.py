@@ -437,10 +437,12 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     print(f'fields   {", ".join(fields)}')
     classes = config.input.class_field in fields
     moved = any(f != map_frame for f in bag.frame_ids)
+    likely = [f for f in ('time', 't', 'timestamp', 'time_stamp', 'offset_time') if f in fields]
     times = ('; clouds in the map frame: no pose needed' if not moved else
              f'; each point placed at its time from field {config.input.time_field!r} (input.time_field)'
              if config.input.time_field and config.input.time_field in fields else
-             '; no per-point time field (input.time_field): one pose per cloud, at its stamp')
+             '; no per-point time field (input.time_field): one pose per cloud, at its stamp'
+             + (f'; set input.time_field: {likely[0]} for the per-point times' if likely else ''))
     print(f'classes  {"field " + repr(config.input.class_field) + " (input.class_field)" if classes else "none: the building points are selected (selection.mode: " + config.selection.mode + ")"}'
           + times)
     print(f'frames   {", ".join(f"{f} ({n})" for f, n in bag.cloud_frames().items())}; map frame "{map_frame}" '
