@@ -3,7 +3,7 @@
 Every command of the section is taken from the README itself, not copied here: the
 simulated robot bag of step 1 (clouds in the lidar frame, /tf, /tf_static), ``inspect``,
 offline ``replay`` and ``plot``, then the node and publish mode in two processes, with the
-placeholders (BAG, /your/points, my_map.npz, figures) replaced by this test's files. The
+placeholders (BAG, /your/points, output/...) replaced by this test's files. The
 node must receive and map every cloud, and log the summary line the README shows.
 """
 
@@ -47,14 +47,12 @@ def simulate_command(text: str) -> str:
 def concrete(command: str, work: Path, bag: Path) -> list[str]:
     """A README command with its placeholders replaced, as an argument list."""
     command = re.sub(r'\s*\[[^\]]*\]', '', command)  # optional arguments
-    command = command.replace('/your/points', '/points').replace('my_map.npz', str(work / 'my_map.npz'))
+    command = command.replace('/your/points', '/points').replace('output/', f'{work}/')
     args = shlex.split(command)
     out = []
     for arg in args:
         if arg == 'BAG':
             arg = str(bag)
-        elif arg == 'figures':
-            arg = str(work / 'figures')
         out.append(str(REPO / arg) if arg.startswith('.venv/') else arg)
     return out
 
