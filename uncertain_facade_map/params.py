@@ -560,8 +560,9 @@ class NodeConfig(Section):
     pose_tolerance: float = param(0.05, 'a cloud whose stamp lies outside the span of its transforms by at most this '
                                         '(after waiting transform_timeout) is mapped with the nearest pose; 0: never '
                                         '(as tf2)', unit='s', allowed=_closed(0.0, 3600.0))
-    pose_buffer: int = param(1000, 'transforms kept per frame at most (within transform_cache; two to interpolate '
-                                   'between)', allowed=_closed(2, 1_000_000))
+    pose_buffer: int = param(1000, 'transforms kept per frame at most (within transform_cache; with 1 only the newest, '
+                                   'which answers its own stamp, or others within pose_tolerance)',
+                             allowed=_closed(1, 1_000_000))
     log_period: float = param(5.0, 'an info line this often while clouds come: clouds in, mapped, waiting for a '
                                    'transform, dropped, rejected (why), share of the points the selection kept '
                                    '(0: never; every cloud is logged at debug level)', unit='s',

@@ -375,8 +375,13 @@ def test_max_samples_keeps_the_newest():
     assert buf.time_range('base') == (ns(8.0), ns(10.0))
     buf.set_transforms('map', 'base', [ns(11.0), ns(12.0)], [[11, 0, 0], [12, 0, 0]], [[0, 0, 0, 1]] * 2)
     assert buf.time_range('base') == (ns(10.0), ns(12.0))
-    with pytest.raises(InputError, match='max_samples must be >= 2'):
-        TransformBuffer(max_samples=1)
+    newest = TransformBuffer(max_samples=1, max_extrapolation=0.05)
+    for k in range(3):
+        newest.set_transform('map', 'base', ns(1.0 + k), [k, 0, 0], [0, 0, 0, 1])
+    assert newest.time_range('base') == (ns(3.0), ns(3.0))
+    assert newest.lookup('map', 'base', ns(3.02)).translation[0] == 2.0
+    with pytest.raises(InputError, match='max_samples must be >= 1'):
+        TransformBuffer(max_samples=0)
 
 
 def test_cache_time_prunes_old_samples():

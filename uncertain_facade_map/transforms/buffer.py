@@ -284,11 +284,12 @@ class TransformBuffer:
         max_extrapolation: seconds a lookup may reach before the first or after the last
             sample of a dynamic edge, answered by holding that sample. tf2: 0 (never).
         max_samples: samples kept per dynamic edge at most, the newest (None: no limit
-            besides ``cache_time``); bounds the memory of an edge published very often.
+            besides ``cache_time``); bounds the memory of an edge published very often (1:
+            the newest only, which answers its own stamp or, held, ``max_extrapolation``).
 
     Raises:
         InputError: ``cache_time`` not > 0, ``max_extrapolation`` negative or NaN, or
-            ``max_samples`` < 2.
+            ``max_samples`` < 1.
     """
 
     def __init__(self, cache_time: float = 10.0, max_extrapolation: float = 0.0,
@@ -299,8 +300,8 @@ class TransformBuffer:
             raise InputError(f'cache_time must be > 0 s (math.inf keeps all samples), got {cache_time}')
         if not max_extrapolation >= 0:
             raise InputError(f'max_extrapolation must be >= 0 s, got {max_extrapolation}')
-        if max_samples is not None and not int(max_samples) >= 2:
-            raise InputError(f'max_samples must be >= 2 (two samples to interpolate between), got {max_samples}')
+        if max_samples is not None and not int(max_samples) >= 1:
+            raise InputError(f'max_samples must be >= 1, got {max_samples}')
         self.cache_time = cache_time
         self.max_extrapolation = max_extrapolation
         self.max_samples = None if max_samples is None else int(max_samples)
