@@ -63,11 +63,11 @@ TFMESSAGE = 'tf2_msgs/msg/TFMessage'
 _TFMESSAGE_DEFINITION = 'geometry_msgs/TransformStamped[] transforms\n'
 TRANSFORMSTAMPED = 'geometry_msgs/msg/TransformStamped'
 ODOMETRY = 'nav_msgs/msg/Odometry'
-#: The message types read as poses of frames: transforms, the node's sensor_pose, odometry.
 #: ROS 1's tf (before tf2) recorded /tf as tf/tfMessage, the same fields as tf2_msgs/TFMessage.
 TF1MESSAGE = 'tf/msg/tfMessage'
 #: Transform lists: tf2_msgs/TFMessage and ROS 1's tf/tfMessage.
 TF_TYPES = (TFMESSAGE, TF1MESSAGE)
+#: The message types read as poses of frames: transforms, the node's sensor_pose, odometry.
 POSE_TYPES = (TFMESSAGE, TF1MESSAGE, TRANSFORMSTAMPED, ODOMETRY)
 
 
@@ -574,28 +574,18 @@ def refuse_unplaceable(path: str, bag: BagClouds, buffer: TransformBuffer, map_f
 def _placed(scan: Any, placement: Any) -> np.ndarray:
     """The finite points of a placed scan as a structured array in the map frame: x, y, z
     and sensor origins (when known) as float64, the other fields as they were."""
-    from uncertain_facade_map.io.scans import ORIGIN_FIELDS, select_scan_points
+    from uncertain_facade_map.io.scans import ORIGIN_FIELDS
 
     points = scan.points[scan.finite]
-    moved = select_scan_points(scan.points, _all_building(), pose=placement.pose)
-    has_origins = moved.sensor_origins is not None
-    coords = ('x', 'y', 'z') + (ORIGIN_FIELDS if has_origins else ())
-    rest = [(n, points.dtype.fields[n][0]) for n in points.dtype.names if n not in coords + ORIGIN_FIELDS]
+    xyz, origins = scan.map_frame_points(placement)
+    coords = ('x', 'y', 'z') + (ORIGIN_FIELDS if origins is not None else ())
+    rest = [(n, points.dtype.fields[n][0]) for n in points.dtype.names if n not in ('x', 'y', 'z') + ORIGIN_FIELDS]
     out = np.zeros(len(points), dtype=[(n, 'f8') for n in coords] + rest)
-    for k, n in enumerate(('x', 'y', 'z')):
-        out[n] = moved.xyz[:, k]
-    if has_origins:
-        for k, n in enumerate(ORIGIN_FIELDS):
-            out[n] = moved.sensor_origins[:, k]
+    for k, n in enumerate(coords):
+        out[n] = xyz[:, k] if k < 3 else origins[:, k - 3]
     for n, _t in rest:
         out[n] = points[n]
     return out
-
-
-def _all_building() -> Any:
-    from uncertain_facade_map.params import InputConfig
-
-    return InputConfig(class_field='', building_id_field='')
 
 
 def read_bag_cloud(paths: str | Path | Sequence[str | Path], topic: str | None = None, config: Any = None,

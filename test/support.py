@@ -193,3 +193,16 @@ def evaluation_arrays(cloud, drop_outliers: bool) -> tuple[np.ndarray, np.ndarra
         keep &= cloud.points['gt_outlier'] == 0
     p = cloud.points[keep]
     return np.stack([p['x'], p['y'], p['z']], 1), np.stack([p['origin_x'], p['origin_y'], p['origin_z']], 1)
+
+
+def axis_angle(axis, angle: float) -> np.ndarray:
+    """Quaternion (x, y, z, w) of a rotation by ``angle`` about ``axis``."""
+    a = np.asarray(axis, dtype=float) / np.linalg.norm(axis)
+    return np.r_[math.sin(angle / 2) * a, math.cos(angle / 2)]
+
+
+def rodrigues(axis, angle: float) -> np.ndarray:
+    """Rotation matrix by Rodrigues' formula, independent of the transform code under test."""
+    a = np.asarray(axis, dtype=float) / np.linalg.norm(axis)
+    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * k @ k

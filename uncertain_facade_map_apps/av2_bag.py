@@ -50,7 +50,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from msg_adapters.bag_io import ODOMETRY, TFMESSAGE, pose_message
+from msg_adapters.bag_io import ODOMETRY, STORAGES, TFMESSAGE, pose_message
 from msg_adapters.bag_io import TRANSFORMSTAMPED as TRANSFORM_STAMPED
 from msg_adapters.transforms import StampedTransform
 from uncertain_facade_map.errors import InputError
@@ -66,7 +66,6 @@ from uncertain_facade_map.transforms import rotations
 
 PROG = 'python -m uncertain_facade_map_apps.av2_bag'
 POSE_MODES = ('tf', 'pose', 'odometry')
-STORAGES = ('mcap', 'sqlite3', 'rosbag1')
 EGO_FRAME = 'egovehicle'
 POINTS_TOPIC = '/points'
 TF_TOPIC = '/tf'

@@ -323,6 +323,12 @@ def _poses_option(text: str | None) -> list[str] | None:
     return [] if text.strip() == 'none' else [t.strip() for t in text.split(',') if t.strip()]
 
 
+def _print_poses(bag, buffer) -> None:
+    """The bag's pose topics and the tree of their transforms (the buffer's repr, indented)."""
+    print(f'poses    {len(bag.transforms):,} transforms from {", ".join(bag.pose_topics)}:')
+    print('\n'.join(f'         {line}' for line in repr(buffer).split('\n')[1:]))
+
+
 def _share(part: int, whole: int) -> str:
     return f'{part / whole:.0%}' if whole else '-'
 
@@ -383,9 +389,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
           f'building, {summary.nonfinite:,} skipped (NaN/Inf)')
     print(f'frames   clouds in {frames}; map frame "{map_frame}"')
     if bag.pose_topics:
-        tree = repr(buffer).split('\n')[1:]
-        print(f'poses    {len(bag.transforms):,} transforms from {", ".join(bag.pose_topics)}:')
-        print('\n'.join(f'       {line}' for line in tree))
+        _print_poses(bag, buffer)
     if summary.non_ground:
         print(f'selected {summary.selected:,} of {summary.non_ground:,} non-ground points '
               f'({_share(summary.selected, summary.non_ground)}) as building')
@@ -449,8 +453,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
           '(input.frame_id)')
     buffer, refused = bag.transform_buffer()
     if bag.pose_topics:
-        print(f'poses    {len(bag.transforms):,} transforms from {", ".join(bag.pose_topics)}:')
-        print('\n'.join(f'         {line}' for line in repr(buffer).split('\n')[1:]))
+        _print_poses(bag, buffer)
     elif args.poses is not None:
         print('poses    none read (--poses)')
     else:

@@ -43,7 +43,6 @@ from __future__ import annotations
 
 import difflib
 import functools
-import os
 import sys
 import threading
 import time
@@ -92,6 +91,7 @@ from uncertain_facade_map.pipeline.step7_queries import query_points
 from uncertain_facade_map.pipeline.step8_occupancy import PLSC, occupancy_model
 from uncertain_facade_map.srv import GetFacades, LoadMap, QueryPoints, SaveMap
 from uncertain_facade_map.transforms import Placement, TransformBuffer
+from uncertain_facade_map_node.replay import dds_profile_hint
 
 #: Seconds a service waits for the map worker (load, reset) before answering "busy".
 COMMAND_TIMEOUT = 120.0
@@ -105,8 +105,6 @@ SERVICE_CHECKS = 20
 _BUILTIN_PARAMETERS = frozenset({'use_sim_time', 'start_type_description_service'})
 #: Seconds between the looks at the clouds waiting for their transform.
 TRANSFORM_POLL = 0.01
-#: A cloud larger than this (bytes) is lost whole over Fast DDS's defaults (docs/node.md).
-LARGE_CLOUD_BYTES = 116_000
 #: Kinds of event that make the diagnostic level WARN while they are recent.
 _WARN_EVENTS = ('dropped', 'rejected', 'failed', 'callback_error')
 
@@ -345,12 +343,10 @@ class FacadeMapperNode(Node):
                 if typical > 0 and gap > 1.5 * typical:
                     missed = int(round(gap / typical)) - 1
                     self.counters['clouds_missed_estimate'] += missed
-                    if size > LARGE_CLOUD_BYTES and not os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE'):
+                    hint = dds_profile_hint(size)
+                    if hint is not None:
                         self._warn(f'about {missed} clouds of "{frame}" were lost before they reached the node (a gap '
-                                   f'in their stamps); clouds of {size / 1e6:.1f} MB are lost whole to DDS '
-                                   "fragmentation with Fast DDS's defaults: export FASTRTPS_DEFAULT_PROFILES_FILE="
-                                   '<repository>/config/fastdds_large_clouds.xml for the node and the publisher '
-                                   '(docs/node.md, "Large clouds over DDS")', 'dds losses', period=60.0)
+                                   f'in their stamps); {hint}', 'dds losses', period=60.0)
             periods.append(gap)
         if last is None or stamp > last:
             self._last_stamp[frame] = (stamp, periods)

@@ -25,6 +25,16 @@ _STATUS_SUFFIX = 'facade_mapper: map'
 #: A cloud larger than this (bytes) is lost whole over Fast DDS's defaults to a best-effort
 #: subscriber on the test machine (docs/node.md, "Large clouds over DDS").
 LARGE_CLOUD_BYTES = 116_000
+
+
+def dds_profile_hint(size: int) -> str | None:
+    """Why clouds of ``size`` bytes may have been lost, and the remedy, when they are large and
+    no Fast DDS profile is set; None otherwise (shared by the node and publish replay)."""
+    if size <= LARGE_CLOUD_BYTES or os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE'):
+        return None
+    return (f"clouds of {size / 1e6:.1f} MB are lost whole to DDS fragmentation with Fast DDS's defaults: export "
+            'FASTRTPS_DEFAULT_PROFILES_FILE=<repository>/config/fastdds_large_clouds.xml for the node and for what '
+            'publishes the clouds (docs/node.md, "Large clouds over DDS")')
 #: Seconds of transforms kept around a window of scans, so the node can interpolate at its ends.
 TRANSFORM_MARGIN = 1.0
 
@@ -129,6 +139,7 @@ def publish_recording(scans: Sequence[tuple[int, np.ndarray, str]] | Callable[[]
 
     import msg_adapters as ma
     from msg_adapters import transforms as mt
+    from msg_adapters.bag_io import ODOMETRY, TF_TYPES, TFMESSAGE
 
     if not rate > 0:
         raise InputError(f'--rate must be > 0, got {rate}')
@@ -146,19 +157,19 @@ def publish_recording(scans: Sequence[tuple[int, np.ndarray, str]] | Callable[[]
         pub = node.create_publisher(PointCloud2, topic, qos)
         types = ma.rclpy_types()
         groups = _groups(transforms)
-        ttypes = mt.transform_types_rclpy(require_tf2_msgs=any(
-            pose_types.get(t, 'TFMessage').split('/')[-1].lower() == 'tfmessage' for _, t, _, _ in groups))
+        ttypes = mt.transform_types_rclpy(require_tf2_msgs=any(pose_types.get(t, TFMESSAGE) in TF_TYPES
+                                                               for _, t, _, _ in groups))
         pose_pubs: dict[str, tuple[Any, Callable[[list[Any]], Any]]] = {}
         latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                              reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
         for _, name, static, _ in groups:
             if name in pose_pubs:
                 continue
-            kind = pose_types.get(name, mt.TRANSFORM_TYPES['TFMessage'])
-            if kind.split('/')[-1].lower() == 'tfmessage':  # tf2_msgs/msg/TFMessage, ROS 1's tf/msg/tfMessage
+            kind = pose_types.get(name, TFMESSAGE)
+            if kind in TF_TYPES:  # tf2_msgs/msg/TFMessage, ROS 1's tf/msg/tfMessage
                 pose_pubs[name] = (node.create_publisher(ttypes.TFMessage, name, latched if static else 100),
                                    lambda ts: mt.tf_message(ts, ttypes))
-            elif kind == mt.TRANSFORM_TYPES['Odometry']:
+            elif kind == ODOMETRY:
                 pose_pubs[name] = (node.create_publisher(ttypes.Odometry, name, 100),
                                    lambda ts: mt.odometry_msg(ts[0], ttypes))
             else:
@@ -196,10 +207,10 @@ def publish_recording(scans: Sequence[tuple[int, np.ndarray, str]] | Callable[[]
             if wait > 0:
                 time.sleep(wait)
 
-        def send_poses(upto: int | None) -> int:
-            """Publish the dynamic poses stamped up to ``upto`` (None: all), in time; returns how many."""
+        def send_poses(upto: int) -> None:
+            """Publish the dynamic poses not sent yet stamped up to ``upto``, each at its time."""
             nonlocal next_pose, sent_transforms
-            while next_pose < len(dynamic) and (upto is None or dynamic[next_pose][0] <= upto):
+            while next_pose < len(dynamic) and dynamic[next_pose][0] <= upto:
                 stamp, name, _, ts = dynamic[next_pose]
                 wait_until(stamp)
                 if shift:
@@ -208,7 +219,6 @@ def publish_recording(scans: Sequence[tuple[int, np.ndarray, str]] | Callable[[]
                 pose_pubs[name][0].publish(pose_pubs[name][1](ts))
                 sent_transforms += len(ts)
                 next_pose += 1
-            return next_pose
 
         while True:
             next_pose = 0
@@ -242,11 +252,10 @@ def publish_recording(scans: Sequence[tuple[int, np.ndarray, str]] | Callable[[]
 
             pub.wait_for_all_acked(Duration(seconds=10.0))
         seconds = time.monotonic() - started
-        received, warnings = _received(watch, before, published, wait_node, largest, reliable)
+        received, warnings, lost = _received(watch, before, published, wait_node, largest, reliable)
         return {'published': published, 'seconds': seconds, 'subscribers': pub.get_subscription_count(),
                 'topic': pub.topic_name, 'transforms': sent_transforms + sum(len(t) for t in statics.values()),
-                'pose_topics': sorted(pose_pubs), 'received': received, 'warnings': warnings,
-                'lost': bool(warnings) and warnings[0].endswith('never reached the node')}
+                'pose_topics': sorted(pose_pubs), 'received': received, 'warnings': warnings, 'lost': lost}
     finally:
         if watch is not None:
             watch.close()
@@ -255,13 +264,14 @@ def publish_recording(scans: Sequence[tuple[int, np.ndarray, str]] | Callable[[]
 
 
 def _received(watch: _NodeWatch | None, before: int | None, published: int, wait_node: float, largest: int,
-              reliable: bool) -> tuple[str, list[str]]:
-    """The line saying how many clouds the node counted, and warnings when some never reached it."""
+              reliable: bool) -> tuple[str, list[str], bool]:
+    """The line saying how many clouds the node counted, warnings when some never reached it, and
+    whether some did not (False when the node's count could not be read)."""
     if watch is None:
-        return 'the node was not asked how many clouds it received (--wait-node 0)', []
+        return 'the node was not asked how many clouds it received (--wait-node 0)', [], False
     if before is None:
         return ('no facade_mapper diagnostics on /diagnostics: cannot tell how many clouds the node received '
-                '(is it running in this ROS domain?)'), []
+                '(is it running in this ROS domain?)'), [], False
     deadline = time.monotonic() + wait_node
     got, steady = watch.received() - before, time.monotonic()
     while got < published and time.monotonic() < deadline:
@@ -278,11 +288,9 @@ def _received(watch: _NodeWatch | None, before: int | None, published: int, wait
     warnings = []
     if got < published:
         warnings.append(f'{published - got:,} of {published:,} clouds never reached the node')
-        if largest > LARGE_CLOUD_BYTES and not os.environ.get('FASTRTPS_DEFAULT_PROFILES_FILE'):
-            warnings.append(f'clouds of up to {largest / 1e6:.1f} MB are lost to DDS fragmentation with Fast DDS\'s '
-                            'defaults: export FASTRTPS_DEFAULT_PROFILES_FILE=<repository>/config/'
-                            'fastdds_large_clouds.xml for the node and for this replay (docs/node.md, "Large clouds '
-                            'over DDS")')
+        hint = dds_profile_hint(largest)
+        if hint is not None:
+            warnings.append(hint)
         elif not reliable:
             warnings.append('best-effort publishing (--best-effort) may lose clouds; the default is reliable')
-    return line, warnings
+    return line, warnings, got < published

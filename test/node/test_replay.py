@@ -181,18 +181,18 @@ class _FakeWatch:
 def test_publish_mode_says_how_many_clouds_the_node_received_and_why_some_may_be_lost(monkeypatch):
     from uncertain_facade_map_node.replay import _received
 
-    line, warnings = _received(_FakeWatch(10), 0, 10, 0.2, 5_000_000, True)
-    assert line.startswith('the node received 10 of the 10 clouds published') and warnings == []
+    line, warnings, lost = _received(_FakeWatch(10), 0, 10, 0.2, 5_000_000, True)
+    assert line.startswith('the node received 10 of the 10 clouds published') and warnings == [] and not lost
     monkeypatch.delenv('FASTRTPS_DEFAULT_PROFILES_FILE', raising=False)
-    line, warnings = _received(_FakeWatch(7), 0, 10, 0.2, 5_000_000, True)
-    assert 'received 7 of the 10' in line and warnings[0] == '3 of 10 clouds never reached the node'
+    line, warnings, lost = _received(_FakeWatch(7), 0, 10, 0.2, 5_000_000, True)
+    assert 'received 7 of the 10' in line and warnings[0] == '3 of 10 clouds never reached the node' and lost
     assert 'DDS fragmentation' in warnings[1] and 'fastdds_large_clouds.xml' in warnings[1]
     monkeypatch.setenv('FASTRTPS_DEFAULT_PROFILES_FILE', '/profile.xml')
-    _, warnings = _received(_FakeWatch(7), 0, 10, 0.2, 5_000_000, False)
-    assert len(warnings) == 2 and '--best-effort' in warnings[1]
-    line, warnings = _received(None, None, 10, 0.0, 0, True)
-    assert 'not asked' in line and warnings == []
-    line, _ = _received(_FakeWatch(0), None, 10, 0.2, 0, True)
+    _, warnings, lost = _received(_FakeWatch(7), 0, 10, 0.2, 5_000_000, False)
+    assert len(warnings) == 2 and '--best-effort' in warnings[1] and lost
+    line, warnings, lost = _received(None, None, 10, 0.0, 0, True)
+    assert 'not asked' in line and warnings == [] and not lost
+    line, _, lost = _received(_FakeWatch(0), None, 10, 0.2, 0, True)
     assert 'no facade_mapper diagnostics' in line
 
 

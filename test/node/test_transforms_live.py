@@ -122,6 +122,14 @@ def _run(client: Client, drive, publish_pose, frame: str, settle: float = 0.0) -
             ('clouds_received', 'clouds_mapped', 'clouds_rejected', 'clouds_no_transform', 'poses_rejected')}
 
 
+def publish_static(client: Client, types, transform: mt.StampedTransform) -> None:
+    """A static transform on /tf_static, latched as tf2's static broadcaster publishes it."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
+    client.node.create_publisher(types.TFMessage, '/tf_static', latched).publish(mt.tf_message([transform], types))
+
+
 def _assert_all_placed(delta: dict) -> None:
     assert delta['clouds_received'] == CLOUDS
     assert delta['clouds_no_transform'] == 0 and delta['clouds_rejected'] == 0, delta
@@ -152,18 +160,13 @@ def test_poses_shortly_before_or_after_their_clouds_reject_none(running, drive, 
 def test_poses_only_on_tf_reject_none_and_map_as_offline_replay(running, drive):
     """/tf (map -> base_link at 20 Hz, 25 ms out of step) and /tf_static (base_link -> lidar):
     every cloud interpolated, and the node's map equals offline replay's bit for bit."""
-    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-
     from uncertain_facade_map.srv import SaveMap
 
     client, _node, work, params = running
     types = mt.transform_types_rclpy()
     t0 = drive[0][0]
     tf_pub = client.node.create_publisher(types.TFMessage, '/tf', 100)
-    static_pub = client.node.create_publisher(
-        types.TFMessage, '/tf_static',
-        QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE))
-    static_pub.publish(mt.tf_message([MOUNT], types))
+    publish_static(client, types, MOUNT)
     sent: list[mt.StampedTransform] = []
 
     def publish(k, stamp, moment):
@@ -217,17 +220,12 @@ def with_origin(points: np.ndarray, origin: np.ndarray) -> np.ndarray:
 
 def test_poses_on_odometry_reject_none(running, drive):
     """nav_msgs/Odometry on node.odometry_topic (map -> base_odom at 20 Hz) with /tf_static."""
-    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-
     client, _node, _work, _params = running
     types = mt.transform_types_rclpy()
     t0 = drive[0][0]
     odom = client.node.create_publisher(types.Odometry, '/odom', 100)
-    static_pub = client.node.create_publisher(
-        types.TFMessage, '/tf_static',
-        QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE))
-    mount = mt.StampedTransform('base_odom', 'velodyne_odom', 0, MOUNT.translation, MOUNT.rotation)
-    static_pub.publish(mt.tf_message([mount], types))
+    publish_static(client, types, mt.StampedTransform('base_odom', 'velodyne_odom', 0, MOUNT.translation,
+                                                      MOUNT.rotation))
 
     def publish(k, stamp, moment):
         if moment != 'after':

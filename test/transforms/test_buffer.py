@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from support import axis_angle, rodrigues
 
 from uncertain_facade_map.errors import (
     ConnectivityError,
@@ -32,17 +33,6 @@ from uncertain_facade_map.transforms import Rigid, TransformBuffer
 from uncertain_facade_map.transforms import rotations as rot
 
 S = 1_000_000_000  # ns per second
-
-
-def axis_angle(axis, angle: float) -> np.ndarray:
-    a = np.asarray(axis, dtype=float) / np.linalg.norm(axis)
-    return np.r_[math.sin(angle / 2) * a, math.cos(angle / 2)]
-
-
-def rodrigues(axis, angle: float) -> np.ndarray:
-    a = np.asarray(axis, dtype=float) / np.linalg.norm(axis)
-    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * k @ k
 
 
 def homogeneous(axis, angle, t) -> np.ndarray:

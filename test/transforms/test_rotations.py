@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation, Slerp
+from support import axis_angle, rodrigues
 
 from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.transforms import rotations as rot
@@ -17,19 +18,6 @@ from uncertain_facade_map.transforms import rotations as rot
 def random_quaternions(n: int, seed: int = 0) -> np.ndarray:
     q = np.random.default_rng(seed).normal(size=(n, 4))
     return q / np.linalg.norm(q, axis=1, keepdims=True)
-
-
-def axis_angle(axis, angle: float) -> np.ndarray:
-    """Quaternion (x, y, z, w) of a rotation by ``angle`` about ``axis``."""
-    a = np.asarray(axis, dtype=float) / np.linalg.norm(axis)
-    return np.r_[math.sin(angle / 2) * a, math.cos(angle / 2)]
-
-
-def rodrigues(axis, angle: float) -> np.ndarray:
-    """Rotation matrix by Rodrigues' formula, independent of the module under test."""
-    a = np.asarray(axis, dtype=float) / np.linalg.norm(axis)
-    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * k @ k
 
 
 unit_quaternions = st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(

@@ -149,11 +149,28 @@ class Scan:
         return place_scan(buffer, map_frame, self.frame_id, self.stamp_ns, self.times,
                           n_points=int(self.finite.sum()), tolerance=tolerance, final=final)
 
+    def map_frame_points(self, placement: Placement) -> tuple[np.ndarray, np.ndarray | None]:
+        """Its finite points (F, 3) in the map frame, and their sensor origins (F, 3) or None
+        (as :func:`select_scan_points` moves them, before any selection)."""
+        return _moved(self.points, self.finite, self.xyz[self.finite], placement.pose)
+
     def building_points(self, placement: Placement, config: InputConfig, selection: SelectionConfig | None,
                         max_coordinate: float | None) -> ScanPoints:
         """Its building points in the map frame (:func:`select_scan_points` with the placement's pose)."""
         return select_scan_points(self.points, config, selection, pose=placement.pose, max_coordinate=max_coordinate,
                                   xyz=self.xyz)
+
+
+def _moved(points: np.ndarray, keep: np.ndarray, xyz: np.ndarray, pose: ScanPose | None
+           ) -> tuple[np.ndarray, np.ndarray | None]:
+    """The kept points (F, 3) and their sensor origins (F, 3) or None, moved by ``pose``:
+    the cloud's own origin fields moved alike, or else the frame's origin at each point's
+    time; as they are without a pose."""
+    origins = _origin_fields(points, keep)
+    if pose is None:
+        return xyz, origins
+    moved = pose.apply(xyz)
+    return moved, (pose.transform_origins(origins) if origins is not None else pose.origins(len(moved)))
 
 
 def _origin_fields(points: np.ndarray, keep: np.ndarray) -> np.ndarray | None:
@@ -208,15 +225,10 @@ def select_scan_points(points: np.ndarray, config: InputConfig, selection: Selec
     names = points.dtype.names or ()
     keep = np.isfinite(xyz).all(axis=1)
     nonfinite = int((~keep).sum())
-    finite_xyz = xyz[keep]
-    origins = _origin_fields(points, keep)
-    if pose is not None:
-        finite_xyz = pose.apply(finite_xyz)
-        origins = pose.transform_origins(origins) if origins is not None else pose.origins(len(finite_xyz))
+    finite_xyz, origins = _moved(points, keep, xyz[keep], pose)
     if max_coordinate is not None:
         _check_bound(points, finite_xyz, origins, max_coordinate)
     building = np.ones(len(finite_xyz), dtype=bool)
-    not_building = 0
     found = None
     if _selects(names, config, selection):
         from ..selection import select_building_points as select_walls
@@ -248,13 +260,13 @@ def _check_bound(points: np.ndarray, xyz: np.ndarray, origins: np.ndarray | None
         raise ScanRejected(f'sensor origins lie beyond node.max_coordinate = {bound:g} m of the map origin')
 
 
-def frames_without_transform(frames: dict[str, int] | list[str], buffer: TransformBuffer | None,
+def frames_without_transform(frames: dict[str, int] | list[str], buffer: TransformBuffer,
                              map_frame: str) -> dict[str, str]:
     """The cloud frames that no transform of ``buffer`` connects with the map frame, at any time.
 
     Args:
         frames: the clouds' frames (a frame -> count mapping, or a list).
-        buffer: the transforms of a recording; None for none.
+        buffer: the transforms of a recording.
         map_frame: ``input.frame_id``.
 
     Returns:
@@ -264,9 +276,6 @@ def frames_without_transform(frames: dict[str, int] | list[str], buffer: Transfo
     out = {}
     for frame in frames:
         if frame == map_frame:
-            continue
-        if buffer is None:
-            out[frame] = 'the recording has no transforms'
             continue
         err = buffer.why_not(map_frame, frame, 0)
         if err is not None and not isinstance(err, ExtrapolationError):
