@@ -131,3 +131,21 @@ def test_surface_event_is_the_same_on_both_sides(scene):
         assert pf[0] < 0.01 and pb[0] < 0.01 and pf[1] > 0.5
         solid = query_points([model], back, 0.1, 1.0, 2.0, local=loc, event='solid').p_occupied
         assert solid[0] > 0.99
+
+
+def test_a_wall_piece_too_small_for_a_facade_is_answered(scene):
+    """Stored points of a building without a façade (a piece of wall the clustering cut off)
+    beside the façade's raster: answered by the local reading alone, with the nearest façade."""
+    model, _, frame, *_ = scene
+    rng = np.random.default_rng(3)
+    uv = rng.uniform([11.0, 0.0], [12.5, 3.0], (150, 2))  # beyond the raster's u extent (0-10 m)
+    piece = frame.to_world(np.c_[uv, 0.5 + rng.normal(0, NOISE, len(uv))])  # 0.5 m in front of the plane
+    main = frame.to_world(np.c_[rng.uniform([0, 0], [10, 6], (1800, 2)), rng.normal(0, NOISE, 1800)])
+    index = np.arange(len(main))
+    model = type(model)(**{**{k: getattr(model, k) for k in model.__dataclass_fields__}, 'point_index': index})
+    local = LocalSurface.of([model], {0: main, 1: piece})
+    probe = frame.to_world(np.c_[rng.uniform([11.2, 0.2], [12.3, 2.8], (50, 2)), np.full(50, 0.52)])
+    q = query_points([model], probe, 0.1, 1.0, 0.2, local=local)  # band_front 0.2: the piece is outside the band
+    assert np.all(q.facade == 0)
+    assert np.sqrt(np.mean((q.signed_distance - 0.02) ** 2)) < 0.02
+    assert np.all(np.abs(q.signed_distance) <= 1.96 * np.sqrt(q.variance + q.noise_variance) + 0.03)

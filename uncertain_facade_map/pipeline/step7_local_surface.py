@@ -193,6 +193,12 @@ class LocalSurface:
             ids.append(label)
         xyz = np.concatenate(parts) if parts else np.empty((0, 3))
         fid = np.concatenate(ids) if ids else np.empty(0, np.int32)
+        mapped = np.flatnonzero(fid >= 0)
+        if len(mapped) and len(mapped) < len(fid):
+            # A building too small for a façade of its own (often a piece of a neighbour's
+            # wall that the clustering cut off): its points count with the nearest façade.
+            free = np.flatnonzero(fid < 0)
+            fid[free] = fid[mapped[cKDTree(xyz[mapped]).query(xyz[free])[1]]]
         normals = np.array([f.frame.normal for f in facades]).reshape(-1, 3)
         out = cls(xyz, fid, normals, neighbours, radius, inner)
         if calibrate:

@@ -321,20 +321,28 @@ def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: fl
         reading = local.read(xyz[part]) if local is not None else None
         if reading is not None:
             # Points the raster's bands miss but dense stored points hold: their nearest
-            # stored point's façade, read in its frame.
+            # stored point's façade, read in its frame. Off that façade's raster (a piece
+            # of wall too small to be a façade, beside it) the raster says nothing: the
+            # local reading answers alone there, up to the radius.
+            weight = reading.weight.copy()
             adopt = (which < 0) & (reading.facade >= 0)
             which[adopt] = reading.facade[adopt]
             for i in np.unique(which[adopt]):
-                sel = adopt & (which == i)
+                sel = np.flatnonzero(adopt & (which == i))
                 uvd[sel] = facades[i].frame.to_local(xyz[part][sel])
+                r = facades[i].surface
+                h, w = r.mean.shape
+                off = ((uvd[sel, 0] < r.origin[0]) | (uvd[sel, 0] > r.origin[0] + w * r.cell)
+                       | (uvd[sel, 1] < r.origin[1]) | (uvd[sel, 1] > r.origin[1] + h * r.cell))
+                weight[sel[off]] = 1.0
         answer = _raster_answer(facades, which, uvd)
         if reading is not None:
-            answer = _blend(answer, reading)
+            answer = _blend(answer, reading, weight)
         facade[part] = which
         mean[part], var[part], noise[part], dist[part] = answer[:4]
         normal[part] = np.where((which >= 0)[:, None], normals[np.maximum(which, 0)] if len(normals) else 0.0, 0.0)
         if reading is not None:
-            use_local = reading.weight >= 0.5
+            use_local = weight >= 0.5
             normal[part][use_local] = reading.normal[use_local]
     noise0 = np.where(np.isfinite(noise), noise, 0.0)
     if event == 'solid':
@@ -359,12 +367,12 @@ def _raster_answer(facades: Sequence[FacadeModel], which: np.ndarray, uvd: np.nd
     return mean, var, noise, dist, uvd[:, 2]
 
 
-def _blend(answer: tuple[np.ndarray, ...], reading: LocalReading) -> tuple[np.ndarray, ...]:
-    """The raster's answer blended with the local reading by its weight ``w``
-    (:mod:`~uncertain_facade_map.pipeline.step7_local_surface`, step 5): the mixture's mean
-    and variance, so that neither jumps where the weight moves."""
+def _blend(answer: tuple[np.ndarray, ...], reading: LocalReading, w: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The raster's answer blended with the local reading by the (N,) weights ``w`` (the
+    reading's, :mod:`~uncertain_facade_map.pipeline.step7_local_surface` step 5, or 1 off
+    the raster): the mixture's mean and variance, so that neither jumps where the weight
+    moves."""
     mean, var, noise, dist, depth = (a.copy() for a in answer)
-    w = reading.weight
     sel = np.flatnonzero((w > 0) & np.isfinite(dist))
     ws, s_l, s_r = w[sel], reading.signed_distance[sel], dist[sel]
     dist[sel] = ws * s_l + (1.0 - ws) * s_r
