@@ -22,6 +22,7 @@ from uncertain_facade_map.pipeline.step1_facades import (
     assign_to_facades,
     extract_facades,
     point_normals,
+    side_by_side,
     split_buildings,
 )
 
@@ -234,6 +235,25 @@ def test_sloped_facade_is_found_with_its_normal(with_sensor):
     assert np.median(facades[0].normal_cos) > 0.99
 
 
+@pytest.mark.parametrize('tilt_deg', [20.0, 36.0, 45.0])
+def test_a_sloped_band_without_sensor_origins_faces_like_the_wall_it_crowns(tilt_deg):
+    """A mansard band 3 m high over a 9 m wall, in a row beside a taller house (one cluster,
+    no building ids, no sensor origins): the taller house's wall rises in front of the
+    band's plane, so the building's shape says "inwards"; the band faces like its wall
+    (issue 26; before: into the building at all three tilts)."""
+    rng = np.random.default_rng(1)
+    tilt = np.deg2rad(tilt_deg)
+    normal = np.array([0.0, -np.cos(tilt), np.sin(tilt)])
+    wall = _plane([0.0, -1.0, 0.0], np.array([10.0, 0.0, 4.5]), (20.0, 9.0), 40.0, 0.01, rng)
+    band = _plane(normal, np.array([10.0, 1.5 * np.tan(tilt), 10.5]), (20.0, 3.0 / np.cos(tilt)), 40.0, 0.01, rng)
+    taller = _plane([0.0, -1.0, 0.0], np.array([30.0, 0.0, 10.0]), (20.0, 20.0), 40.0, 0.01, rng)
+    facades, _ = extract_facades(np.vstack([wall, band, taller]), PARAMS, rng=np.random.default_rng(1))
+    sloped = [f for f in facades if abs(f.frame.normal[2]) > 0.2]
+    assert len(facades) == 2 and len(sloped) == 1
+    assert _angle_deg(sloped[0].frame.normal, normal) < 1.0
+    assert all(_angle_deg(f.frame.normal, [0.0, -1.0, 0.0]) < 1.0 for f in facades if f is not sloped[0])
+
+
 def test_roof_patch_yields_no_facade():
     rng = np.random.default_rng(6)
     xyz = np.column_stack([rng.uniform(0, 12, 10000), rng.uniform(0, 12, 10000), 12.0 + rng.normal(0, 0.01, 10000)])
@@ -356,6 +376,42 @@ def test_a_narrow_plane_behind_the_wall_is_not_the_facade_plane():
     assert facades[1].frame.origin[1] == pytest.approx(1.9, abs=0.02)
     u0, u1, v0, v1 = f.plane_extent
     assert u1 - u0 > 29.5 and v1 - v0 > 7.5
+
+
+@pytest.mark.parametrize('setback', [0.6, 1.0, 1.5])
+def test_upper_storeys_over_a_set_back_ground_floor_are_a_facade_of_their_own(setback):
+    """A ground floor 4 m high set back under 8 m of upper storeys (issue 26): two planes a
+    storey's setback apart that each occupy their own part of the wall are two façades,
+    each on its own plane, every point allocated; a balcony-like slab in front of a wall
+    (among the wall's cells) stays a layer of it (the tests above)."""
+    rng = np.random.default_rng(16)
+    ground = _plane([0.0, -1.0, 0.0], np.array([10.0, setback, 2.0]), (20.0, 4.0), 80.0, 0.01, rng)
+    storeys = _plane([0.0, -1.0, 0.0], np.array([10.0, 0.0, 8.0]), (20.0, 8.0), 40.0, 0.01, rng)
+    xyz = np.vstack([ground, storeys])
+    sensors = np.tile([10.0, -12.0, 2.0], (len(xyz), 1))
+    facades, unallocated = extract_facades(xyz, PARAMS, sensor_origins=sensors, rng=np.random.default_rng(5))
+    assert len(facades) == 2 and unallocated.sum() == 0
+    planes = sorted(facades, key=lambda f: f.frame.origin[1])
+    for f, part, y in zip(planes, (np.arange(len(ground), len(xyz)), np.arange(len(ground))), (0.0, setback)):
+        assert _angle_deg(f.frame.normal, [0.0, -1.0, 0.0]) < 0.2
+        assert f.frame.origin[1] == pytest.approx(y, abs=0.01)
+        assert np.isin(part, f.index).mean() > 0.99
+    _check_invariants(xyz, facades, unallocated)
+
+
+def test_side_by_side_tells_stacked_planes_from_layers():
+    rng = np.random.default_rng(17)
+    wall = rng.uniform([0.0, 0.0], [20.0, 12.0], (20000, 2))
+    below = rng.uniform([0.0, -4.0], [20.0, 0.0], (8000, 2))
+    beside = rng.uniform([20.0, 0.0], [30.0, 12.0], (8000, 2))
+    slab = rng.uniform([3.0, 4.0], [9.0, 5.2], (3000, 2))
+    recess = rng.uniform([5.0, 0.0], [7.0, 2.5], (2000, 2))
+    # The wall is seen around the slab and the recess (they hide what lies behind).
+    around = wall[~(((wall[:, 0] > 3) & (wall[:, 0] < 9) & (wall[:, 1] > 4) & (wall[:, 1] < 5.2))
+                    | ((wall[:, 0] > 5) & (wall[:, 0] < 7) & (wall[:, 1] < 2.5)))]
+    assert side_by_side(below, wall) and side_by_side(beside, wall)
+    assert not side_by_side(slab, around) and not side_by_side(recess, around)
+    assert not side_by_side(np.empty((0, 2)), wall)
 
 
 def test_facades_built_elsewhere_allocate_with_their_extent():

@@ -49,6 +49,7 @@ from ..datatypes import ExtractedFacade, FacadeFrame, FacadeModel
 from ..errors import InputError
 from ..params import MapParams
 from ..pipeline.step1_facades import (
+    STOREY_OFFSET,
     _final_frame,
     _grid_components,
     _plane_box,
@@ -56,6 +57,7 @@ from ..pipeline.step1_facades import (
     assign_to_facades,
     check_building_ids,
     extract_facades,
+    side_by_side,
 )
 from ..pipeline.step6_surface import _extent, fit_facade, update_facade
 from ..pipeline.step8_occupancy import FIXED, PLSC
@@ -461,22 +463,38 @@ class FacadeMap:
         cos = np.minimum(np.abs(self.normals[b][index] @ frame.normal), 1.0)
         return ExtractedFacade(frame, index, uvd, cos, _extent(uvd[:, :2]), plane_extent)
 
-    def _context(self, b: int, rng: np.random.Generator) -> np.ndarray:
+    def _context(self, b: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """(C, 3) points of the other buildings (at most ``_CONTEXT_POINTS``, a random draw),
-        metres, map frame: they turn the normals of walls without sensor origins."""
-        others = [p for o, p in self.points.items() if o != b]
+        metres, map frame, and (C,) int64 their buildings: they turn the normals of walls
+        without sensor origins."""
+        others = [(o, p) for o, p in self.points.items() if o != b]
         if not others:
-            return np.empty((0, 3))
-        starts = np.cumsum([0] + [len(p) for p in others])
+            return np.empty((0, 3)), np.empty(0, dtype=np.int64)
+        starts = np.cumsum([0] + [len(p) for _, p in others])
         if starts[-1] <= _CONTEXT_POINTS:
-            return np.concatenate(others)
+            return (np.concatenate([p for _, p in others]),
+                    np.concatenate([np.full(len(p), o, dtype=np.int64) for o, p in others]))
         # The draw's rows gathered from each building (not a copy of all their points).
         pick = rng.choice(int(starts[-1]), _CONTEXT_POINTS, replace=False)
         part = np.searchsorted(starts, pick, side='right') - 1
         out = np.empty((_CONTEXT_POINTS, 3))
-        for k, p in enumerate(others):
+        labels = np.empty(_CONTEXT_POINTS, dtype=np.int64)
+        for k, (o, p) in enumerate(others):
             mine = part == k
             out[mine] = p[pick[mine] - starts[k]]
+            labels[mine] = o
+        return out, labels
+
+    def _walls(self, b: int) -> list[tuple[FacadeFrame, np.ndarray]]:
+        """The building's façades as (frame, (K, 3) stored points within ``ransac_threshold``
+        of the plane, metres, map frame): a sloped façade extracted later faces like the
+        wall it adjoins."""
+        out = []
+        thr = self.params.extraction.ransac_threshold
+        for f in self.facades:
+            if f.building == b:
+                xyz = self.points[b][f.point_index]
+                out.append((f.frame, xyz[np.abs(f.frame.to_local(xyz)[:, 2]) <= thr]))
         return out
 
     def _update_building(self, b: int, first: int) -> None:
@@ -497,11 +515,13 @@ class FacadeMap:
         if len(pool) >= ex.min_facade_points and len(pool) >= checked + step:
             rng = np.random.default_rng([params.seed, b, n])
             so = self.sensor_origins.get(b)
+            context, labels = (None, None) if so is not None else self._context(b, rng)
             extracted, _ = extract_facades(pts[pool], ex, sensor_origins=None if so is None else so[pool], rng=rng,
-                                           context=None if so is not None else self._context(b, rng))
+                                           context=context, context_labels=labels,
+                                           walls=() if so is not None else self._walls(b))
             for e in extracted:
                 index = pool[e.index]
-                target = self._coplanar(b, e)
+                target = self._coplanar(b, e, index)
                 if target is None:
                     fid = len(self.facades)
                     model = fit_facade(self._extracted(b, index, e.frame, e.plane_extent), params,
@@ -558,24 +578,35 @@ class FacadeMap:
         self.facades[fid] = updated
         return updated
 
-    def _coplanar(self, b: int, e: ExtractedFacade) -> int | None:
+    def _coplanar(self, b: int, e: ExtractedFacade, index: np.ndarray) -> int | None:
         """Id of the building's façade that a newly extracted one continues (the merge rule
         of the extraction: parallel within ``merge_angle_deg``, closer than ``merge_offset``
         along the normal and in u), or None. Only a façade whose allocation band holds the
         new plane (``-band_back <= d <= band_front``) can take it: a recess deeper than
-        that (a set-back entrance) would join and then lose all its points to no façade."""
+        that (a set-back entrance) would join and then lose all its points to no façade.
+        Nor does one a storey's setback away (``STOREY_OFFSET``) that occupies its own part
+        of the wall (:func:`side_by_side`; upper storeys over a set-back ground floor): as
+        in the extraction, it is a façade of its own. ``index``: e's points among the
+        building's."""
         ex = self.params.extraction
         cos_max = np.cos(np.deg2rad(ex.merge_angle_deg))
         best = None
+        pts = self.points[b]
         for f in self.facades:
             if f.building != b or float(e.frame.normal @ f.frame.normal) < cos_max:
                 continue
             box = _plane_corners_in(e, f.frame)
             d = float(f.frame.to_local(e.frame.origin[None])[0, 2])
             gap = max(f.plane_extent[0] - box[:, 0].max(), box[:, 0].min() - f.plane_extent[1], 0.0)
-            if abs(d) < ex.merge_offset and -ex.band_back <= d <= ex.band_front and gap <= ex.merge_offset:
-                if best is None or len(f.point_index) > len(self.facades[best].point_index):
-                    best = f.facade_id
+            if not (abs(d) < ex.merge_offset and -ex.band_back <= d <= ex.band_front and gap <= ex.merge_offset):
+                continue
+            if abs(d) >= STOREY_OFFSET:
+                mine = f.frame.to_local(pts[index[np.abs(e.uvd[:, 2]) <= ex.ransac_threshold]])
+                theirs = f.frame.to_local(pts[f.point_index])
+                if side_by_side(mine[:, :2], theirs[np.abs(theirs[:, 2]) <= ex.ransac_threshold, :2]):
+                    continue
+            if best is None or len(f.point_index) > len(self.facades[best].point_index):
+                best = f.facade_id
         return best
 
     def rejected(self, building: int) -> np.ndarray:

@@ -95,7 +95,7 @@ Pipeline of :func:`extract_facades` (one building, all coordinates metres, map f
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
@@ -130,6 +130,32 @@ _MIN_SIDE = 0.5
 #: How far (m) beyond an earlier plane's box a RANSAC plane's points still count as at
 #: its edge (see ``_DETAIL_COS``).
 _EDGE_TOLERANCE = 0.25
+#: Two planes of one façade group at least this far apart along the normal (m), a storey's
+#: setback rather than a window reveal, ...
+STOREY_OFFSET = 0.5
+#: ... are separate façades when each occupies its own part of the wall: at most this share
+#: of either's occupied cells of ``_TILE_CELL`` metres lies within one cell of the other's.
+#: Balcony fronts, oriels, window backs and recessed entrances lie among their wall's cells.
+_TILE_SHARE = 0.5
+_TILE_CELL = 0.5
+#: Voxel (m) of the occupied-cell sketch a RANSAC plane keeps of its inliers (voxels of at
+#: least two inliers: a stray return occupies nothing).
+_SKETCH_VOXEL = 0.25
+#: Without sensor origins, a plane tilted more than this from vertical (degrees; a roof band,
+#: a mansard, a sloped plinth) faces like the vertical wall it adjoins: a wall within
+#: ``_WALL_DEG`` of vertical whose horizontal normal lies within ``_ADJOIN_DEG`` of its own
+#: (either sign) and whose inliers come within ``_ADJOIN_GAP`` metres of its inliers (the
+#: nearest such wall). The gap is wide because the wall's round took the sloped plane's foot
+#: out of the pool (its points up to ``band_back`` behind the wall: 2.8 m of slope at 20
+#: degrees), and narrower than a building's depth, so that a band on the back crowns the back wall.
+_TILTED_DEG = 15.0
+_WALL_DEG = 10.0
+_ADJOIN_DEG = 30.0
+_ADJOIN_GAP = 3.0
+#: Another building with at least this share of its points (near the wall) within the
+#: wall's band straddles the wall's plane: a neighbour beside it (its street wall in line
+#: with this one), not what the sensor saw beyond the wall; it does not vote.
+_BESIDE_SHARE = 0.3
 #: Least-squares refinement passes (RANSAC winner and final frames).
 _REFINE_PASSES = 3
 #: Points per chunk of the normal computation (memory: about chunk * k * 28 bytes).
@@ -388,7 +414,8 @@ def _vertical_ok(normal: np.ndarray, max_tilt_deg: float) -> bool | np.ndarray:
 
 
 def _faces_outwards(frame: FacadeFrame, box: np.ndarray, xyz: np.ndarray, origins: np.ndarray | None,
-                    params: ExtractionParams, context: np.ndarray | None = None) -> bool:
+                    params: ExtractionParams, context: np.ndarray | None = None,
+                    context_labels: np.ndarray | None = None) -> bool:
     """Whether ``frame.normal`` points out of the building (module docstring, item 5).
 
     Args:
@@ -400,6 +427,10 @@ def _faces_outwards(frame: FacadeFrame, box: np.ndarray, xyz: np.ndarray, origin
         context: (C, 3) points of the other buildings, or None. A sensor sees a wall from
             its front, so what it saw beyond the band (the houses across the street)
             lies mostly in front; the building's own other walls lie behind.
+        context_labels: (C,) int building of each context point, or None. A building
+            with ``_BESIDE_SHARE`` of its points near the wall within the band straddles the
+            wall's plane (a neighbour in line with it, whose side walls lie behind the line
+            like this building's) and does not vote.
     """
     if origins is not None:
         score = float(np.mean(np.einsum('ij,j->i', origins - xyz, frame.normal)))
@@ -418,6 +449,15 @@ def _faces_outwards(frame: FacadeFrame, box: np.ndarray, xyz: np.ndarray, origin
         c = _to_local(context, frame)
         reach = _CONTEXT_REACH
         near = (c[:, 0] >= box[0] - reach) & (c[:, 0] <= box[1] + reach) & (np.abs(c[:, 2]) <= reach)
+        if context_labels is not None and near.any():
+            # A neighbour beside the wall (its street wall in line with it, within the
+            # band) lies behind the line like this building: it does not vote.
+            rows = np.flatnonzero(near)
+            _, lab = np.unique(context_labels[rows], return_inverse=True)
+            lab = lab.reshape(-1)
+            in_band = np.bincount(lab, weights=np.abs(c[rows, 2]) <= band)
+            beside = in_band >= _BESIDE_SHARE * np.bincount(lab)
+            near[rows[beside[lab]]] = False
         # Seen beyond the wall in front speaks for outwards, as the building behind does.
         back += np.count_nonzero(near & (c[:, 2] > band))
         front += np.count_nonzero(near & (c[:, 2] < -band))
@@ -436,6 +476,46 @@ class _Plane:
     frame: FacadeFrame
     box: np.ndarray  # (4,) u_min, u_max, v_min, v_max of its inliers
     support: int     # inliers in the subsample
+    sketch: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))  # (K, 3) occupied voxel centres
+
+
+def _sketch(xyz: np.ndarray) -> np.ndarray:
+    """(K, 3) centres of the ``_SKETCH_VOXEL`` voxels holding two or more of the (M, 3) points (same frame)."""
+    if not len(xyz):
+        return np.empty((0, 3))
+    cells, counts = np.unique(np.floor(xyz / _SKETCH_VOXEL).astype(np.int64), axis=0, return_counts=True)
+    return (cells[counts >= 2] + 0.5) * _SKETCH_VOXEL
+
+
+def side_by_side(uv_a: np.ndarray, uv_b: np.ndarray, cell: float = _TILE_CELL) -> bool:
+    """Whether two parallel planes occupy separate parts of a façade (stacked storeys, a
+    set-back wing) rather than one lying among the other's cells (balcony fronts, window
+    backs, a recessed entrance): at most ``_TILE_SHARE`` of either's occupied ``cell``
+    cells lies within one cell (8-neighbourhood) of the other's.
+
+    Args:
+        uv_a: (M, 2) (u, v) of the points of one plane, metres, in a frame both share.
+        uv_b: (K, 2) the same for the other plane.
+        cell: cell size, metres.
+
+    Returns:
+        False if either has no points.
+    """
+    if not len(uv_a) or not len(uv_b):
+        return False
+    ca = np.unique(np.floor(np.asarray(uv_a)[:, :2] / cell).astype(np.int64), axis=0)
+    cb = np.unique(np.floor(np.asarray(uv_b)[:, :2] / cell).astype(np.int64), axis=0)
+    lo = np.minimum(ca.min(axis=0), cb.min(axis=0)) - 1
+    width = int(max(ca[:, 1].max(), cb[:, 1].max()) - lo[1]) + 2
+
+    def key(c: np.ndarray) -> np.ndarray:
+        return (c[:, 0] - lo[0]) * width + (c[:, 1] - lo[1])
+
+    def near_share(c: np.ndarray, other: np.ndarray) -> float:
+        grown = np.concatenate([key(other + np.array([di, dj])) for di in (-1, 0, 1) for dj in (-1, 0, 1)])
+        return float(np.isin(key(c), grown).mean())
+
+    return max(near_share(ca, cb), near_share(cb, ca)) <= _TILE_SHARE
 
 
 def _to_local(xyz: np.ndarray, frame: FacadeFrame) -> np.ndarray:
@@ -539,9 +619,11 @@ def _refine(points: np.ndarray, normal: np.ndarray, offset: float, threshold: fl
 
 
 def _ransac(xyz: np.ndarray, origins: np.ndarray | None, n_total: int, params: ExtractionParams,
-            rng: np.random.Generator, context: np.ndarray | None = None) -> list[_Plane]:
+            rng: np.random.Generator, context: np.ndarray | None = None,
+            context_labels: np.ndarray | None = None) -> list[_Plane]:
     """Sequential RANSAC on the subsample ``xyz`` (see module docstring, item 1); ``context``:
-    points of other buildings in the same frame (turns normals without sensor origins)."""
+    points of other buildings in the same frame, ``context_labels`` their buildings (turn
+    normals without sensor origins)."""
     m = len(xyz)
     min_support = max(3, int(np.ceil(0.5 * params.min_facade_points * m / max(n_total, 1))))
     if m < max(3, min_support):
@@ -594,7 +676,7 @@ def _ransac(xyz: np.ndarray, origins: np.ndarray | None, n_total: int, params: E
         if origins is not None:
             outwards = _faces_outwards(frame, box, inl_xyz, origins[pool[inl]], params)
         else:
-            outwards = _faces_outwards(frame, box, xyz, None, params, context)
+            outwards = _faces_outwards(frame, box, xyz, None, params, context, context_labels)
         if not outwards:  # turn round: u and d change sign, v stays
             normal = -normal
             frame = FacadeFrame.from_normal(centroid, normal)
@@ -608,13 +690,53 @@ def _ransac(xyz: np.ndarray, origins: np.ndarray | None, n_total: int, params: E
             # (A short adjacent wall is turned further away or lies beyond the edge.)
             alive[pool[inl]] = False
             continue
-        planes.append(_Plane(frame, box, int(piece.sum())))
+        planes.append(_Plane(frame, box, int(piece.sum()), _sketch(piece_xyz)))
         # Everything in the band in front of and behind the plane's piece is its detail;
         # beyond the piece's ends (no margin here) an adjacent wall, even a short or
         # oblique one, may start.
         explained = _in_band_and_box(_to_local(pool_xyz, frame), box, params, 0.0)
         alive[pool[explained]] = False
     return planes
+
+
+def _turned(plane: _Plane) -> _Plane:
+    """The plane facing the other way (u and d change sign, v stays)."""
+    b = plane.box
+    return _Plane(FacadeFrame.from_normal(plane.frame.origin, -plane.frame.normal),
+                  np.array([-b[1], -b[0], b[2], b[3]]), plane.support, plane.sketch)
+
+
+def _face_like_walls(planes: list[_Plane], known: Sequence[_Plane] = ()) -> list[_Plane]:
+    """Sloped planes (tilted more than ``_TILTED_DEG``) turned to face, horizontally, like the
+    vertical wall they adjoin (see ``_TILTED_DEG``; the nearest if several); the others,
+    and sloped ones with no such wall, as they are.
+
+    Without sensor origins the shape of the building around a roof band or a mansard does
+    not tell its outside: the building lies below it as much as behind it. It crowns
+    (or, a sloped plinth, stands at the foot of) a wall whose outside is better known, and
+    its outside is the same street. ("Up" would be wrong for an overhang facing down.)
+    ``known``: walls found before (incremental mapping), adjoining as well.
+    """
+    sin_wall, sin_tilted = np.sin(np.deg2rad(_WALL_DEG)), np.sin(np.deg2rad(_TILTED_DEG))
+    cos_adjoin = np.cos(np.deg2rad(_ADJOIN_DEG))
+    walls = [p for p in [*planes, *known] if abs(p.frame.normal[2]) <= sin_wall and len(p.sketch)]
+    out = []
+    for p in planes:
+        h = p.frame.normal[:2]
+        if abs(p.frame.normal[2]) < sin_tilted or not len(p.sketch) or not walls:
+            out.append(p)
+            continue
+        tree = cKDTree(p.sketch)
+        best, gap = None, _ADJOIN_GAP
+        for w in walls:
+            wh = w.frame.normal[:2]
+            if abs(wh @ h) < cos_adjoin * np.linalg.norm(wh) * np.linalg.norm(h):
+                continue
+            dist = float(tree.query(w.sketch, distance_upper_bound=_ADJOIN_GAP)[0].min())
+            if dist <= gap:
+                best, gap = w, dist
+        out.append(_turned(p) if best is not None and best.frame.normal[:2] @ h < 0 else p)
+    return out
 
 
 def _box_in(plane: _Plane, frame: FacadeFrame) -> np.ndarray:
@@ -659,16 +781,22 @@ def _merge(planes: list[_Plane], params: ExtractionParams) -> list[_Plane]:
         main = min(able, key=lambda p: float(big.frame.to_local(p.frame.origin[None])[0, 2]))
         # A large member beyond the façade plane's allocation band would lose its points
         # to no façade: it is a façade of its own (a set-back ground floor deeper than
-        # band_back). Small ones stay (and lose them): rooms seen through windows.
+        # band_back). Small ones stay (and lose them): rooms seen through windows. So is
+        # a large member a storey's setback or more away that occupies its own part of
+        # the wall (upper storeys over a set-back ground floor): as a layer of the wall's
+        # façade, its holes would be filled from the wall's depth, and the wall's extent
+        # would leave it out.
         depth = [float(main.frame.to_local(p.frame.origin[None])[0, 2]) for p in group]
-        apart = [p for p, d in zip(group, depth) if not -params.band_back <= d <= params.band_front
-                 and p.support >= _MAIN_SUPPORT_SHARE * big.support]
+        main_uv = main.frame.to_local(main.sketch)[:, :2]
+        apart = [p for p, d in zip(group, depth) if p.support >= _MAIN_SUPPORT_SHARE * big.support and p is not main
+                 and (not -params.band_back <= d <= params.band_front
+                      or abs(d) >= STOREY_OFFSET and side_by_side(main.frame.to_local(p.sketch)[:, :2], main_uv))]
         if apart:
             merged += _merge(apart, params)
             group = [p for p in group if all(p is not q for q in apart)]
         uv = np.vstack([_box_in(p, main.frame) for p in group])
         box = np.array([uv[:, 0].min(), uv[:, 0].max(), uv[:, 1].min(), uv[:, 1].max()])
-        merged.append(_Plane(main.frame, box, sum(p.support for p in group)))
+        merged.append(_Plane(main.frame, box, sum(p.support for p in group), np.vstack([p.sketch for p in group])))
     return merged
 
 
@@ -855,7 +983,8 @@ def _final_frame(points: np.ndarray, normals: np.ndarray, frame: FacadeFrame,
 
 
 def extract_facades(xyz: np.ndarray, params: ExtractionParams, *, sensor_origins: np.ndarray | None = None,
-                    rng: np.random.Generator, context: np.ndarray | None = None
+                    rng: np.random.Generator, context: np.ndarray | None = None,
+                    context_labels: np.ndarray | None = None, walls: Sequence[tuple[FacadeFrame, np.ndarray]] = ()
                     ) -> tuple[list[ExtractedFacade], np.ndarray]:
     """Extract the façades of ONE building.
 
@@ -869,6 +998,11 @@ def extract_facades(xyz: np.ndarray, params: ExtractionParams, *, sensor_origins
         context: (C, 3) points of the other buildings, metres, map frame, or None; without
             sensor origins they help to turn the normals (what the sensor saw beyond a
             wall lies mostly in front of it).
+        context_labels: (C,) int building of each context point, or None: a building
+            beside the wall (in line with it) does not vote.
+        walls: the building's façades found before (incremental mapping) as (frame, (K, 3)
+            points on its plane, metres, map frame); without sensor origins a sloped façade
+            faces like the wall it adjoins, among these too.
 
     Returns:
         ``(facades, unallocated)``: the façades, most points first, and an (N,) bool mask
@@ -898,7 +1032,14 @@ def extract_facades(xyz: np.ndarray, params: ExtractionParams, *, sensor_origins
     sub_xyz = local[sub]
     sub_origins = None if origins is None else origins[sub] - centre
     sub_context = None if context is None or origins is not None else np.asarray(context, np.float64) - centre
-    planes = _merge(_ransac(sub_xyz, sub_origins, n, params, rng, sub_context), params)
+    sub_labels = None if sub_context is None or context_labels is None else np.asarray(context_labels)
+    if sub_labels is not None and sub_labels.shape != (len(sub_context),):
+        raise InputError(f'context_labels must have shape ({len(sub_context)},), got {sub_labels.shape}')
+    planes = _ransac(sub_xyz, sub_origins, n, params, rng, sub_context, sub_labels)
+    if origins is None:
+        known = [_Plane(frame, np.zeros(4), 0, _sketch(np.asarray(pts, np.float64) - centre)) for frame, pts in walls]
+        planes = _face_like_walls(planes, known)
+    planes = _merge(planes, params)
     if not planes:
         return [], unallocated
     # Final frames from the subsample's allocation (the subsample pins a plane down to

@@ -16,7 +16,7 @@ Sensors (:data:`SENSOR_PRESETS`, :class:`~.sensor.SensorConfig`):
   campaigns (typical of GNSS/INS drives registered to each other), 1 % clutter.
   ``vmx250-thin``: the same error model at the clean ``mms`` rate (50 lines/s, 0.2
   degrees), so that the hard scenes are as large as the clean ones (the default sensor of
-  ``street_hard`` and ``zurich_hard``); ``vmx250-small`` for ``small_hard``.
+  ``street_hard`` and ``zurich_hard``); ``vmx250-small`` for ``small_hard`` and ``stacked_hard``.
 - ``av2``: the Argoverse 2 vehicle's two stacked Velodyne VLP-32C lidars, one upside down
   (Wilson et al., Argoverse 2, NeurIPS 2021): 10 Hz, 32 beams each at the VLP-32C's
   elevations (VLP-32C User Manual 63-9325 Rev. B, table of laser angles: -25 to +15
@@ -57,6 +57,8 @@ a half it was 47 %. The other figures are from the data sheets or the measured g
 Scenes: ``street``, ``zurich`` and ``small`` are the clean scenes; ``street_hard``,
 ``zurich_hard`` and ``small_hard`` are the same geometry with ``hard`` walls and the
 ``vmx250-thin`` (``vmx250-small``) sensor (:data:`HARD_SCENES`, :data:`SCENE_SENSORS`);
+``stacked`` (``mms-small``) and ``stacked_hard`` (``vmx250-small``) are a small street whose
+façades are not one plane (a set-back ground floor, a mansard band; issue 26);
 ``residential`` (detached houses behind front yards) is scanned by ``hdl64``.
 """
 
@@ -117,6 +119,7 @@ WALL_PRESETS: dict[str, WallRealism] = {'hard': WallRealism()}
 #: The hard variant of each clean scene: (clean scene, walls preset).
 HARD_SCENES: dict[str, tuple[str, str]] = {
     'street_hard': ('street', 'hard'), 'zurich_hard': ('zurich', 'hard'), 'small_hard': ('small', 'hard'),
+    'stacked_hard': ('stacked', 'hard'),
 }
 
 #: Default sensor of every built-in scene; ``small`` scans coarser to stay under 50 000 points.
@@ -127,5 +130,7 @@ SCENE_SENSORS: dict[str, SensorConfig] = {
     'street_hard': SENSOR_PRESETS['vmx250-thin'],
     'zurich_hard': SENSOR_PRESETS['vmx250-thin'],
     'small_hard': SENSOR_PRESETS['vmx250-small'],
+    'stacked': SENSOR_PRESETS['mms-small'],
+    'stacked_hard': SENSOR_PRESETS['vmx250-small'],
     'residential': SENSOR_PRESETS['hdl64'],
 }

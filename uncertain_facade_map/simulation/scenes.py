@@ -1,7 +1,8 @@
 """Built-in scenes: ``street`` (default), ``small`` (for tests), ``zurich`` (real footprints) and
-``residential`` (detached houses behind front yards, for a car's lidar), and the hard variants
-``street_hard``, ``small_hard`` and ``zurich_hard`` (the same geometry with walls as built:
-relief, plaster, glass; see :mod:`.walls` and :mod:`.presets`).
+``residential`` (detached houses behind front yards, for a car's lidar), ``stacked`` (a
+ground floor set back under the upper storeys, a mansard roof band), and the hard variants
+``street_hard``, ``small_hard``, ``zurich_hard`` and ``stacked_hard`` (the same geometry with
+walls as built: relief, plaster, glass; see :mod:`.walls` and :mod:`.presets`).
 
 Every scene is a straight street along +x with its centreline on y = 0, façade lines at
 y = +-``FACADE_LINE`` (``residential``: set back 3 to 8 m behind ``PROPERTY_LINE``) and
@@ -19,7 +20,7 @@ import numpy as np
 from ..errors import InputError
 from .facades import FacadeStyle, decorate
 from .presets import HARD_SCENES, WALL_PRESETS
-from .scene import Building, Car, Facade, FacadeFrame, Hedge, Occluder, Pole, Scene, Street, Tree
+from .scene import Block, Building, Car, Facade, FacadeFrame, Hedge, Occluder, Pole, Recess, Scene, Slope, Street, Tree
 
 #: Distance from the street centreline to the façade lines, metres.
 FACADE_LINE = 9.0
@@ -28,6 +29,14 @@ KERB = 5.6
 #: ``residential``: distance from the centreline to the property line (the kerb is 5.5 m
 #: out, the pavement 2 m wide), metres.
 PROPERTY_LINE = 7.5
+
+#: ``stacked``: height of the set-back ground floor (the underside of the upper storeys), its
+#: setback under them, metres; the mansard band's height, metres, and tilt from vertical, degrees.
+STACKED_GROUND_FLOOR = 4.0
+STACKED_SETBACK = 1.0
+STACKED_HEIGHT = 9.0
+MANSARD_HEIGHT = 3.0
+MANSARD_TILT_DEG = 36.0
 
 #: Default CityJSON file of the ``zurich`` scene: the Zurich LoD2 subset shipped with the
 #: package (cjio project's test data, MIT; see ``data/README.md`` and ``data/LICENSE-cjio-MIT.txt``).
@@ -173,6 +182,42 @@ def small_scene(seed: int = 0) -> Scene:
     return Scene('small', seed, buildings, occluders, street, map_origin=np.array([550_000.0, 5_804_000.0, 55.0]))
 
 
+def stacked_scene(seed: int = 0) -> Scene:
+    """A 40 m street with two buildings on one side whose street façades are not one plane
+    (issue 26); at most about 50 000 points a campaign, like ``small``.
+
+    Building 0 (x 0 to 17 m, ``STACKED_HEIGHT`` high): the ground floor, a shop floor
+    ``STACKED_GROUND_FLOOR`` high with shop windows and doors, is set back ``STACKED_SETBACK``
+    under two upper storeys (a box over the whole width, ``Block`` of kind ``'storeys'``, its
+    underside a soffit). A tree with a dense crown stands in front of it and hides a patch of
+    the upper storeys from campaign 0 (about u 1.5 to 4.5 m, v 6.5 m to the eaves). Building 1
+    (x 23 to 40 m): a plain wall 9 m high crowned by a mansard roof band ``MANSARD_HEIGHT``
+    high leaning back ``MANSARD_TILT_DEG`` from vertical up to the roof at
+    12 m (the footprint is the band's top edge; the wall is a box in front of it).
+    """
+    rng = _rng(seed, 5)
+    b0 = make_building(0, 0, _rect(0.0, 17.0, FACADE_LINE + STACKED_SETBACK, FACADE_LINE + STACKED_SETBACK + 11.0),
+                       STACKED_HEIGHT, {0: FacadeStyle()}, rng)
+    street_wall = b0.facades[0]
+    # Only the ground floor's recesses stay (the others would lie behind the storeys' box,
+    # and their panes would put glass on its front).
+    shops = tuple(f for f in street_wall.features if isinstance(f, Recess) and f.v1 <= STACKED_GROUND_FLOOR - 0.2)
+    storeys = Block(0.0, street_wall.frame.length, STACKED_GROUND_FLOOR, b0.height, STACKED_SETBACK, kind='storeys')
+    b0 = Building(0, b0.polygon, b0.height, (Facade(street_wall.facade_id, 0, 0, street_wall.frame,
+                                                    shops + (storeys,)),) + b0.facades[1:], b0.source)
+    out = MANSARD_HEIGHT * float(np.tan(np.deg2rad(MANSARD_TILT_DEG)))
+    height, eave = 12.0, 12.0 - MANSARD_HEIGHT
+    b1 = make_building(1, len(b0.facades), _rect(23.0, 40.0, FACADE_LINE + out, FACADE_LINE + out + 10.0), height,
+                       {}, rng)
+    wall = b1.facades[0]
+    band = (Block(0.0, wall.frame.length, 0.0, eave, out, kind='wall'), Slope(0.0, wall.frame.length, eave, height, out, 0.0))
+    b1 = Building(1, b1.polygon, b1.height, (Facade(wall.facade_id, 1, 0, wall.frame, band),) + b1.facades[1:],
+                  b1.source)
+    occluders: list[Occluder] = [Tree(8.5, 5.5, 0.2, 4.5, 3.0, 5.0), Pole(31.0, 6.2, 0.08, 5.0, sign=True)]
+    street = Street(np.array([[-5.0, 0.0], [45.0, 0.0]]))
+    return Scene('stacked', seed, [b0, b1], occluders, street, map_origin=np.array([550_000.0, 5_804_000.0, 55.0]))
+
+
 def residential_scene(seed: int = 0) -> Scene:
     """A residential street of detached houses behind front yards, for a car's lidar.
 
@@ -315,7 +360,7 @@ def with_walls(scene: Scene, walls: str = 'hard', name: str | None = None) -> Sc
 
 
 SCENES: dict[str, Callable[[int], Scene]] = {'street': street_scene, 'small': small_scene, 'zurich': zurich_scene,
-                                             'residential': residential_scene}
+                                             'residential': residential_scene, 'stacked': stacked_scene}
 SCENES.update({hard: (lambda seed, clean=clean, walls=walls, hard=hard: with_walls(SCENES[clean](seed), walls, hard))
                for hard, (clean, walls) in HARD_SCENES.items()})
 
