@@ -38,7 +38,13 @@ Pipeline of :func:`extract_facades` (one building, all coordinates metres, map f
    are depth layers of their wall, as in the paper's GMM), unless it lies beyond the
    allocation band of the group's plane with at least a fifth of the largest plane's
    support (then it is a façade of its own: its points would otherwise belong to none;
-   a smaller one, such as a room seen through windows, stays and loses them). *Choice:* the façade's plane
+   a smaller one, such as a room seen through windows, stays and loses them), or unless
+   it lies ``STOREY_OFFSET`` (0.5 m) or more in front of or behind the group's plane with
+   that support and each occupies its own part of the wall (:func:`side_by_side`; upper
+   storeys over a set-back ground floor: as a layer, the storeys' holes would be filled
+   from the ground floor's depth and the ground floor's extent would leave them out;
+   balcony fronts, oriels, window backs and recessed entrances lie among the wall's
+   cells and stay its layers). *Choice:* the façade's plane
    is the group's back-most plane with at least a fifth of the largest one's support
    and at least half its width in ``u``, not simply the largest: behind deep balconies a
    wall can have fewer inliers than the balcony fronts, and the band must reach back
@@ -79,10 +85,16 @@ Pipeline of :func:`extract_facades` (one building, all coordinates metres, map f
    of the band (the other walls lie behind a wall), counting with them the points of
    the other buildings within 40 m along the wall and of it, on the side opposite
    (what a sensor saw beyond a wall, such as the houses across the street, lies in
-   front of it: it saw the wall from there); if that is undecided (a lone wall),
+   front of it: it saw the wall from there; a building with 30 % of those points
+   within the band straddles the plane, a neighbour in line with the wall whose side
+   walls lie behind the line, and does not vote); if that is undecided (a lone wall),
    the side with more points between 0.35 m and that distance (balconies and oriels
    stand out, window recesses are shallower); else up (``n_z >= 0``, right for walls
-   leaning back).
+   leaning back). Then a sloped plane (tilted more than 15 degrees: a roof band, a
+   mansard, a sloped plinth) with a vertical wall adjoining it (inliers within 3 m,
+   horizontal normals within 30 degrees; found with it or before) faces, horizontally,
+   like that wall: below and behind a roof band lies the same building, so its shape
+   cannot tell its outside, and "up" would be wrong for a face that looks down.
 6. **Point normals** (:func:`point_normals`): PCA of the ``normal_neighbours`` nearest
    points (the point itself included), once per building, with a closed-form 3x3
    eigen-solver; ``normal_cos = |n_point . n_facade|`` (the paper's eq. 8 ``n_z``).
