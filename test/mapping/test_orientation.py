@@ -31,3 +31,21 @@ def test_origins_decide_over_the_context():
     origins = np.tile([0.0, 30.0, 1.8], (len(xyz), 1))
     fmap = build_map(xyz, None, origins, MapParams())
     assert all(f.frame.normal[1] > 0.99 for f in fmap.facades)
+
+
+def test_a_sloped_face_mapped_later_faces_like_its_wall():
+    """Incremental mapping without origins: a wall first, then a sloped face over it that
+    leans out (27 degrees, facing down and out, like a corbel under a projecting storey).
+    Its points alone cannot tell its outside (the fallback 'up' would turn it into the
+    building); it faces like the wall mapped before (FacadeMap._walls)."""
+    rng = np.random.default_rng(5)
+    n = 8000
+    wall = np.c_[rng.uniform(0, 20, n), rng.normal(0, 0.01, n), rng.uniform(0, 9, n)]
+    fmap = build_map(wall, np.zeros(n, int), None, MapParams())
+    assert len(fmap.facades) == 1 and fmap.facades[0].frame.normal[1] < -0.99
+    t = rng.uniform(0, 1, 2500)
+    slope = np.c_[rng.uniform(0, 20, 2500), -1.5 * t + rng.normal(0, 0.01, 2500), 9.0 + 3.0 * t]
+    fmap.add_points(slope, np.zeros(len(slope), int))
+    sloped = [f for f in fmap.facades if abs(f.frame.normal[2]) > 0.2]
+    truth = np.array([0.0, -2.0, -1.0]) / np.sqrt(5.0)
+    assert len(sloped) == 1 and sloped[0].frame.normal @ truth > np.cos(np.deg2rad(2.0)), sloped[0].frame.normal

@@ -495,8 +495,8 @@ def _sketch(xyz: np.ndarray) -> np.ndarray:
     """(K, 3) centres of the ``_SKETCH_VOXEL`` voxels holding two or more of the (M, 3) points (same frame)."""
     if not len(xyz):
         return np.empty((0, 3))
-    cells, counts = np.unique(np.floor(xyz / _SKETCH_VOXEL).astype(np.int64), axis=0, return_counts=True)
-    return (cells[counts >= 2] + 0.5) * _SKETCH_VOXEL
+    _, first, counts = np.unique(_voxel_keys(xyz, _SKETCH_VOXEL), return_index=True, return_counts=True)
+    return (np.floor(xyz[first[counts >= 2]] / _SKETCH_VOXEL) + 0.5) * _SKETCH_VOXEL
 
 
 def side_by_side(uv_a: np.ndarray, uv_b: np.ndarray, cell: float = _TILE_CELL) -> bool:
