@@ -2,7 +2,7 @@
 over a set-back ground floor, with a tree hiding a patch of them, and a mansard roof band.
 
 Figures (seed 0, campaign 0, about 10 000 building points; the whole file runs in about
-3 s): the occluded patch of the upper storeys (truth cells further than 0.5 m from every
+4 s): the occluded patch of the upper storeys (truth cells further than 0.5 m from every
 point of the storeys) is answered by the storeys' own façade with an RMSE of 0.006 m with
 sensor origins and 0.003 m without, 95 % coverage 1.00. Before (storeys merged into the
 ground floor's façade): with origins the storeys lay outside that façade's extent and the
