@@ -81,16 +81,17 @@ def test_blend_is_continuous_and_variance_grows_into_a_hole(scene):
     r = local.read(walk)
     assert r.weight[0] == 1.0 and r.weight[-1] == 0.0 and ((r.weight > 0) & (r.weight < 1)).sum() > 100
     # The raster itself steps at some cell boundaries (one depth per cell: the paper's); the
-    # blend adds no jump of its own: each 1 mm step moves it at most by the raster's step
-    # times the raster's weight, plus sub-millimetre.
+    # blend adds no jump of its own: wherever the raster moves by less than 2 mm in a 1 mm
+    # step, so do the blended distance and sd (measured: 0.5 and 0.4 mm), the switch
+    # between the readings included.
     raster = query_points([model], walk, 0.1, 1.0, 2.0)
-    excess = np.abs(np.diff(q.signed_distance)) - (1 - r.weight[:-1]) * np.abs(np.diff(raster.signed_distance))
-    assert excess.max() < 0.001
-    sd, sd_raster = np.sqrt(q.variance), np.sqrt(raster.variance)
-    excess = np.abs(np.diff(sd)) - np.abs(np.diff(sd_raster)) - np.abs(np.diff(q.signed_distance))
-    assert excess.max() < 0.001
+    smooth = (np.abs(np.diff(raster.signed_distance)) < 2e-3) & (np.abs(np.diff(np.sqrt(raster.variance))) < 2e-3)
+    assert smooth.mean() > 0.9 and (smooth & (r.weight[:-1] > 0) & (r.weight[:-1] < 1)).sum() > 100
+    assert np.abs(np.diff(q.signed_distance))[smooth].max() < 2e-3
+    assert np.abs(np.diff(np.sqrt(q.variance)))[smooth].max() < 2e-3
     assert q.signed_distance[-1] == raster.signed_distance[-1] and q.variance[-1] == raster.variance[-1]
     # The sd in the hole's middle is far above the sd on the wall.
+    sd = np.sqrt(q.variance)
     assert sd[-1] > 3 * sd[:200].max()
 
 

@@ -23,7 +23,7 @@ from scipy import ndimage
 from ..datatypes import SOURCE_GLOBAL, FacadeModel, SurfaceRaster
 from ..errors import InputError
 from ..params import QueryConfig
-from .step7_local_surface import LocalReading, LocalSurface, for_query
+from .step7_local_surface import LocalReading, LocalSurface, for_query, raster_agreement
 from .step8_occupancy import FIXED, PLSC, UNKNOWN, half_depth, occupancy_model
 
 #: What ``p_occupied`` is the probability of (see :func:`query_points`).
@@ -370,11 +370,16 @@ def _raster_answer(facades: Sequence[FacadeModel], which: np.ndarray, uvd: np.nd
 def _blend(answer: tuple[np.ndarray, ...], reading: LocalReading, w: np.ndarray) -> tuple[np.ndarray, ...]:
     """The raster's answer blended with the local reading by the (N,) weights ``w`` (the
     reading's, :mod:`~uncertain_facade_map.pipeline.step7_local_surface` step 5, or 1 off
-    the raster): the mixture's mean and variance, so that neither jumps where the weight
-    moves."""
+    the raster), the raster's share scaled by its agreement with the local plane
+    (:func:`~uncertain_facade_map.pipeline.step7_local_surface.raster_agreement`): the
+    mixture's mean and variance, so that neither jumps where the weight moves."""
     mean, var, noise, dist, depth = (a.copy() for a in answer)
     sel = np.flatnonzero((w > 0) & np.isfinite(dist))
     ws, s_l, s_r = w[sel], reading.signed_distance[sel], dist[sel]
+    # The local reading's posterior share: the raster keeps its weight where it agrees with
+    # the local plane and loses it where it lies several sigmas off (another layer, a face).
+    agree = raster_agreement(s_l, s_r, var[sel] + reading.variance[sel] + reading.noise_variance[sel])
+    ws = ws / (ws + (1.0 - ws) * agree)
     dist[sel] = ws * s_l + (1.0 - ws) * s_r
     var[sel] = ws * reading.variance[sel] + (1.0 - ws) * var[sel] + ws * (1.0 - ws) * np.square(s_l - s_r)
     noise[sel] = ws * reading.noise_variance[sel] + (1.0 - ws) * noise[sel]
