@@ -257,7 +257,8 @@ def cmd_query(args: argparse.Namespace) -> int:
     resolution = args.resolution if args.resolution is not None else query.resolution
     started = time.perf_counter()
     result = query_points(fmap.facades, xyz, resolution, fmap.params.extraction.band_back,
-                          fmap.params.extraction.band_front, occupancy_model(fmap.occupancy_, query.occupancy))
+                          fmap.params.extraction.band_front, occupancy_model(fmap.occupancy_, query.occupancy),
+                          registration_var=fmap.registration_var_)
     seconds = time.perf_counter() - started
     out = Path(args.out)
     with open(out, 'wb') as fh:

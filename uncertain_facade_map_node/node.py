@@ -785,7 +785,7 @@ class FacadeMapperNode(Node):
             snap = self.worker.snapshot
             params = snap.params.extraction  # the map's own bands (a loaded map keeps its own)
             answers = query_points(list(snap.facades), xyz, resolution, params.band_back, params.band_front,
-                                   self._occupancy(snap))
+                                   self._occupancy(snap), snap.registration_var)
             mm.fill_query_response(response, answers, f'{len(xyz)} points, map version {snap.version}',
                                    msg_types=self.types)
             self._query_seconds.append(time.perf_counter() - started)

@@ -25,6 +25,11 @@ holds some out, as R&W fit PLSC on leave-one-out predictions (Section 6.5):
 :func:`calibrate_free_space` learns, with the same sample and hold-out, the weight of the
 free-space extension (beyond the paper): how much each mapped ray through a voxel lowers
 its occupancy (:func:`~uncertain_facade_map.pipeline.step8_occupancy.carve`).
+
+:func:`scan_disagreement` measures, beyond the paper, how much scans disagree where they
+see the same surface (pose and registration noise between scans, which no within-scan
+fit sees): a map keeps its running sums and adds their excess to every answer's variance
+(``FacadeMap.registration_var_``, :func:`registration_variance`).
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ from dataclasses import dataclass
 from typing import Callable, Sequence
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..datatypes import FacadeModel
 from ..errors import InputError
@@ -42,7 +48,8 @@ from ..pipeline.step8_occupancy import FIT_BAND, FIXED, PLSC, facade_half_depth,
 from ..voxels import ReferenceVoxels, pack_keys, ray_crossings, reference_voxels, unpack_keys, voxel_index
 from .facade_map import FacadeMap, build_map
 
-__all__ = ['calibrate_free_space', 'calibrate_occupancy', 'scan_voxels', 'surface_terms']
+__all__ = ['calibrate_free_space', 'calibrate_occupancy', 'registration_variance', 'scan_disagreement', 'scan_voxels',
+           'surface_terms']
 
 
 def scan_voxels(xyz: np.ndarray, origins: np.ndarray, resolution: float, max_rays: int = 50_000,
@@ -269,3 +276,119 @@ def calibrate_free_space(xyz: np.ndarray, sensor_origins: np.ndarray, plsc: PLSC
     step = ray_step(len(xyz))  # as the whole map takes them
     crossings = ray_crossings(h.xyz[h.mapped][::step], h.origins[h.mapped][::step], resolution, keys, reach)
     return fit_carving(positive[near], weight[near], p[near], crossings[near])
+
+
+#: Scan disagreement: a sampled point counts where its other-scan neighbours lie within
+#: this distance (metres) and are planar (smallest over middle eigenvalue at most
+#: :data:`_PLANAR`): a wall both scans see, not an edge, a corner or foliage.
+_REACH = 1.0
+_PLANAR = 0.1
+#: Residuals beyond this many robust standard deviations (1.4826 x the median absolute
+#: residual) are left out of a second moment (edges, the other side of a thin wall); for
+#: Gaussian residuals the moment loses 0.1 %.
+_TRIM = 4.0
+#: Cells (metres) by which the points near a sample are picked before the KD-trees.
+_CROP_CELL = 1.0
+
+
+def _cell_keys(xyz: np.ndarray) -> np.ndarray:
+    c = np.floor(xyz / _CROP_CELL).astype(np.int64) & 0x1FFFFF
+    return (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
+
+
+def _near_cells(sample: np.ndarray) -> np.ndarray:
+    """Sorted keys of the crop cells of (S, 3) points and of their 26 neighbours."""
+    c = np.floor(sample / _CROP_CELL).astype(np.int64)
+    off = np.stack(np.meshgrid(*([np.arange(-1, 2)] * 3), indexing='ij'), axis=-1).reshape(-1, 3)
+    return np.unique(_cell_keys((np.unique(c, axis=0)[:, None, :] + off[None]).reshape(-1, 3) * _CROP_CELL
+                                + 0.5 * _CROP_CELL))
+
+
+def _trimmed_moment(r: np.ndarray) -> float:
+    """Robust second moment of (n,) residuals, m^2: the mean of r^2 over
+    |r| <= :data:`_TRIM` x 1.4826 x median |r|."""
+    a = np.abs(r)
+    return float(np.mean(r[a <= _TRIM * 1.4826 * np.median(a)] ** 2))
+
+
+def scan_disagreement(xyz: np.ndarray, scan: np.ndarray, earlier: np.ndarray, k: int = 12,
+                      max_points: int = 2000, rng: np.random.Generator | None = None) -> np.ndarray:
+    """How far scans lie off each other's surface beyond their own noise, as sums.
+
+    For each scan of the new points, up to ``max_points / scans`` of its points (a seeded
+    draw) are compared, where the other scans saw the same wall, with two local surfaces
+    along one normal, the smallest principal axis of the ``k`` nearest points (picked in
+    3-D) of the *other* scans (``earlier`` and the new points of the other scans):
+
+    - cross: the point's distance to the plane through those other-scan points' centroid;
+    - within: its distance to the parallel plane through the centroid of its own scan's
+      ``k`` nearest points (itself left out).
+
+    Both carry the point's noise and a k-point centroid's; the cross one also carries the
+    offset between the scans. So E[cross^2] - E[within^2] is the variance of the offset of
+    one scan against another along the surface normal (pose and registration noise), the
+    variance a later scan's points need besides the map's. Each moment is trimmed
+    (:func:`_trimmed_moment`): median-based, so that edges and outliers do not dominate.
+
+    Args:
+        xyz: (N, 3) new points, metres, map frame.
+        scan: (N,) int scan label of each new point.
+        earlier: (M, 3) points of earlier scans (the map's stored points), metres, map frame.
+        k: neighbours of each local plane.
+        max_points: points sampled in all.
+        rng: the draw (default: seeded 0).
+
+    Returns:
+        (3,) float: [n, n * E[cross^2], n * E[within^2]] with n the points that counted
+        (m^2 for the sums); zeros when no scan overlaps another.
+    """
+    rng = np.random.default_rng(0) if rng is None else rng
+    out = np.zeros(3)
+    labels = np.unique(scan)
+    if max_points <= 0 or (len(labels) < 2 and not len(earlier)):
+        return out
+    per_scan = max(1, int(max_points) // len(labels))
+    picks = []
+    for s in labels:
+        own_idx = np.flatnonzero(scan == s)
+        picks.append(own_idx[rng.choice(len(own_idx), min(per_scan, len(own_idx)), replace=False)])
+    # The points near any sample, once (the stored points may be many).
+    cells = _near_cells(xyz[np.concatenate(picks)])
+    near_new = np.flatnonzero(np.isin(_cell_keys(xyz), cells))
+    near_old = earlier[np.isin(_cell_keys(earlier), cells)] if len(earlier) else np.empty((0, 3))
+    new_keys = _cell_keys(xyz[near_new])
+    old_keys = _cell_keys(near_old)
+    for s, pick in zip(labels, picks):
+        mine = _near_cells(xyz[pick])
+        in_cells = np.isin(new_keys, mine)
+        others = np.vstack([near_old[np.isin(old_keys, mine)], xyz[near_new[in_cells & (scan[near_new] != s)]]])
+        own = xyz[near_new[in_cells & (scan[near_new] == s)]]
+        if len(others) < k or len(own) <= k:
+            continue
+        p = xyz[pick]
+        d_o, i_o = cKDTree(others).query(p, k)
+        _, i_s = cKDTree(own).query(p, k + 1)
+        nb = others[i_o]  # (S, k, 3)
+        centre = nb.mean(axis=1)
+        dev = nb - centre[:, None]
+        w, v = np.linalg.eigh(np.einsum('ski,skj->sij', dev, dev))
+        normal = v[:, :, 0]
+        ok = (d_o[:, -1] <= _REACH) & (w[:, 0] <= _PLANAR * w[:, 1])
+        if ok.sum() < 10:
+            continue
+        own_centre = own[i_s[:, 1:]].mean(axis=1)  # column 0: the point itself
+        cross = np.einsum('si,si->s', p - centre, normal)[ok]
+        within = np.einsum('si,si->s', p - own_centre, normal)[ok]
+        n = int(ok.sum())
+        out += [n, n * _trimmed_moment(cross), n * _trimmed_moment(within)]
+    return out
+
+
+def registration_variance(sums: np.ndarray, max_std: float, min_points: int = 100) -> float:
+    """The registration variance (m^2) of running :func:`scan_disagreement` sums: the excess
+    of the cross-scan second moment over the within-scan one, 0 below ``min_points``
+    compared points or when negative, at most ``max_std``^2."""
+    n, cross, within = (float(x) for x in np.asarray(sums, dtype=np.float64).reshape(3))
+    if n < min_points:
+        return 0.0
+    return float(min(max(0.0, (cross - within) / n), max_std ** 2))

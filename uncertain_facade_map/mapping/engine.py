@@ -65,6 +65,8 @@ class MapView:
             (:func:`~uncertain_facade_map.datatypes.array_bytes`: points, normals, sensor
             origins, voxel index, façade models).
         occupancy: the occupancy's PLSC parameters the map has learnt (``FacadeMap.occupancy_``).
+        registration_var: the map's variance of scan-to-scan disagreement, m^2
+            (``FacadeMap.registration_var_``), added to every answer's variance.
     """
 
     facades: tuple[FacadeModel, ...]
@@ -78,6 +80,7 @@ class MapView:
     cpu_seconds: float = 0.0
     map_bytes: int = 0
     occupancy: PLSC = FIXED
+    registration_var: float = 0.0
 
 
 def view_of(fmap: FacadeMap, cpu_seconds: float = 0.0) -> MapView:
@@ -86,7 +89,7 @@ def view_of(fmap: FacadeMap, cpu_seconds: float = 0.0) -> MapView:
     origin.setflags(write=False)  # the façade models' arrays are read-only already
     return MapView(tuple(fmap.facades), origin, len(fmap.points), fmap.n_points, fmap.params, fmap.n_pending,
                    bool(fmap.pending) or any(f.fitted_points != len(f.point_index) for f in fmap.facades),
-                   fmap.n_stored, cpu_seconds, array_bytes(fmap), fmap.occupancy_)
+                   fmap.n_stored, cpu_seconds, array_bytes(fmap), fmap.occupancy_, fmap.registration_var_)
 
 
 @dataclass(frozen=True)

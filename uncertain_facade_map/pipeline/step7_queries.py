@@ -269,7 +269,7 @@ def assign_facades(facades: Sequence[FacadeModel], xyz: np.ndarray, band_back: f
 
 
 def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: float, band_back: float,
-                 band_front: float, occupancy: PLSC = FIXED) -> PointQuery:
+                 band_front: float, occupancy: PLSC = FIXED, registration_var: float = 0.0) -> PointQuery:
     """Answer the 3D point query for (N, 3) points in the map frame.
 
     Args:
@@ -312,5 +312,6 @@ def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: fl
             noise[sel] = facades[i].noise_var
             dist[sel], var[sel] = nearer_step_faces(facades[i].surface, uvd[sel - start], uvd[sel - start, 2] - m, v,
                                                     STEP_REACH)
+    var = var + registration_var  # scan-to-scan disagreement (FacadeMap.registration_var_), m^2
     p = occupancy.solid(dist, var, np.where(np.isfinite(noise), noise, 0.0), resolution)
     return PointQuery(facade, mean, var, noise, dist, p)
