@@ -279,10 +279,13 @@ def calibrate_free_space(xyz: np.ndarray, sensor_origins: np.ndarray, plsc: PLSC
 
 
 #: Scan disagreement: a sampled point counts where its other-scan neighbours lie within
-#: this distance (metres) and are planar (smallest over middle eigenvalue at most
-#: :data:`_PLANAR`): a wall both scans see, not an edge, a corner or foliage.
+#: :data:`_REACH` (metres), spread over a surface (middle eigenvalue at least :data:`_SPREAD`
+#: times the largest: not one scan line) no thicker than :data:`_THICK` (rms along the
+#: normal, metres: a wall both scans see, not foliage). The bounds are absolute, not
+#: relative to the neighbourhood's extent, which shrinks as the map grows denser.
 _REACH = 1.0
-_PLANAR = 0.1
+_SPREAD = 0.05
+_THICK = 0.1
 #: Residuals beyond this many robust standard deviations (1.4826 x the median absolute
 #: residual) are left out of a second moment (edges, the other side of a thin wall); for
 #: Gaussian residuals the moment loses 0.1 %.
@@ -362,23 +365,24 @@ def scan_disagreement(xyz: np.ndarray, scan: np.ndarray, earlier: np.ndarray, k:
         mine = _near_cells(xyz[pick])
         in_cells = np.isin(new_keys, mine)
         others = np.vstack([near_old[np.isin(old_keys, mine)], xyz[near_new[in_cells & (scan[near_new] != s)]]])
-        own = xyz[near_new[in_cells & (scan[near_new] == s)]]
-        if len(others) < k or len(own) <= k:
+        if len(others) <= k:
             continue
         p = xyz[pick]
-        d_o, i_o = cKDTree(others).query(p, k)
-        _, i_s = cKDTree(own).query(p, k + 1)
+        tree = cKDTree(others)
+        d_o, i_o = tree.query(p, k)
         nb = others[i_o]  # (S, k, 3)
         centre = nb.mean(axis=1)
         dev = nb - centre[:, None]
         w, v = np.linalg.eigh(np.einsum('ski,skj->sij', dev, dev))
         normal = v[:, :, 0]
-        ok = (d_o[:, -1] <= _REACH) & (w[:, 0] <= _PLANAR * w[:, 1])
+        ok = (d_o[:, -1] <= _REACH) & (w[:, 1] >= _SPREAD * w[:, 2]) & (w[:, 0] <= k * _THICK ** 2)
         if ok.sum() < 10:
             continue
-        own_centre = own[i_s[:, 1:]].mean(axis=1)  # column 0: the point itself
+        q = others[i_o[:, 0]]  # the nearest other-scan point, against its own neighbours
+        _, i_q = tree.query(q, k + 1)
+        q_centre = others[i_q[:, 1:]].mean(axis=1)  # column 0: the point itself
         cross = np.einsum('si,si->s', p - centre, normal)[ok]
-        within = np.einsum('si,si->s', p - own_centre, normal)[ok]
+        within = np.einsum('si,si->s', q - q_centre, normal)[ok]
         n = int(ok.sum())
         out += [n, n * _trimmed_moment(cross), n * _trimmed_moment(within)]
     return out

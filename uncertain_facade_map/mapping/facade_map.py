@@ -83,7 +83,8 @@ class FacadeMap:
             RANSAC run on them.
         last_update: what the last :meth:`add_points` did: ``buildings``, ``facades_new``,
             ``facades_refitted`` (whole), ``facades_updated`` (blocks only),
-            ``updated_cells`` and ``seconds``.
+            ``updated_cells``, ``seconds`` and ``registration_seconds`` (of those, comparing the
+            new scans with the stored points).
         pending: points held back by ``add_points(..., defer=True)``, in arrival order:
             (xyz, building_id or None, sensor_origins or None) per call.
         thinned: per building label, the number of its points counted but not stored
@@ -323,9 +324,10 @@ class FacadeMap:
              progress: Callable[[int, int], None] | None, scan: np.ndarray | None = None) -> list[int]:
         t0 = time.perf_counter()
         self._learn_registration(xyz, scan)
+        learnt = time.perf_counter()
         labels = self._labels(xyz, building_id)
         self.last_update = {'buildings': [], 'facades_new': [], 'facades_refitted': [], 'facades_updated': [],
-                            'updated_cells': 0}
+                            'updated_cells': 0, 'registration_seconds': learnt - t0}
         changed = [int(b) for b in np.unique(labels)]
         # Every building's points first: without sensor origins the others' points turn a
         # building's walls (``_context``), whichever building comes first.
