@@ -630,7 +630,8 @@ class FacadeMapperNode(Node):
             try:
                 # Built and serialized in the helper process: here only bytes are handed over.
                 maps = self._compute(published_map_messages, facades, cfg, band.band_back, band.band_front,
-                                     self.frame_id, stamp, serialize_message, self._occupancy(snap))
+                                     self.frame_id, stamp, serialize_message, self._occupancy(snap),
+                                     snap.registration_var)
                 # The latched publishers keep these (and the grid) until the next ones.
                 self._published_bytes = (len(maps.surface) + len(maps.mesh) + len(maps.variance_grids)
                                          + len(maps.voxels) + (maps.grid.p.size if maps.grid is not None else 0))
@@ -667,7 +668,7 @@ class FacadeMapperNode(Node):
         p, origin, resolution = np.full((1, 1), np.nan), np.zeros(2), cfg.grid_resolution
         if snap.facades:
             g = grid or self._compute(mp.band_grid, list(snap.facades), cfg, params.band_back, params.band_front,
-                                      self._occupancy(snap))
+                                      self._occupancy(snap), snap.registration_var)
             p, origin, resolution = g.p, g.origin, g.resolution
             if resolution != cfg.grid_resolution:
                 self._warn(f'the 2D grid of this map would have more than publish.grid_max_cells = '

@@ -588,7 +588,8 @@ class PackageMap:
     def query(self, xyz: np.ndarray, resolution: float) -> Answers:
         """Answers for (N, 3) points by :func:`query_points` (NaN where on no façade)."""
         ex = self.fmap.params.extraction
-        q = query_points(self.fmap.facades, xyz, resolution, ex.band_back, ex.band_front)
+        q = query_points(self.fmap.facades, xyz, resolution, ex.band_back, ex.band_front,
+                         registration_var=self.fmap.registration_var_)
         return Answers(q.signed_distance, q.variance, q.noise_variance, q.p_occupied)
 
 

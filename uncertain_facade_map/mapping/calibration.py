@@ -290,12 +290,18 @@ _THICK = 0.1
 #: residual) are left out of a second moment (edges, the other side of a thin wall); for
 #: Gaussian residuals the moment loses 0.1 %.
 _TRIM = 4.0
-#: Cells (metres) by which the points near a sample are picked before the KD-trees.
-_CROP_CELL = 1.0
+#: Cells (metres) by which the points near a sample are picked before the KD-tree: the
+#: cells of the samples and their neighbours hold every point within :data:`_REACH`.
+_CROP_CELL = _REACH
+#: The sample is drawn in clusters, up to this many points in each of random cells of
+#: :data:`_CLUSTER_CELL` metres, so that the points near it, the KD-tree's, stay few
+#: however dense the stored points are.
+_PER_CLUSTER = 8
+_CLUSTER_CELL = 1.0
 
 
-def _cell_keys(xyz: np.ndarray) -> np.ndarray:
-    c = np.floor(xyz / _CROP_CELL).astype(np.int64) & 0x1FFFFF
+def _cell_keys(xyz: np.ndarray, side: float = _CROP_CELL) -> np.ndarray:
+    c = np.floor(xyz / side).astype(np.int64) & 0x1FFFFF
     return (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
 
 
@@ -305,6 +311,33 @@ def _near_cells(sample: np.ndarray) -> np.ndarray:
     off = np.stack(np.meshgrid(*([np.arange(-1, 2)] * 3), indexing='ij'), axis=-1).reshape(-1, 3)
     return np.unique(_cell_keys((np.unique(c, axis=0)[:, None, :] + off[None]).reshape(-1, 3) * _CROP_CELL
                                 + 0.5 * _CROP_CELL))
+
+
+def _clustered_sample(index: np.ndarray, xyz: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """About ``n`` of the points ``index`` (into (N, 3) ``xyz``), in clusters: random cells
+    of side :data:`_CLUSTER_CELL`, the same random share of the points of each (about
+    :data:`_PER_CLUSTER` a cell on average)."""
+    if len(index) <= n:
+        return index
+    order = rng.permutation(len(index))
+    keys = _cell_keys(xyz[index[order]], _CLUSTER_CELL)
+    by_cell = np.argsort(keys, kind='stable')  # stable: random order within a cell
+    sk = keys[by_cell]
+    first = np.r_[True, sk[1:] != sk[:-1]]
+    group = np.cumsum(first) - 1
+    rank = np.arange(len(sk)) - np.flatnonzero(first)[group]
+    # Cells in a random order, each giving the same share of its points (about
+    # _PER_CLUSTER on average, rounded at random): every point has the same odds, however
+    # the cells cut the surface.
+    counts = np.bincount(group)
+    share = max(_PER_CLUSTER / counts.mean(), n / len(index))  # few cells: more of each
+    quota = np.floor(counts * share + rng.random(len(counts))).astype(np.int64)
+    cells = rng.permutation(len(counts))
+    cells = cells[:int(np.searchsorted(np.cumsum(quota[cells]), n)) + 1]  # cells enough for n points
+    chosen = np.zeros(len(counts), bool)
+    chosen[cells] = True
+    take = (rank < quota[group]) & chosen[group]
+    return index[order[by_cell[take]]]  # a few more than n: cut in key order, the sample would lean
 
 
 def _trimmed_moment(r: np.ndarray) -> float:
@@ -319,7 +352,7 @@ def scan_disagreement(xyz: np.ndarray, scan: np.ndarray, earlier: np.ndarray, k:
     """How far scans lie off each other's surface beyond their own noise, as sums.
 
     For each scan of the new points, up to ``max_points / scans`` of its points (a seeded
-    draw) are compared, where the other scans saw the same wall, with two local surfaces
+    draw, in clusters: :func:`_clustered_sample`) are compared, where the other scans saw the same wall, with two local surfaces
     along one normal, the smallest principal axis of the ``k`` nearest points (picked in
     3-D) of the *other* scans (``earlier`` and the new points of the other scans):
 
@@ -354,11 +387,14 @@ def scan_disagreement(xyz: np.ndarray, scan: np.ndarray, earlier: np.ndarray, k:
     picks = []
     for s in labels:
         own_idx = np.flatnonzero(scan == s)
-        picks.append(own_idx[rng.choice(len(own_idx), min(per_scan, len(own_idx)), replace=False)])
+        picks.append(_clustered_sample(own_idx, xyz, per_scan, rng))
     # The points near any sample, once (the stored points may be many).
-    cells = _near_cells(xyz[np.concatenate(picks)])
+    cells = _near_cells(xyz[np.concatenate(picks)])  # the sample's cells and their neighbours
     near_new = np.flatnonzero(np.isin(_cell_keys(xyz), cells))
-    near_old = earlier[np.isin(_cell_keys(earlier), cells)] if len(earlier) else np.empty((0, 3))
+    sample = xyz[np.concatenate(picks)]
+    lo, hi = sample.min(axis=0) - 2 * _CROP_CELL, sample.max(axis=0) + 2 * _CROP_CELL
+    near_old = earlier[np.all((earlier >= lo) & (earlier <= hi), axis=1)] if len(earlier) else np.empty((0, 3))
+    near_old = near_old[np.isin(_cell_keys(near_old), cells)]
     new_keys = _cell_keys(xyz[near_new])
     old_keys = _cell_keys(near_old)
     for s, pick in zip(labels, picks):

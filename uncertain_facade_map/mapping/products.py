@@ -554,7 +554,8 @@ def _too_many(what: str, count: int, noun: str, name: str, limit: int, resolutio
 
 def voxel_occupancy(facades: Sequence[FacadeModel], resolution: float = 0.1, shell: float = 0.3, *,
                     band_back: float = BAND_BACK, band_front: float = BAND_FRONT,
-                    max_voxels: int = 2_000_000, occupancy: PLSC = FIXED) -> VoxelOccupancy:
+                    max_voxels: int = 2_000_000, occupancy: PLSC = FIXED,
+                    registration_var: float = 0.0) -> VoxelOccupancy:
     """Occupancy of the map-frame voxels around the façades' mean surfaces.
 
     The grid is axis-aligned in the map frame, voxel (i, j, k) centred at
@@ -577,6 +578,7 @@ def voxel_occupancy(facades: Sequence[FacadeModel], resolution: float = 0.1, she
         band_front: query band in front of it, metres (the map's ``extraction.band_front``).
         max_voxels: most voxels to produce.
         occupancy: the query's PLSC parameters (the map's learnt ones or the fixed formula's).
+        registration_var: the map's scan-to-scan variance, m^2 (``FacadeMap.registration_var_``).
 
     Returns:
         The voxels: centres (M, 3) map frame, metres; integer indices (M, 3); p_occupied
@@ -611,7 +613,7 @@ def voxel_occupancy(facades: Sequence[FacadeModel], resolution: float = 0.1, she
     facade = np.empty(len(idx), np.int32)
     for start in range(0, len(idx), _BATCH):  # the query is pointwise: batches bound its memory
         part = slice(start, start + _BATCH)
-        res = query_points(facades, centres[part], resolution, band_back, band_front, occupancy)
+        res = query_points(facades, centres[part], resolution, band_back, band_front, occupancy, registration_var)
         p[part], facade[part] = res.p_occupied, res.facade
     keep = facade >= 0
     return VoxelOccupancy(centres[keep], idx[keep], p[keep], facade[keep], resolution, shell)
@@ -680,7 +682,8 @@ MAX_COARSENING = 40
 def height_band_grid(facades: Sequence[FacadeModel], resolution: float, z_min: float, z_max: float, *,
                      margin: float = 1.0, band_back: float = BAND_BACK, band_front: float = BAND_FRONT,
                      max_cells: int = 4_000_000, max_samples: int = 50_000_000,
-                     coarsen: bool = False, occupancy: PLSC = FIXED) -> OccupancyGrid2D:
+                     coarsen: bool = False, occupancy: PLSC = FIXED,
+                     registration_var: float = 0.0) -> OccupancyGrid2D:
     """2D occupancy grid of the height band ``z_min..z_max`` (map frame z).
 
     Cells are the voxel columns of :func:`voxel_occupancy` (side ``resolution``, cell
@@ -707,6 +710,7 @@ def height_band_grid(facades: Sequence[FacadeModel], resolution: float, z_min: f
             :data:`MAX_COARSENING` doublings) instead of raising; the grid's
             ``resolution`` says which was taken.
         occupancy: the query's PLSC parameters (the map's learnt ones or the fixed formula's).
+        registration_var: the map's scan-to-scan variance, m^2 (``FacadeMap.registration_var_``).
 
     Returns:
         The grid: p (H, W) float64 in [0, 1] or NaN, row = y, column = x; origin (2,) of the
@@ -749,7 +753,7 @@ def height_band_grid(facades: Sequence[FacadeModel], resolution: float, z_min: f
         xy = np.stack([x[part], y[part]], axis=1)
         for z in layers:
             res = query_points(facades, np.c_[xy, np.full(len(xy), z)], resolution, band_back, band_front,
-                               occupancy)
+                               occupancy, registration_var)
             best[part] = np.where(res.facade >= 0, np.maximum(best[part], res.p_occupied), best[part])
     p = np.full(shape, np.nan)
     p[rows, cols] = np.where(np.isfinite(best), best, np.nan)
@@ -775,7 +779,8 @@ class MapProducts:
 
 
 def map_products(facades: Sequence[FacadeModel], publish: Any, band_back: float = BAND_BACK,
-                 band_front: float = BAND_FRONT, occupancy: PLSC = FIXED) -> MapProducts:
+                 band_front: float = BAND_FRONT, occupancy: PLSC = FIXED, registration_var: float = 0.0
+                 ) -> MapProducts:
     """Every published product of a map at once (the node computes them in a helper process).
 
     Args:
@@ -786,21 +791,24 @@ def map_products(facades: Sequence[FacadeModel], publish: Any, band_back: float 
         band_back: the map's band behind a plane, metres.
         band_front: the map's band in front of it, metres.
         occupancy: the query's PLSC parameters (the map's learnt ones or the fixed formula's).
+        registration_var: the map's variance of scan-to-scan disagreement
+            (``FacadeMap.registration_var_``), m^2, added to every answer's.
     """
     facades = list(facades)
     return MapProducts(
         surface=surface_grid(facades, publish.surface_step),
         mesh=surface_mesh(facades, publish.mesh_step) if facades else None,
         voxels=voxel_occupancy(facades, publish.voxel_resolution, publish.voxel_shell, band_back=band_back,
-                               band_front=band_front, occupancy=occupancy),
-        grid=band_grid(facades, publish, band_back, band_front, occupancy) if facades else None)
+                               band_front=band_front, occupancy=occupancy, registration_var=registration_var),
+        grid=band_grid(facades, publish, band_back, band_front, occupancy, registration_var) if facades else None)
 
 
 def band_grid(facades: Sequence[FacadeModel], publish: Any, band_back: float = BAND_BACK,
-              band_front: float = BAND_FRONT, occupancy: PLSC = FIXED) -> OccupancyGrid2D:
+              band_front: float = BAND_FRONT, occupancy: PLSC = FIXED, registration_var: float = 0.0
+              ) -> OccupancyGrid2D:
     """The node's 2D grid: :func:`height_band_grid` at ``publish.grid_resolution`` or, for a
     map too wide for ``publish.grid_max_cells`` cells, at the finest of 2, 4, 8, ... times it."""
     return height_band_grid(list(facades), publish.grid_resolution, publish.grid_z_min, publish.grid_z_max,
                             band_back=band_back, band_front=band_front, max_cells=publish.grid_max_cells,
                             max_samples=max(50_000_000, 25 * publish.grid_max_cells), coarsen=True,
-                            occupancy=occupancy)
+                            occupancy=occupancy, registration_var=registration_var)

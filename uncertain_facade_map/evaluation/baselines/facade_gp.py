@@ -116,7 +116,8 @@ class FacadeGPMethod(OccupancyMethod):
         xyz = check_queries(xyz)
         if self._query is None or self._query[0] is not xyz:
             ex = self.params.extraction
-            self._query = (xyz, query_points(self.map_.facades, xyz, self.resolution, ex.band_back, self.free_reach))
+            self._query = (xyz, query_points(self.map_.facades, xyz, self.resolution, ex.band_back, self.free_reach,
+                                             registration_var=self.map_.registration_var_))
         return self._query[1]
 
     def predict(self, xyz: np.ndarray) -> np.ndarray:
