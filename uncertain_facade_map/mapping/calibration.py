@@ -319,6 +319,8 @@ def _clustered_sample(index: np.ndarray, xyz: np.ndarray, n: int, rng: np.random
     :data:`_PER_CLUSTER` a cell on average)."""
     if len(index) <= n:
         return index
+    if len(index) > 64 * n:  # a large scan: its clusters drawn from a uniform subsample
+        index = np.sort(rng.choice(index, 64 * n, replace=False))
     order = rng.permutation(len(index))
     keys = _cell_keys(xyz[index[order]], _CLUSTER_CELL)
     by_cell = np.argsort(keys, kind='stable')  # stable: random order within a cell
@@ -389,10 +391,11 @@ def scan_disagreement(xyz: np.ndarray, scan: np.ndarray, earlier: np.ndarray, k:
         own_idx = np.flatnonzero(scan == s)
         picks.append(_clustered_sample(own_idx, xyz, per_scan, rng))
     # The points near any sample, once (the stored points may be many).
-    cells = _near_cells(xyz[np.concatenate(picks)])  # the sample's cells and their neighbours
-    near_new = np.flatnonzero(np.isin(_cell_keys(xyz), cells))
     sample = xyz[np.concatenate(picks)]
+    cells = _near_cells(sample)  # the sample's cells and their neighbours
     lo, hi = sample.min(axis=0) - 2 * _CROP_CELL, sample.max(axis=0) + 2 * _CROP_CELL
+    near_new = np.flatnonzero(np.all((xyz >= lo) & (xyz <= hi), axis=1))
+    near_new = near_new[np.isin(_cell_keys(xyz[near_new]), cells)]
     near_old = earlier[np.all((earlier >= lo) & (earlier <= hi), axis=1)] if len(earlier) else np.empty((0, 3))
     near_old = near_old[np.isin(_cell_keys(near_old), cells)]
     new_keys = _cell_keys(xyz[near_new])
