@@ -307,15 +307,19 @@ def test_service_answers_equal_the_offline_core(client, mapped, scans, workdir):
     band = (offline.params.extraction.band_back, offline.params.extraction.band_front)
     # The occupancy's PLSC parameters, learnt as the map grew, are the offline core's too.
     assert offline.occupancy_.learnt and live.occupancy_ == offline.occupancy_
-    expected = query_points(offline.facades, xyz, 0.1, *band, offline.occupancy_).as_dict()
+    # So is the scan-to-scan variance (each cloud a scan).
+    reg = offline.registration_var_
+    assert live.registration_var_ == reg and offline.registration_sums_[0] > 0
+    expected = query_points(offline.facades, xyz, 0.1, *band, offline.occupancy_, reg).as_dict()
     assert (expected['facade'] >= 0).mean() > 0.3
     assert_answers_equal(answers_of(response), expected)
     # The same through the command line's reading of the node's map file.
-    assert_answers_equal(answers_of(response), query_points(live.facades, xyz, 0.1, *band, live.occupancy_).as_dict())
+    assert_answers_equal(answers_of(response),
+                         query_points(live.facades, xyz, 0.1, *band, live.occupancy_, live.registration_var_).as_dict())
     # Another resolution.
     response = client.call(QueryPoints, 'query_points', query_request(xyz[:500], 0.05))
     assert_answers_equal(answers_of(response),
-                         query_points(offline.facades, xyz[:500], 0.05, *band, offline.occupancy_).as_dict())
+                         query_points(offline.facades, xyz[:500], 0.05, *band, offline.occupancy_, reg).as_dict())
 
 
 def test_get_facades_describes_the_models(client, mapped, scans):
