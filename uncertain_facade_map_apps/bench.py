@@ -69,7 +69,8 @@ def _query(work: Path, scene_name: str) -> dict:
     rng = np.random.default_rng(0)
     pts = xyz[rng.choice(len(xyz), 500_000)] + rng.normal(0.0, 0.3, (500_000, 3))
     started = time.perf_counter()
-    res = query_points(fmap.facades, pts, 0.1, fmap.params.extraction.band_back, fmap.params.extraction.band_front)
+    res = query_points(fmap.facades, pts, 0.1, fmap.params.extraction.band_back, fmap.params.extraction.band_front,
+                       registration_var=fmap.registration_var_)
     seconds = time.perf_counter() - started
     return {'stage': f'query {scene_name}', 'items': len(pts), 'unit': 'points', 'seconds': seconds,
             'note': f'{(res.facade >= 0).mean():.0%} on a façade, {len(fmap.facades)} façades'}
