@@ -354,19 +354,23 @@ def scan_disagreement(xyz: np.ndarray, scan: np.ndarray, earlier: np.ndarray, k:
     """How far scans lie off each other's surface beyond their own noise, as sums.
 
     For each scan of the new points, up to ``max_points / scans`` of its points (a seeded
-    draw, in clusters: :func:`_clustered_sample`) are compared, where the other scans saw the same wall, with two local surfaces
-    along one normal, the smallest principal axis of the ``k`` nearest points (picked in
-    3-D) of the *other* scans (``earlier`` and the new points of the other scans):
+    draw, in clusters: :func:`_clustered_sample`) are compared, where the other scans saw
+    the same wall, with two local surfaces along one normal, the smallest principal axis of
+    the ``k`` nearest points (picked in 3-D) of the *other* scans (``earlier`` and the new
+    points of the other scans):
 
     - cross: the point's distance to the plane through those other-scan points' centroid;
-    - within: its distance to the parallel plane through the centroid of its own scan's
-      ``k`` nearest points (itself left out).
+    - within: the distance of the nearest of them to the parallel plane through the
+      centroid of its own ``k`` nearest other-scan points (itself left out).
 
-    Both carry the point's noise and a k-point centroid's; the cross one also carries the
-    offset between the scans. So E[cross^2] - E[within^2] is the variance of the offset of
-    one scan against another along the surface normal (pose and registration noise), the
-    variance a later scan's points need besides the map's. Each moment is trimmed
-    (:func:`_trimmed_moment`): median-based, so that edges and outliers do not dominate.
+    The cross one carries the point's noise, a k-point centroid's and the offset between
+    the scans; the within one the other scans' own scatter (their noise, and their offsets
+    from each other where several are stored), which is what the map's noise estimate,
+    fitted on the stored points, already holds. So E[cross^2] - E[within^2] is the variance
+    a later scan's points need besides the map's: for two scans, the mean square offset of
+    one against the other along the surface normal (pose and registration noise). Each
+    moment is trimmed (:func:`_trimmed_moment`): median-based, so that edges and outliers
+    do not dominate.
 
     Args:
         xyz: (N, 3) new points, metres, map frame.
