@@ -518,6 +518,24 @@ class QueryConfig(Section):
     occupancy: str = param('plsc', 'p_occupied by: plsc, the cumulative Gaussian whose two parameters the map '
                                    'learnt from its own scans (the paper; the fixed formula until it has learnt '
                                    'them); fixed, the formula Phi((r/2 - s) / sd)', allowed=Options(('plsc', 'fixed')))
+    occupancy_event: str = param('surface', 'p_occupied is the probability that: surface, the surface crosses the '
+                                            'voxel (the same in front of the surface and behind it); solid, the '
+                                            'voxel lies at least partly behind the surface',
+                                 allowed=Options(('surface', 'solid')))
+    surface: str = param('local', 'the surface a query reads: local, a plane through the stored points near the '
+                                  'point where they are dense, blended with the raster where they are not (beyond '
+                                  'the paper); raster, the façade raster alone (the paper)',
+                         allowed=Options(('local', 'raster')))
+    local_neighbours: int = param(12, 'stored points a local plane is fitted to', allowed=Interval(3, 1000, 'both'))
+    local_radius: float = param(0.5, 'the raster alone answers where the nearest stored point lies farther than '
+                                     'this', unit='m', allowed=Interval(0.0, 100.0, 'right'))
+    local_inner: float = param(0.2, 'the local plane alone answers where the nearest stored point lies within '
+                                    'this; between it and local_radius the two blend (equal: a switch, not a blend)', unit='m',
+                               allowed=_closed(0.0, 100.0))
+
+    relations: ClassVar[tuple[Relation, ...]] = (
+        Relation(('local_inner', 'local_radius'), lambda inner, radius: inner <= radius, 'local_inner <= local_radius'),
+    )
 
 
 @dataclass(frozen=True)

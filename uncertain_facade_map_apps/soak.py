@@ -451,19 +451,16 @@ def version_of(message: str) -> int | None:
 
 
 def offline_answers(path: Path, xyz: np.ndarray, resolution: float = 0.1) -> dict[str, np.ndarray]:
-    """What the map file answers offline (the core's query, with the map's own bands and
-    the occupancy the node's default ``query.occupancy`` takes from it, and its scan-to-scan
-    variance)."""
+    """What the map file answers offline (the core's query with the map's own bands and the
+    node's default ``query.*`` settings)."""
     from uncertain_facade_map.io.map_file import load_map
     from uncertain_facade_map.params import QueryConfig
-    from uncertain_facade_map.pipeline.step7_queries import query_points
-    from uncertain_facade_map.pipeline.step8_occupancy import occupancy_model
+    from uncertain_facade_map.pipeline.step7_queries import query_map
 
     fmap = load_map(path)
     band = fmap.params.extraction
-    return query_points(fmap.facades, xyz, resolution, band.band_back, band.band_front,
-                        occupancy=occupancy_model(fmap.occupancy_, QueryConfig().occupancy),
-                        registration_var=fmap.registration_var_).as_dict()
+    return query_map(fmap.facades, fmap.points, xyz, resolution, band.band_back, band.band_front, fmap.occupancy_,
+                     QueryConfig(), registration_var=fmap.registration_var_).as_dict()
 
 
 def as_int(values: dict | None, key: str) -> int | None:

@@ -87,7 +87,8 @@ from uncertain_facade_map.params import (
     map_params,
     parameters,
 )
-from uncertain_facade_map.pipeline.step7_queries import query_points
+from uncertain_facade_map.pipeline.step7_local_surface import LocalSurface, for_query
+from uncertain_facade_map.pipeline.step7_queries import query_map
 from uncertain_facade_map.pipeline.step8_occupancy import PLSC, occupancy_model
 from uncertain_facade_map.srv import GetFacades, LoadMap, QueryPoints, SaveMap
 from uncertain_facade_map.transforms import Placement, TransformBuffer
@@ -211,6 +212,7 @@ class FacadeMapperNode(Node):
         self._summary_version = -1  # the map version the last summary line told of (set at the end)
         self._grid: tuple[int, Any] | None = None
         self._facades_size: tuple[int, float] = (-1, 0.0)  # (snapshot version, MB of its façade arrays)
+        self._local: tuple[int, LocalSurface | None] = (-1, None)  # (snapshot version, its local surface)
         self._published_bytes = 0  # of the latest published maps (serialized; the grid's cells)
         self._query_seconds: deque[float] = deque(maxlen=200)  # time in the node of the latest queries
         self._published_version = -1
@@ -631,7 +633,7 @@ class FacadeMapperNode(Node):
                 # Built and serialized in the helper process: here only bytes are handed over.
                 maps = self._compute(published_map_messages, facades, cfg, band.band_back, band.band_front,
                                      self.frame_id, stamp, serialize_message, self._occupancy(snap),
-                                     snap.registration_var)
+                                     self._local_surface(snap), snap.registration_var)
                 # The latched publishers keep these (and the grid) until the next ones.
                 self._published_bytes = (len(maps.surface) + len(maps.mesh) + len(maps.variance_grids)
                                          + len(maps.voxels) + (maps.grid.p.size if maps.grid is not None else 0))
@@ -648,6 +650,15 @@ class FacadeMapperNode(Node):
             self._last_publish = time.monotonic()
             self.get_logger().debug(f'published map version {snap.version} in '
                                     f'{time.perf_counter() - started:.2f} s')
+
+    def _local_surface(self, snap: MapSnapshot) -> LocalSurface | None:
+        """The snapshot's stored points read per point (``query.surface``), built at the first
+        query of each snapshot version and kept until the next."""
+        version, local = self._local
+        if version != snap.version:
+            local = for_query(snap.facades, snap.stored_points, self.config.query)
+            self._local = (snap.version, local)
+        return local
 
     def _occupancy(self, snap: MapSnapshot) -> PLSC:
         """The occupancy's PLSC parameters for a snapshot's answers (``query.occupancy``)."""
@@ -668,7 +679,7 @@ class FacadeMapperNode(Node):
         p, origin, resolution = np.full((1, 1), np.nan), np.zeros(2), cfg.grid_resolution
         if snap.facades:
             g = grid or self._compute(mp.band_grid, list(snap.facades), cfg, params.band_back, params.band_front,
-                                      self._occupancy(snap), snap.registration_var)
+                                      self._occupancy(snap), self._local_surface(snap), snap.registration_var)
             p, origin, resolution = g.p, g.origin, g.resolution
             if resolution != cfg.grid_resolution:
                 self._warn(f'the 2D grid of this map would have more than publish.grid_max_cells = '
@@ -785,8 +796,9 @@ class FacadeMapperNode(Node):
                 raise InputError(f'resolution must be a positive number of metres, got {request.resolution}')
             snap = self.worker.snapshot
             params = snap.params.extraction  # the map's own bands (a loaded map keeps its own)
-            answers = query_points(list(snap.facades), xyz, resolution, params.band_back, params.band_front,
-                                   self._occupancy(snap), snap.registration_var)
+            answers = query_map(snap.facades, snap.stored_points, xyz, resolution, params.band_back,
+                                params.band_front, snap.occupancy, self.config.query, self._local_surface(snap),
+                                snap.registration_var)
             mm.fill_query_response(response, answers, f'{len(xyz)} points, map version {snap.version}',
                                    msg_types=self.types)
             self._query_seconds.append(time.perf_counter() - started)

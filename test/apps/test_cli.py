@@ -127,8 +127,12 @@ def test_query_reads_the_learnt_plsc_unless_the_configuration_says_fixed(simulat
     assert learnt.learnt and learnt != FIXED, 'build learns the PLSC parameters from points with sensor origins'
     pts = read_npz(simulated / 'campaign0.npz').xyz[::50]
     np.save(tmp_path / 'p.npy', pts)
-    (tmp_path / 'fixed.yaml').write_text('facade_mapper:\n  ros__parameters:\n    query:\n      occupancy: fixed\n')
-    for name, extra in (('plsc', []), ('fixed', ['--config', str(tmp_path / 'fixed.yaml')])):
+    # The solid event (the default, surface, is tested in test/pipeline/test_step7_local_surface.py).
+    head = 'facade_mapper:\n  ros__parameters:\n    query:\n      occupancy_event: solid\n'
+    (tmp_path / 'plsc.yaml').write_text(head)
+    (tmp_path / 'fixed.yaml').write_text(head + '      occupancy: fixed\n')
+    for name in ('plsc', 'fixed'):
+        extra = ['--config', str(tmp_path / f'{name}.yaml')]
         assert main(['query', str(built), '--points', str(tmp_path / 'p.npy'), '--out', str(tmp_path / f'{name}.npz'),
                      *extra]) == 0
     with np.load(tmp_path / 'plsc.npz') as a, np.load(tmp_path / 'fixed.npz') as b:

@@ -13,11 +13,13 @@ import sys
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
+from scipy.stats import norm
 from support import REPO
 
 from uncertain_facade_map.mapping.facade_map import build_map
-from uncertain_facade_map.params import MapParams
-from uncertain_facade_map.pipeline.step7_queries import query_points
+from uncertain_facade_map.params import MapParams, QueryConfig
+from uncertain_facade_map.pipeline.step7_queries import query_map
 
 SHARED = REPO.parent / 'shared'
 REAL = SHARED / 'data' / 'real'
@@ -54,35 +56,84 @@ def _split(name: str):
     return xyz, mapped, wall & ~mapped, patch
 
 
-@pytest.mark.parametrize('name, max_rmse, min_cov', [
-    ('av2_7fab_sweep0.ply', 0.070, 0.92),
-    ('av2_7fab_sweep1.ply', 0.075, 0.93),
-    ('av1_sweep.ply', 0.070, 0.92),
-])
-def test_held_out_wall_points(name, max_rmse, min_cov):
-    """Observed areas: RMSE and 95 % coverage of the held-out points' signed distance.
+def _local_plane(mapped: np.ndarray, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The checker's reference (``localplane_map.py``): a plane through the 12 nearest mapped
+    points, its signed distance and variance (with its 2 cm noise)."""
+    dist, idx = cKDTree(mapped).query(xyz, k=12)
+    nb = mapped[idx]
+    c = nb.mean(1)
+    w, v = np.linalg.eigh(np.einsum('nki,nkj->nij', nb - c[:, None], nb - c[:, None]) / 12)
+    s = np.einsum('ni,ni->n', xyz - c, v[:, :, 0])
+    return s, w[:, 0] + dist.mean(1) ** 2 * 0.05 + 0.02**2
 
-    Before the wall relief, the estimated noise and the step faces the same protocol gave
-    0.084, 0.086 and 0.074 m and coverage 0.88, 0.90, 0.91; the local plane gives
-    0.035-0.040 m (the issue's bar is 0.8 x that, not reached yet)."""
+
+def _voxels(xyz, wall, held, normal_of, res=0.1):
+    """The checker's occupancy labels: voxels of held-out points, and empty voxels 2 voxels
+    to 1 m in front of them."""
+    key = np.floor(xyz / res).astype(np.int64)
+    occupied = {tuple(k) for k in key[wall]}
+    pos = np.unique(key[held], axis=0)
+    front = np.vstack([np.unique(np.floor((xyz[held] + d * normal_of[held]) / res).astype(np.int64), axis=0)
+                       for d in np.arange(2 * res, 1.0 + 1e-9, res)])
+    neg = np.array([k for k in map(tuple, np.unique(front, axis=0)) if k not in occupied])
+    return (np.vstack([pos, neg]) + 0.5) * res, np.r_[np.ones(len(pos), bool), np.zeros(len(neg), bool)]
+
+
+# Measured at this commit (real_check.py, the same protocol through the command line):
+# observed RMSE 0.033 / 0.035 / 0.043 m against the local plane's 0.040 / 0.039 / 0.037 m.
+@pytest.mark.parametrize('name, max_ratio', [
+    ('av2_7fab_sweep0.ply', 0.88),
+    ('av2_7fab_sweep1.ply', 0.95),
+    ('av1_sweep.ply', 1.25),
+])
+def test_held_out_wall_points(name, max_ratio):
+    """Issue 26's figures on a real sweep, ours beside the local plane in the same run:
+    observed RMSE (the issue's bar is 0.8 x the local plane's; AV2 sweeps 0.83 and 0.90, AV1
+    1.16 at this commit: asserted as measured, with margins), observed 95 % coverage in
+    93-97 %, patch RMSE at most the local plane's, the share answered, and PR-AUC of
+    p_occupied at 0.1 m at least the local plane's on the AV2 sweeps.
+
+    Before issue 26 (the rasters alone) the same protocol gave 0.063 / 0.062 / 0.061 m, and
+    before the wall relief, the estimated noise and the step faces 0.084 / 0.086 / 0.074 m."""
+    rc = _checker()
     xyz, mapped, held, patch = _split(name)
     fmap = build_map(xyz[mapped], params=MapParams())
     ex = fmap.params.extraction
-    q = query_points(fmap.facades, xyz[held], 0.1, ex.band_back, ex.band_front)
-    observed = (q.facade >= 0) & ~patch[held]
-    assert observed.mean() > 0.9
+    q = query_map(fmap.facades, fmap.points, xyz[held], 0.1, ex.band_back, ex.band_front, fmap.occupancy_,
+                  QueryConfig())
+    answered = (q.facade >= 0) & np.isfinite(q.signed_distance)
+    assert answered.mean() > 0.97
+    observed = answered & ~patch[held]
     s = q.signed_distance[observed]
     sd = np.sqrt(q.variance[observed] + q.noise_variance[observed])
     rmse = float(np.sqrt(np.mean(s**2)))
-    assert rmse <= max_rmse
-    assert np.mean(np.abs(s) <= 1.96 * sd) >= min_cov
+    ref_s, ref_var = _local_plane(xyz[mapped], xyz[held])
+    ref_rmse = float(np.sqrt(np.mean(ref_s[~patch[held]] ** 2)))
+    assert rmse <= max_ratio * ref_rmse
+    assert 0.93 <= np.mean(np.abs(s) <= 1.96 * sd) <= 0.97
+    in_patch = answered & patch[held]
+    assert in_patch.sum() > 50
+    assert np.sqrt(np.mean(q.signed_distance[in_patch] ** 2)) <= np.sqrt(np.mean(ref_s[patch[held]] ** 2))
     # The noise comes from the data: lidar centimetres, not the paper's fixed 2 cm everywhere.
     noise = np.sqrt([f.noise_var for f in fmap.facades])
     assert np.all((noise > 0.005) & (noise < 0.05)) and np.ptp(noise) > 0.005
     # Mapped without sensor origins (as the checker hands them over), every façade of
     # 500 points or more faces the sensor. Before the other buildings' points turned lone
     # walls, AV2 sweep 1's 5,400-point wall and three of AV1's six faced away.
-    origins = _checker().read_ply(str(REAL / name))[1]
+    origins = rc.read_ply(str(REAL / name))[1]
     sensor = origins.mean(0) if origins is not None else np.array([0.0, 0.0, 1.8])
     big = [f for f in fmap.facades if len(f.point_index) >= 500]
     assert len(big) >= 3 and all(f.frame.normal @ (sensor - f.frame.origin) > 0 for f in big)
+    if name.startswith('av2'):
+        # Occupancy: the surface crosses the voxel (query.occupancy_event), PR-AUC at 0.1 m.
+        normal_of = np.zeros((len(xyz), 3))
+        for n, _, piece, _ in rc.walls(xyz, sensor, np.random.default_rng(3)):
+            normal_of[piece] = n
+        wall = mapped | held
+        centres, positive = _voxels(xyz, wall, held, normal_of)
+        ours = query_map(fmap.facades, fmap.points, centres, 0.1, ex.band_back, ex.band_front, fmap.occupancy_,
+                         QueryConfig()).p_occupied
+        r_s, r_var = _local_plane(xyz[mapped], centres)
+        sd = np.sqrt(r_var + 0.02**2)
+        plane = norm.cdf((np.abs(r_s) + 0.05) / sd) - norm.cdf((np.abs(r_s) - 0.05) / sd)
+        assert rc.average_precision(np.nan_to_num(ours, nan=0.0), positive) >= rc.average_precision(plane, positive)

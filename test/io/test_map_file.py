@@ -9,7 +9,8 @@ import pytest
 from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.io.map_file import FORMAT, VERSION, load_map, save_map
 from uncertain_facade_map.mapping.facade_map import build_map
-from uncertain_facade_map.pipeline.step7_queries import query_points
+from uncertain_facade_map.params import QueryConfig
+from uncertain_facade_map.pipeline.step7_queries import query_map, query_points
 
 
 @pytest.fixture(scope='module')
@@ -38,6 +39,11 @@ def test_round_trip_is_bit_for_bit(tmp_path, fmap):
     band = (fmap.params.extraction.band_back, fmap.params.extraction.band_front)
     before = query_points(fmap.facades, xyz, 0.1, *band).as_dict()
     after = query_points(loaded.facades, xyz, 0.1, *band).as_dict()
+    for key in before:
+        np.testing.assert_array_equal(before[key], after[key])
+    # The per-point reading (query.surface: local) needs the stored points: the file has them.
+    before = query_map(fmap.facades, fmap.points, xyz, 0.1, *band, fmap.occupancy_, QueryConfig()).as_dict()
+    after = query_map(loaded.facades, loaded.points, xyz, 0.1, *band, loaded.occupancy_, QueryConfig()).as_dict()
     for key in before:
         np.testing.assert_array_equal(before[key], after[key])
     assert loaded.params == fmap.params

@@ -33,9 +33,10 @@ from uncertain_facade_map.mapping.worker import map_scans  # noqa: E402
 from uncertain_facade_map.params import (  # noqa: E402
     Config,
     InputConfig,
+    QueryConfig,
     map_params,  # noqa: E402  # FIXME
 )
-from uncertain_facade_map.pipeline.step7_queries import query_points  # noqa: E402
+from uncertain_facade_map.pipeline.step7_queries import query_map, query_points  # noqa: E402
 from uncertain_facade_map.simulation.export import split_scans  # noqa: E402
 from uncertain_facade_map_apps.ros_client import SpinningClient, answers_of, query_request  # noqa: E402
 
@@ -310,16 +311,21 @@ def test_service_answers_equal_the_offline_core(client, mapped, scans, workdir):
     # So is the scan-to-scan variance (each cloud a scan).
     reg = offline.registration_var_
     assert live.registration_var_ == reg and offline.registration_sums_[0] > 0
-    expected = query_points(offline.facades, xyz, 0.1, *band, offline.occupancy_, reg).as_dict()
+    # The node answers as the command line reads a map (query_map: the stored points per point
+    # where dense, the surface event, the learnt PLSC), from the offline core's map...
+    expected = query_map(offline.facades, offline.points, xyz, 0.1, *band, offline.occupancy_, QueryConfig(),
+                         registration_var=reg).as_dict()
     assert (expected['facade'] >= 0).mean() > 0.3
     assert_answers_equal(answers_of(response), expected)
-    # The same through the command line's reading of the node's map file.
+    # ... and from the node's own map file.
     assert_answers_equal(answers_of(response),
-                         query_points(live.facades, xyz, 0.1, *band, live.occupancy_, live.registration_var_).as_dict())
+                         query_map(live.facades, live.points, xyz, 0.1, *band, live.occupancy_, QueryConfig(),
+                                   registration_var=live.registration_var_).as_dict())
     # Another resolution.
     response = client.call(QueryPoints, 'query_points', query_request(xyz[:500], 0.05))
-    assert_answers_equal(answers_of(response),
-                         query_points(offline.facades, xyz[:500], 0.05, *band, offline.occupancy_, reg).as_dict())
+    assert_answers_equal(answers_of(response), query_map(offline.facades, offline.points, xyz[:500], 0.05, *band,
+                                                         offline.occupancy_, QueryConfig(),
+                                                         registration_var=reg).as_dict())
 
 
 def test_get_facades_describes_the_models(client, mapped, scans):

@@ -19,7 +19,9 @@ The protocol (``uncertain-facade-map benchmark INPUT...``; :func:`run_benchmark`
    was scanned (``real_check.py`` cuts one patch per wall longer than 8 m, at mid-width
    and 40 % of the height). Patch points are *occluded*, the others *observed*.
 3. **Maps** of the remaining points: this package's (:func:`~uncertain_facade_map.mapping.facade_map.build_map`,
-   asked by :func:`~uncertain_facade_map.pipeline.step7_queries.query_points`) and two
+   asked by :func:`~uncertain_facade_map.pipeline.step7_queries.query_points`) read as
+   queries read it by default (the stored points per point where they are dense, the
+   rasters elsewhere) and, as its own row, by the paper's rasters alone; and two
    references built from the same points (:mod:`.references`): a local plane through the
    12 nearest mapped points (the checker's ``localplane_map.py``) and one PCA plane per
    façade of our map.
@@ -67,8 +69,9 @@ from ..errors import InputError
 from ..io.cloud import Cloud
 from ..io.inputs import select_building_points
 from ..mapping.facade_map import FacadeMap, build_map
-from ..params import InputConfig, MapParams
+from ..params import InputConfig, MapParams, QueryConfig
 from ..pipeline.step1_facades import extract_facades, split_buildings
+from ..pipeline.step7_local_surface import for_query
 from ..pipeline.step7_queries import query_points
 from ..voxels import pack_keys, unpack_keys, voxel_index
 from .occupancy import pr_auc
@@ -90,7 +93,9 @@ SPLITS = ('all', 'observed', 'observed planar', 'observed step', 'occluded', 'oc
 #: The splits with a calibration curve.
 CALIBRATION_SPLITS = ('all', 'observed', 'occluded')
 #: Names of the maps, in table order.
-MAP_NAMES = ('this package', LocalPlaneMap.name, FacadePlaneMap.name)
+#: The row of the paper's reading alone (the façade rasters, ``query.surface`` 'raster').
+RASTER_NAME = 'this package, raster (paper)'
+MAP_NAMES = ('this package', RASTER_NAME, LocalPlaneMap.name, FacadePlaneMap.name)
 
 #: Picks building points in a cloud without class field: (xyz (N, 3), sensor (3,), rng) ->
 #: a WallPick (points and their walls) or an (N,) bool mask (façades then extracted).
@@ -578,18 +583,26 @@ def _split_voxels(vox: _Voxels, sel: np.ndarray) -> tuple[np.ndarray, np.ndarray
 
 
 class PackageMap:
-    """This package's map behind the references' interface (answers by its query)."""
+    """This package's map behind the references' interface (answers by its query).
 
-    name = 'this package'
+    Args:
+        fmap: the map.
+        query: the query settings: ``surface`` 'local' (the default: the stored points read
+            per point where they are dense, :mod:`~uncertain_facade_map.pipeline.step7_local_surface`)
+            or 'raster' (the paper's reading alone, its own row), and ``occupancy_event``.
+    """
 
-    def __init__(self, fmap: FacadeMap) -> None:
+    def __init__(self, fmap: FacadeMap, query: QueryConfig | None = None) -> None:
         self.fmap = fmap
+        self.config = query or QueryConfig()
+        self.name = MAP_NAMES[0] if self.config.surface == 'local' else RASTER_NAME
+        self.local = for_query(fmap.facades, fmap.points, self.config)
 
     def query(self, xyz: np.ndarray, resolution: float) -> Answers:
         """Answers for (N, 3) points by :func:`query_points` (NaN where on no façade)."""
         ex = self.fmap.params.extraction
-        q = query_points(self.fmap.facades, xyz, resolution, ex.band_back, ex.band_front,
-                         registration_var=self.fmap.registration_var_)
+        q = query_points(self.fmap.facades, xyz, resolution, ex.band_back, ex.band_front, local=self.local,
+                         event=self.config.occupancy_event, registration_var=self.fmap.registration_var_)
         return Answers(q.signed_distance, q.variance, q.noise_variance, q.p_occupied)
 
 
@@ -661,6 +674,7 @@ def run_benchmark(data: BenchmarkInput, params: MapParams | None = None,
                      None if data.sensor_origins is None else data.sensor_origins[mapped], params,
                      data.map_origin, progress=progress)
     build_seconds = {MAP_NAMES[0]: time.perf_counter() - started}
+    build_seconds[RASTER_NAME] = build_seconds[MAP_NAMES[0]]
     if not fmap.facades:
         raise InputError(f'no façade found in the {int(mapped.sum()):,} mapped points')
     say(f'mapped {len(fmap.facades)} façades in {build_seconds[MAP_NAMES[0]]:.1f} s; building the references')
@@ -674,7 +688,7 @@ def run_benchmark(data: BenchmarkInput, params: MapParams | None = None,
     started = time.perf_counter()
     plane = FacadePlaneMap(fmap)
     build_seconds[FacadePlaneMap.name] = time.perf_counter() - started
-    maps = (PackageMap(fmap), local, plane)
+    maps = (PackageMap(fmap), PackageMap(fmap, QueryConfig(surface='raster')), local, plane)
 
     scored = np.flatnonzero(hold.held)
     if len(scored) > settings.max_scored:

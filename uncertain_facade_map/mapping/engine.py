@@ -27,7 +27,7 @@ import pickle
 import signal
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import numpy as np
@@ -65,6 +65,9 @@ class MapView:
             (:func:`~uncertain_facade_map.datatypes.array_bytes`: points, normals, sensor
             origins, voxel index, façade models).
         occupancy: the occupancy's PLSC parameters the map has learnt (``FacadeMap.occupancy_``).
+        stored_points: per building label, its stored points (``FacadeMap.points``: the
+            arrays, shared, never written), which queries read per point
+            (:mod:`~uncertain_facade_map.pipeline.step7_local_surface`).
         registration_var: the map's variance of scan-to-scan disagreement, m^2
             (``FacadeMap.registration_var_``), added to every answer's variance.
     """
@@ -80,6 +83,7 @@ class MapView:
     cpu_seconds: float = 0.0
     map_bytes: int = 0
     occupancy: PLSC = FIXED
+    stored_points: dict[int, np.ndarray] = field(default_factory=dict)
     registration_var: float = 0.0
 
 
@@ -89,7 +93,8 @@ def view_of(fmap: FacadeMap, cpu_seconds: float = 0.0) -> MapView:
     origin.setflags(write=False)  # the façade models' arrays are read-only already
     return MapView(tuple(fmap.facades), origin, len(fmap.points), fmap.n_points, fmap.params, fmap.n_pending,
                    bool(fmap.pending) or any(f.fitted_points != len(f.point_index) for f in fmap.facades),
-                   fmap.n_stored, cpu_seconds, array_bytes(fmap), fmap.occupancy_, fmap.registration_var_)
+                   fmap.n_stored, cpu_seconds, array_bytes(fmap), fmap.occupancy_, dict(fmap.points),
+                   fmap.registration_var_)
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,12 @@ from scipy import ndimage
 
 from ..datatypes import SOURCE_GLOBAL, FacadeModel, SurfaceRaster
 from ..errors import InputError
-from .step8_occupancy import FIXED, PLSC
+from ..params import QueryConfig
+from .step7_local_surface import LocalReading, LocalSurface, for_query
+from .step8_occupancy import FIXED, PLSC, UNKNOWN, half_depth, occupancy_model
+
+#: What ``p_occupied`` is the probability of (see :func:`query_points`).
+EVENTS = ('surface', 'solid')
 
 #: Points handled at once (bounds memory of the (N, F) façade test).
 CHUNK = 262_144
@@ -269,7 +274,8 @@ def assign_facades(facades: Sequence[FacadeModel], xyz: np.ndarray, band_back: f
 
 
 def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: float, band_back: float,
-                 band_front: float, occupancy: PLSC = FIXED, registration_var: float = 0.0) -> PointQuery:
+                 band_front: float, occupancy: PLSC = FIXED, local: LocalSurface | None = None,
+                 event: str = 'solid', registration_var: float = 0.0) -> PointQuery:
     """Answer the 3D point query for (N, 3) points in the map frame.
 
     Args:
@@ -280,13 +286,20 @@ def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: fl
         band_front: see :func:`assign_facades`.
         occupancy: the occupancy's PLSC parameters (the map's learnt ones,
             ``FacadeMap.occupancy_``), or the fixed formula's.
+        local: the map's stored points read per point where they are dense
+            (:mod:`~uncertain_facade_map.pipeline.step7_local_surface`, ``query.surface``
+            'local'), blended with the raster; None: the raster alone (the paper's reading).
+        event: what ``p_occupied`` is the probability of (``query.occupancy_event``):
+            'surface', that the surface crosses the voxel (the same in front and behind);
+            'solid', that the voxel lies at least partly behind the surface.
 
     Returns:
         The answers; NaN depth, variance, noise variance and distance, and occupancy 0.5,
         where a point belongs to no façade.
 
     Raises:
-        InputError: a non-(N, 3) array, NaN or infinite coordinates, or a resolution <= 0.
+        InputError: a non-(N, 3) array, NaN or infinite coordinates, a resolution <= 0 or
+            an unknown event.
     """
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
@@ -295,23 +308,102 @@ def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: fl
         raise InputError(f'{int((~np.isfinite(xyz)).any(axis=1).sum())} query points have NaN or infinite coordinates')
     if not resolution > 0:
         raise InputError(f'resolution must be positive, got {resolution}')
+    if event not in EVENTS:
+        raise InputError(f'occupancy event must be one of {", ".join(EVENTS)}, got {event!r}')
     n = len(xyz)
     facade = np.full(n, -1, dtype=np.int32)
-    mean = np.full(n, np.nan)
-    var = np.full(n, np.nan)
-    noise = np.full(n, np.nan)
-    dist = np.full(n, np.nan)
+    mean, var, noise, dist = (np.full(n, np.nan) for _ in range(4))
+    normal = np.zeros((n, 3))
+    normals = np.array([f.frame.normal for f in facades]).reshape(-1, 3)
     for start in range(0, n, CHUNK):
         part = slice(start, min(start + CHUNK, n))
         which, uvd = assign_facades(facades, xyz[part], band_back, band_front)
+        reading = local.read(xyz[part]) if local is not None else None
+        if reading is not None:
+            # Points the raster's bands miss but dense stored points hold: their nearest
+            # stored point's façade, read in its frame. Off that façade's raster (a piece
+            # of wall too small to be a façade, beside it) the raster says nothing: the
+            # local reading answers alone there, up to the radius.
+            weight = reading.weight.copy()
+            adopt = (which < 0) & (reading.facade >= 0)
+            which[adopt] = reading.facade[adopt]
+            for i in np.unique(which[adopt]):
+                sel = np.flatnonzero(adopt & (which == i))
+                uvd[sel] = facades[i].frame.to_local(xyz[part][sel])
+                r = facades[i].surface
+                h, w = r.mean.shape
+                off = ((uvd[sel, 0] < r.origin[0]) | (uvd[sel, 0] > r.origin[0] + w * r.cell)
+                       | (uvd[sel, 1] < r.origin[1]) | (uvd[sel, 1] > r.origin[1] + h * r.cell))
+                weight[sel[off]] = 1.0
+        answer = _raster_answer(facades, which, uvd)
+        if reading is not None:
+            answer = _blend(answer, reading, weight)
         facade[part] = which
-        for i in np.unique(which[which >= 0]):
-            sel = np.flatnonzero(which == i) + start
-            m, v = surface_at(facades[i].surface, uvd[sel - start, :2])
-            mean[sel], var[sel] = m, v
-            noise[sel] = facades[i].noise_var
-            dist[sel], var[sel] = nearer_step_faces(facades[i].surface, uvd[sel - start], uvd[sel - start, 2] - m, v,
-                                                    STEP_REACH)
+        mean[part], var[part], noise[part], dist[part] = answer[:4]
+        normal[part] = np.where((which >= 0)[:, None], normals[np.maximum(which, 0)] if len(normals) else 0.0, 0.0)
+        if reading is not None:
+            use_local = weight >= 0.5
+            normal[part][use_local] = reading.normal[use_local]
     var = var + registration_var  # scan-to-scan disagreement (FacadeMap.registration_var_), m^2
-    p = occupancy.solid(dist, var, np.where(np.isfinite(noise), noise, 0.0), resolution)
+    noise0 = np.where(np.isfinite(noise), noise, 0.0)
+    if event == 'solid':
+        p = occupancy.solid(dist, var, noise0, resolution)
+    else:
+        p = occupancy.surface(dist, var, noise0, half_depth(normal, resolution), outside=UNKNOWN)
     return PointQuery(facade, mean, var, noise, dist, p)
+
+
+def _raster_answer(facades: Sequence[FacadeModel], which: np.ndarray, uvd: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The raster's reading (the paper's) of a chunk's points: ``(mean depth, variance,
+    noise variance, signed distance, depth)``, each (N,), NaN where ``which`` is -1."""
+    n = len(which)
+    mean, var, noise, dist = (np.full(n, np.nan) for _ in range(4))
+    for i in np.unique(which[which >= 0]):
+        sel = np.flatnonzero(which == i)
+        m, v = surface_at(facades[i].surface, uvd[sel, :2])
+        mean[sel] = m
+        noise[sel] = facades[i].noise_var
+        dist[sel], var[sel] = nearer_step_faces(facades[i].surface, uvd[sel], uvd[sel, 2] - m, v, STEP_REACH)
+    return mean, var, noise, dist, uvd[:, 2]
+
+
+def _blend(answer: tuple[np.ndarray, ...], reading: LocalReading, w: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The raster's answer blended with the local reading by the (N,) weights ``w`` (the
+    reading's, :mod:`~uncertain_facade_map.pipeline.step7_local_surface` step 5, or 1 off
+    the raster): the mixture's mean and variance, so that neither jumps where the weight
+    moves."""
+    mean, var, noise, dist, depth = (a.copy() for a in answer)
+    sel = np.flatnonzero((w > 0) & np.isfinite(dist))
+    ws, s_l, s_r = w[sel], reading.signed_distance[sel], dist[sel]
+    dist[sel] = ws * s_l + (1.0 - ws) * s_r
+    var[sel] = ws * reading.variance[sel] + (1.0 - ws) * var[sel] + ws * (1.0 - ws) * np.square(s_l - s_r)
+    noise[sel] = ws * reading.noise_variance[sel] + (1.0 - ws) * noise[sel]
+    mean[sel] = depth[sel] - dist[sel]
+    return mean, var, noise, dist, depth
+
+
+def query_map(facades: Sequence[FacadeModel], stored_points: dict[int, np.ndarray], xyz: np.ndarray,
+              resolution: float, band_back: float, band_front: float, learnt: PLSC, config: QueryConfig,
+              local: LocalSurface | None | bool = True, registration_var: float = 0.0) -> PointQuery:
+    """What the command line's ``query`` and the node's ``query_points`` answer: :func:`query_points`
+    with the ``query.*`` settings (the reading, the occupancy's parameters and event).
+
+    Args:
+        facades: the façade models.
+        stored_points: per building label, its stored points (``FacadeMap.points``).
+        xyz: (N, 3) points, metres, map frame.
+        resolution: voxel side of the occupancy probability, metres.
+        band_back: the map's band behind a plane, metres.
+        band_front: the map's band in front of it, metres.
+        learnt: the map's learnt PLSC parameters (``FacadeMap.occupancy_``).
+        config: the query settings.
+        local: the local surface of ``facades`` and ``stored_points`` when the caller keeps
+            one (the node, per snapshot); True: built here as ``config`` says.
+        registration_var: the map's scan-to-scan variance (``FacadeMap.registration_var_``),
+            m^2, added to every answered point's variance.
+    """
+    if local is True:
+        local = for_query(facades, stored_points, config)
+    return query_points(facades, xyz, resolution, band_back, band_front, occupancy_model(learnt, config.occupancy),
+                        local or None, config.occupancy_event, registration_var)

@@ -15,6 +15,7 @@ from .base import OccupancyMethod
 #: Command-line name -> "module:class" (relative to this package).
 METHODS = {
     'ours': 'facade_gp:FacadeGPMethod',
+    'ours-raster': 'facade_gp:FacadeGPRasterMethod',
     'ours-fixed': 'facade_gp:FacadeGPFixedMethod',
     'ours-free': 'facade_gp:FacadeGPFreeSpaceMethod',
     'ours-solid': 'facade_gp:FacadeGPSolidMethod',

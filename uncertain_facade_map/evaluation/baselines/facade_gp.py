@@ -40,7 +40,8 @@ import numpy as np
 from ...errors import InputError
 from ...mapping.calibration import surface_terms
 from ...mapping.facade_map import FacadeMap, build_map
-from ...params import MapParams
+from ...params import MapParams, QueryConfig
+from ...pipeline.step7_local_surface import for_query
 from ...pipeline.step7_queries import query_points
 from ...pipeline.step8_occupancy import FIXED, READINGS, carve
 from ...voxels import pack_keys, voxel_index
@@ -64,6 +65,8 @@ class FacadeGPMethod(OccupancyMethod):
             it lies behind the surface, as the node publishes).
         occupancy: ``'plsc'`` (parameters learnt from the mapped points at this resolution)
             or ``'fixed'``.
+        surface: ``'local'`` (the queries' default: the stored points read per point where
+            they are dense, the rasters elsewhere) or ``'raster'`` (the paper's reading alone).
 
     Raises:
         InputError: a bad resolution, ``free_reach``, ``reading`` or ``occupancy``.
@@ -72,9 +75,10 @@ class FacadeGPMethod(OccupancyMethod):
     name = 'Ours'
     reading_default = 'surface'
     occupancy_default = 'plsc'
+    surface_default = 'local'
 
     def __init__(self, resolution: float, params: MapParams | None = None, free_reach: float = 50.0,
-                 reading: str | None = None, occupancy: str | None = None) -> None:
+                 reading: str | None = None, occupancy: str | None = None, surface: str | None = None) -> None:
         super().__init__(resolution)
         if not (np.isfinite(free_reach) and free_reach > 0):
             raise InputError(f'free_reach must be a positive number of metres, got {free_reach!r}')
@@ -85,6 +89,7 @@ class FacadeGPMethod(OccupancyMethod):
         if occupancy not in ('plsc', 'fixed'):
             raise InputError(f"occupancy must be 'plsc' or 'fixed', got {occupancy!r}")
         self.occupancy = occupancy
+        self.query = QueryConfig(surface=self.surface_default if surface is None else surface)
         self.params = params or MapParams()
         self.free_reach = float(free_reach)
         self.reading = reading
@@ -106,6 +111,9 @@ class FacadeGPMethod(OccupancyMethod):
         if self.resolution not in _SHARED['plsc']:
             _SHARED['plsc'][self.resolution] = fmap.calibrate_occupancy(self.resolution)
         fmap.occupancy_ = _SHARED['plsc'][self.resolution]
+        if self.query.surface not in _SHARED:
+            _SHARED[self.query.surface] = for_query(fmap.facades, fmap.points, self.query)
+        self.local_ = _SHARED[self.query.surface]
         self.map_ = fmap
         self._query = None
         return self
@@ -117,7 +125,7 @@ class FacadeGPMethod(OccupancyMethod):
         if self._query is None or self._query[0] is not xyz:
             ex = self.params.extraction
             self._query = (xyz, query_points(self.map_.facades, xyz, self.resolution, ex.band_back, self.free_reach,
-                                             registration_var=self.map_.registration_var_))
+                                             local=self.local_, registration_var=self.map_.registration_var_))
         return self._query[1]
 
     def predict(self, xyz: np.ndarray) -> np.ndarray:
@@ -151,6 +159,14 @@ class FacadeGPSolidMethod(FacadeGPMethod):
 
     name = 'Ours (solid)'
     reading_default = 'solid'
+
+
+class FacadeGPRasterMethod(FacadeGPMethod):
+    """:class:`FacadeGPMethod` read from the façade rasters alone: the paper's method, kept
+    visible beside the per-point reading that departs from it (issue 26)."""
+
+    name = 'Ours (raster, paper)'
+    surface_default = 'raster'
 
 
 class FacadeGPFixedMethod(FacadeGPMethod):

@@ -1,0 +1,151 @@
+"""The per-point reading (issue 26) on a seeded façade with a step and a hole, known truth."""
+
+import numpy as np
+import pytest
+
+from uncertain_facade_map.datatypes import ExtractedFacade, FacadeFrame
+from uncertain_facade_map.errors import InputError
+from uncertain_facade_map.params import MapParams, QueryConfig
+from uncertain_facade_map.pipeline.step6_surface import fit_facade
+from uncertain_facade_map.pipeline.step7_local_surface import LocalSurface, fit_local_planes, for_query, smoothstep
+from uncertain_facade_map.pipeline.step7_queries import query_points
+
+NOISE = 0.01
+STEP_U, STEP = 4.0, 0.3  # a 30 cm step (a recess) at u = 4 m
+HOLE = (6.0, 7.5, 3.0, 4.5)  # an occlusion: (u0, u1, v0, v1) without points
+
+
+def truth(uv):
+    return np.where(uv[:, 0] > STEP_U, -STEP, 0.0)
+
+
+def in_hole(uv):
+    return (uv[:, 0] > HOLE[0]) & (uv[:, 0] < HOLE[1]) & (uv[:, 1] > HOLE[2]) & (uv[:, 1] < HOLE[3])
+
+
+def make_scene():
+    """A 10 m x 6 m façade at 30 points/m^2 (a real sweep's density), its map and a held-out half."""
+    rng = np.random.default_rng(7)
+    uv = rng.uniform([0, 0], [10, 6], (3600, 2))
+    uv = uv[~in_hole(uv)]
+    d = truth(uv) + rng.normal(0, NOISE, len(uv))
+    frame = FacadeFrame.from_normal(np.array([0.0, 10.0, 0.0]), np.array([0.0, -1.0, 0.0]))
+    mapped = rng.random(len(uv)) < 0.5
+    pts = frame.to_world(np.c_[uv, d])
+    index = np.flatnonzero(mapped)
+    e = ExtractedFacade(frame, np.arange(len(index)), np.c_[uv, d][index], np.ones(len(index)), (0, 10, 0, 6))
+    model = fit_facade(e, MapParams(), np.random.default_rng(0))
+    local = LocalSurface.of([model], {0: pts[index]})
+    return model, local, frame, pts[~mapped], uv[~mapped], d[~mapped]
+
+
+@pytest.fixture(scope='module')
+def scene():
+    return make_scene()
+
+
+def test_held_out_points_read_within_their_noise_and_covered(scene):
+    model, local, frame, held, uv, d = scene
+    q = query_points([model], held, 0.1, 1.0, 2.0, local=local)
+    err = q.signed_distance - (d - truth(uv))  # the point's own noise is what it measures
+    away = np.abs(uv[:, 0] - STEP_U) > 0.3
+    assert np.all(q.facade == 0)
+    assert np.sqrt(np.mean(err[away] ** 2)) < 0.6 * NOISE
+    cover = np.abs(q.signed_distance) <= 1.96 * np.sqrt(q.variance + q.noise_variance)
+    assert 0.93 <= cover.mean() <= 0.985
+    # At the step the query's own depth picks its layer: points of both layers within 0.3 m
+    # of the step are read within a few centimetres (the raster holds one depth per cell).
+    near = ~away
+    assert np.sqrt(np.mean(q.signed_distance[near] ** 2)) < 0.05
+    raster = query_points([model], held, 0.1, 1.0, 2.0)
+    assert np.sqrt(np.mean(q.signed_distance[near] ** 2)) < 0.7 * np.sqrt(np.mean(raster.signed_distance[near] ** 2))
+
+
+def test_the_calibration_is_learnt_leave_one_out(scene):
+    _, local, *_ = scene
+    assert 0.8 < local.calibration_ < 2.0
+    # Leave-one-out: a stored point is never its own neighbour, duplicates included.
+    pts = np.repeat(local.points[:5], 2, axis=0)
+    dup = LocalSurface(pts, np.zeros(len(pts), np.int32), np.array([[0.0, -1.0, 0.0]]), neighbours=3)
+    _, idx = dup._neighbours(pts, skip=np.arange(len(pts)))
+    assert not np.any(idx == np.arange(len(pts))[:, None])
+
+
+def test_blend_is_continuous_and_variance_grows_into_a_hole(scene):
+    """Walking from mapped wall into the hole: no jump in mean or variance, and the variance
+    grows; deep in the hole the raster alone answers."""
+    model, local, frame, *_ = scene
+    u = np.linspace(5.0, 6.75, 1751)  # 1 mm steps, ending in the hole's middle
+    walk = frame.to_world(np.c_[u, np.full(len(u), 3.75), np.full(len(u), -STEP)])
+    q = query_points([model], walk, 0.1, 1.0, 2.0, local=local)
+    r = local.read(walk)
+    assert r.weight[0] == 1.0 and r.weight[-1] == 0.0 and ((r.weight > 0) & (r.weight < 1)).sum() > 100
+    # The raster itself steps at some cell boundaries (one depth per cell: the paper's); the
+    # blend adds no jump of its own: each 1 mm step moves it at most by the raster's step
+    # times the raster's weight, plus sub-millimetre.
+    raster = query_points([model], walk, 0.1, 1.0, 2.0)
+    excess = np.abs(np.diff(q.signed_distance)) - (1 - r.weight[:-1]) * np.abs(np.diff(raster.signed_distance))
+    assert excess.max() < 0.001
+    sd, sd_raster = np.sqrt(q.variance), np.sqrt(raster.variance)
+    excess = np.abs(np.diff(sd)) - np.abs(np.diff(sd_raster)) - np.abs(np.diff(q.signed_distance))
+    assert excess.max() < 0.001
+    assert q.signed_distance[-1] == raster.signed_distance[-1] and q.variance[-1] == raster.variance[-1]
+    # The sd in the hole's middle is far above the sd on the wall.
+    assert sd[-1] > 3 * sd[:200].max()
+
+
+def test_smoothstep_and_plane_fit_invariants():
+    t = np.linspace(-1, 2, 301)
+    s = smoothstep(t)
+    assert s.min() == 0 and s.max() == 1 and np.all(np.diff(s) >= 0)
+    # Exact plane: zero distance for points on it, the distance for a point off it, any rotation.
+    rng = np.random.default_rng(1)
+    nb = np.c_[rng.uniform(-1, 1, (1, 13, 2)).reshape(13, 2), np.zeros(13)][None]
+    x = np.array([[0.1, 0.2, 0.05]])
+    dist = np.linalg.norm(nb[0] - x, axis=1)[None]
+    order = np.argsort(dist[0])
+    s, normal, scatter, var = fit_local_planes(x, nb[:, order], dist[:, order])
+    assert abs(abs(s[0]) - 0.05) < 1e-9 and abs(abs(normal[0, 2]) - 1) < 1e-9
+    assert scatter[0] < 1e-7 and var[0] < 1e-7
+
+
+def test_config_chooses_the_reading(scene):
+    model, local, frame, held, *_ = scene
+    assert for_query([model], {0: local.points}, QueryConfig(surface='raster')) is None
+    built = for_query([model], {0: local.points}, QueryConfig())
+    assert isinstance(built, LocalSurface) and built.neighbours == QueryConfig().local_neighbours
+    with pytest.raises(InputError, match='local_inner <= local_radius'):
+        QueryConfig(local_inner=0.6, local_radius=0.5)
+    with pytest.raises(InputError, match='occupancy event'):
+        query_points([model], held[:3], 0.1, 1.0, 2.0, event='behind')
+
+
+def test_surface_event_is_the_same_on_both_sides(scene):
+    """p_occupied as 'the surface crosses the voxel' does not hinge on the façade's side."""
+    model, local, frame, *_ = scene
+    front = frame.to_world(np.array([[2.0, 3.0, 0.3], [2.0, 3.0, 0.0]]))
+    back = frame.to_world(np.array([[2.0, 3.0, -0.3], [2.0, 3.0, 0.0]]))
+    for loc in (None, local):
+        pf = query_points([model], front, 0.1, 1.0, 2.0, local=loc, event='surface').p_occupied
+        pb = query_points([model], back, 0.1, 1.0, 2.0, local=loc, event='surface').p_occupied
+        assert pf[0] < 0.01 and pb[0] < 0.01 and pf[1] > 0.5
+        solid = query_points([model], back, 0.1, 1.0, 2.0, local=loc, event='solid').p_occupied
+        assert solid[0] > 0.99
+
+
+def test_a_wall_piece_too_small_for_a_facade_is_answered(scene):
+    """Stored points of a building without a façade (a piece of wall the clustering cut off)
+    beside the façade's raster: answered by the local reading alone, with the nearest façade."""
+    model, _, frame, *_ = scene
+    rng = np.random.default_rng(3)
+    uv = rng.uniform([11.0, 0.0], [12.5, 3.0], (150, 2))  # beyond the raster's u extent (0-10 m)
+    piece = frame.to_world(np.c_[uv, 0.5 + rng.normal(0, NOISE, len(uv))])  # 0.5 m in front of the plane
+    main = frame.to_world(np.c_[rng.uniform([0, 0], [10, 6], (1800, 2)), rng.normal(0, NOISE, 1800)])
+    index = np.arange(len(main))
+    model = type(model)(**{**{k: getattr(model, k) for k in model.__dataclass_fields__}, 'point_index': index})
+    local = LocalSurface.of([model], {0: main, 1: piece})
+    probe = frame.to_world(np.c_[rng.uniform([11.2, 0.2], [12.3, 2.8], (50, 2)), np.full(50, 0.52)])
+    q = query_points([model], probe, 0.1, 1.0, 0.2, local=local)  # band_front 0.2: the piece is outside the band
+    assert np.all(q.facade == 0)
+    assert np.sqrt(np.mean((q.signed_distance - 0.02) ** 2)) < 0.02
+    assert np.all(np.abs(q.signed_distance) <= 1.96 * np.sqrt(q.variance + q.noise_variance) + 0.03)

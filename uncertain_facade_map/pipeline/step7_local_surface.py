@@ -1,0 +1,303 @@
+"""Queries, where the map has data: the surface read per point from the stored points near it.
+
+**A departure from the paper** (issue 26; docs/model.md, "Where the map departs from the
+paper"). The paper reads the surface from each façade's raster (GMM prior + local GP
+blocks, :mod:`~uncertain_facade_map.pipeline.step7_queries`). On real scans the raster's
+body is as good as a plane through the nearest points, but its tails are not: at raster
+borders, depth steps, window reveals and the sides of recesses, one depth per cell cannot
+hold the surface, and a 2.5-D point's (u, v) picks the cell, not its depth. Where the map
+holds dense data, the surface is therefore read per point from the stored façade points
+picked in 3-D near the query, so that the query's own depth chooses the layer at a step
+and the distance is measured along the local normal; the raster answers where the data
+are sparse or missing (occlusions, holes, far range), and the two blend continuously.
+
+The reading at a point ``x`` (all vectorised: one KD-tree query for all points):
+
+1. its ``K + 1`` nearest stored points; the ``K`` nearest weigh
+   ``w_j = (1 - (d_j / d_{K+1})^2)^2`` (a taper to 0 at the ``K + 1``-th, so that the fit
+   is continuous in ``x`` as neighbours enter and leave);
+2. a weighted plane by PCA: centroid ``c``, normal ``n`` (the smallest eigenvector of the
+   weighted scatter), refitted once with the weights times ``1 / (1 + (r_j / 2 sigma)^2)``
+   (a Cauchy reweighting: neighbours on another layer across a step weigh little);
+3. the signed distance ``s_l = (x - c) . n`` (``n`` turned like the façade of the nearest
+   stored point, so positive outside), the scatter ``sigma^2 = sum w r^2 / sum w`` with the
+   weights' effective number ``n_eff = (sum w)^2 / sum w^2`` correcting its bias
+   (``n_eff / (n_eff - 3)``), and the variance of the plane at ``x``, the regression's
+   prediction variance ``sigma^2 (1 + l) / n_eff`` with the leverage
+   ``l = delta_1^2 / lambda_1 + delta_2^2 / lambda_2`` of ``x``'s in-plane offset from
+   the centroid (it grows with the distance from the data);
+4. both scaled by one factor ``calibration_`` learnt on the stored points themselves,
+   leave-one-out (:meth:`LocalSurface.calibrate`): the factor that puts 95 % of the
+   stored points' leave-one-out residuals inside ``1.96 sqrt(sigma^2 + var)``;
+5. the blend weight ``w = smoothstep((radius - rho) / (radius - inner))``, where ``rho`` is
+   the distance to the ``NEAR``-th nearest stored point: 1 where those lie within
+   ``inner``, 0 beyond ``radius`` (the raster alone), continuous between. The blended
+   answer is the mixture's: ``s = w s_l + (1 - w) s_r`` and
+   ``var = w var_l + (1 - w) var_r + w (1 - w) (s_l - s_r)^2``, so that a disagreement
+   of the two readings widens the interval instead of jumping.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..datatypes import FacadeModel
+from ..errors import InputError
+from ..params import QueryConfig
+
+#: The blend weight depends on the distance to this many-th nearest stored point (1: the
+#: nearest, which tells a hole from sparse data better than the 12th: measured on the
+#: real sweeps, docs/model.md).
+NEAR = 1
+#: Stored points (a seeded draw) the leave-one-out calibration reads at most.
+CALIBRATION_POINTS = 20_000
+#: The coverage the calibration aims at, and its interval's half width in sigmas.
+COVERAGE, Z95 = 0.95, 1.959963984540054
+#: Points read at once (bounds the (B, K, 3) neighbour arrays: about 60 MB at K = 24).
+CHUNK = 65_536
+#: Floor of the scatter sigma^2, m^2 (exactly coplanar neighbours give 0).
+MIN_VAR = 1e-8
+
+
+@dataclass(frozen=True)
+class LocalReading:
+    """The per-point reading at N points (NaN where the map holds no stored point nearby).
+
+    Attributes:
+        facade: (N,) int32 façade of the nearest stored point, -1 where no stored point.
+        signed_distance: (N,) ``s_l``, metres, positive outside (along ``normal``).
+        variance: (N,) variance of the local plane at the point, m^2 (calibrated).
+        noise_variance: (N,) scatter of the stored points about it, m^2 (calibrated).
+        normal: (N, 3) unit local normal, map frame, turned like the façade's.
+        weight: (N,) blend weight in [0, 1] (1: the local reading alone; 0: the raster).
+    """
+
+    facade: np.ndarray
+    signed_distance: np.ndarray
+    variance: np.ndarray
+    noise_variance: np.ndarray
+    normal: np.ndarray
+    weight: np.ndarray
+
+
+def smoothstep(t: np.ndarray) -> np.ndarray:
+    """``3 t^2 - 2 t^3`` of ``t`` clipped to [0, 1]: continuous with a continuous slope."""
+    t = np.clip(t, 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+def fit_local_planes(x: np.ndarray, nb: np.ndarray, dist: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Weighted, once reweighted planes through each point's neighbours (steps 1-3 above).
+
+    Args:
+        x: (N, 3) query points, metres.
+        nb: (N, K + 1, 3) their K + 1 nearest stored points, nearest first, metres.
+        dist: (N, K + 1) their distances, metres.
+
+    Returns:
+        ``(s, normal, scatter, plane_var)``: (N,) signed distance of ``x`` to the plane
+        along ``normal`` (sign not yet turned), (N, 3) unit normals, (N,) scatter
+        ``sigma^2`` (bias corrected) and (N,) variance of the plane at ``x`` (uncalibrated,
+        m^2).
+    """
+    taper = np.maximum(dist[:, -1:], 1e-9)
+    w = np.square(np.clip(1.0 - np.square(dist[:, :-1] / taper), 0.0, 1.0))
+    w[:, 0] = np.maximum(w[:, 0], 1e-6)  # a lone nearest neighbour still defines a centroid
+    nbk = nb[:, :-1]
+    for reweight in (False, True):
+        sw = w.sum(axis=1)
+        c = np.einsum('nk,nki->ni', w, nbk) / sw[:, None]
+        dev = nbk - c[:, None]
+        cov = np.einsum('nk,nki,nkj->nij', w, dev, dev) / sw[:, None, None]
+        lam, vec = np.linalg.eigh(cov)
+        normal = vec[:, :, 0]
+        r = np.einsum('nki,ni->nk', dev, normal)
+        sigma2 = np.einsum('nk,nk->n', w, r * r) / sw
+        if not reweight:
+            w = w / (1.0 + r * r / (4.0 * sigma2[:, None] + MIN_VAR))
+    n_eff = np.square(sw) / np.einsum('nk,nk->n', w, w)
+    scatter = np.maximum(sigma2 * n_eff / np.maximum(n_eff - 3.0, 1.0), MIN_VAR)
+    off = x - c
+    s = np.einsum('ni,ni->n', off, normal)
+    lev = (np.square(np.einsum('ni,ni->n', off, vec[:, :, 1])) / np.maximum(lam[:, 1], MIN_VAR)
+           + np.square(np.einsum('ni,ni->n', off, vec[:, :, 2])) / np.maximum(lam[:, 2], MIN_VAR))
+    return s, normal, scatter, scatter * (1.0 + lev) / n_eff
+
+
+@dataclass(eq=False)
+class LocalSurface:
+    """The stored façade points of a map, read per query point (see the module's text).
+
+    Attributes:
+        points: (M, 3) stored façade points (the chi-squared outliers left out), metres,
+            map frame.
+        facade: (M,) int32 façade id of each.
+        normals: (F, 3) outward unit normal of each façade, map frame.
+        neighbours: K, the stored points a plane is fitted to.
+        radius: beyond this distance of the ``NEAR``-th nearest stored point the raster
+            answers alone, metres.
+        inner: within it the local reading answers alone, metres (equal to ``radius``: a
+            switch between the two readings instead of a blend).
+        calibration_: the leave-one-out scale of the variances (:meth:`calibrate`;
+            1 until then).
+    """
+
+    points: np.ndarray
+    facade: np.ndarray
+    normals: np.ndarray
+    neighbours: int = 12
+    radius: float = 0.5
+    inner: float = 0.2
+    calibration_: float = 1.0
+    _tree: cKDTree | None = field(default=None, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.neighbours < 3:
+            raise InputError(f'the local surface needs at least 3 neighbours, got {self.neighbours}')
+        if not 0 <= self.inner <= self.radius:
+            raise InputError(f'the local surface needs 0 <= inner <= radius, got {self.inner} and {self.radius}')
+
+    @classmethod
+    def of(cls, facades: Sequence[FacadeModel], points: dict[int, np.ndarray], neighbours: int = 12,
+           radius: float = 0.5, inner: float = 0.2, calibrate: bool = True) -> LocalSurface:
+        """The local surface of a map's façades.
+
+        Args:
+            facades: the façade models (``facades[i].facade_id == i``).
+            points: per building label, its stored points (N_b, 3), metres, map frame
+                (``FacadeMap.points``); ``facades[i].point_index`` indexes them.
+            neighbours: K.
+            radius: see the class.
+            inner: see the class.
+            calibrate: learn ``calibration_`` now.
+        """
+        parts, ids = [], []
+        for b in sorted(points):
+            pts = points[b]
+            label = np.full(len(pts), -1, dtype=np.int32)
+            for f in facades:
+                if f.building == b and len(f.point_index):
+                    label[f.point_index[f.point_index < len(pts)]] = f.facade_id
+            mapped = np.flatnonzero(label >= 0)
+            if len(mapped) and len(mapped) < len(pts):
+                # A stored point on no façade (a wall piece too small to be one, a reveal)
+                # counts with the façade of its nearest stored point that is on one.
+                free = np.flatnonzero(label < 0)
+                label[free] = label[mapped[cKDTree(pts[mapped]).query(pts[free])[1]]]
+            parts.append(pts)
+            ids.append(label)
+        xyz = np.concatenate(parts) if parts else np.empty((0, 3))
+        fid = np.concatenate(ids) if ids else np.empty(0, np.int32)
+        mapped = np.flatnonzero(fid >= 0)
+        if len(mapped) and len(mapped) < len(fid):
+            # A building too small for a façade of its own (often a piece of a neighbour's
+            # wall that the clustering cut off): its points count with the nearest façade.
+            free = np.flatnonzero(fid < 0)
+            fid[free] = fid[mapped[cKDTree(xyz[mapped]).query(xyz[free])[1]]]
+        normals = np.array([f.frame.normal for f in facades]).reshape(-1, 3)
+        out = cls(xyz, fid, normals, neighbours, radius, inner)
+        if calibrate:
+            out.calibrate()
+        return out
+
+    @property
+    def tree(self) -> cKDTree:
+        """KD-tree of the stored points (built on first use)."""
+        if self._tree is None:
+            self._tree = cKDTree(self.points)
+        return self._tree
+
+    def _neighbours(self, xyz: np.ndarray, skip: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(N, K + 1) distances and indices of each point's nearest stored points, without
+        the stored point ``skip[i]`` itself (leave-one-out; it may have duplicates)."""
+        k = self.neighbours + 1
+        extra = 0 if skip is None else 1
+        m = len(self.points)
+        dist, idx = self.tree.query(xyz, k=min(k + extra, m), workers=-1)
+        dist, idx = dist.reshape(len(xyz), -1), idx.reshape(len(xyz), -1)
+        if skip is not None:
+            keep = idx != skip[:, None]
+            # Keep the first K + 1 entries that are not the point itself (stable order).
+            order = np.argsort(~keep, axis=1, kind='stable')[:, :k]
+            dist, idx = np.take_along_axis(dist, order, 1), np.take_along_axis(idx, order, 1)
+        if idx.shape[1] < k:  # fewer stored points than K + 1: repeat the farthest
+            pad = k - idx.shape[1]
+            dist = np.concatenate([dist, np.repeat(dist[:, -1:], pad, 1)], axis=1)
+            idx = np.concatenate([idx, np.repeat(idx[:, -1:], pad, 1)], axis=1)
+        return dist, idx
+
+    def _raw(self, xyz: np.ndarray, skip: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+        dist, idx = self._neighbours(xyz, skip)
+        s, normal, scatter, plane_var = fit_local_planes(xyz, self.points[idx], dist)
+        # The façade of the nearest neighbour that belongs to one (-1: none does).
+        labels = self.facade[idx]
+        first = np.argmax(labels >= 0, axis=1)
+        fid = labels[np.arange(len(idx)), first]
+        flip = np.einsum('ni,ni->n', normal, self.normals[np.maximum(fid, 0)]) < 0 if len(self.normals) else \
+            np.zeros(len(idx), bool)
+        s = np.where(flip, -s, s)
+        normal = np.where(flip[:, None], -normal, normal)
+        rho = dist[:, min(NEAR, self.neighbours) - 1]
+        rho = np.where(fid >= 0, rho, np.inf)
+        return fid, s, scatter, plane_var, normal, rho
+
+    def calibrate(self, seed: int = 0) -> float:
+        """Learn ``calibration_`` leave-one-out on (at most ``CALIBRATION_POINTS`` of) the stored
+        points where the local reading answers alone; returns it (1 with too few points)."""
+        m = len(self.points)
+        self.calibration_ = 1.0
+        if m <= self.neighbours + 2:
+            return self.calibration_
+        rng = np.random.default_rng(seed)
+        pick = np.sort(rng.choice(m, CALIBRATION_POINTS, replace=False)) if m > CALIBRATION_POINTS else np.arange(m)
+        z = []
+        for start in range(0, len(pick), CHUNK):
+            p = pick[start:start + CHUNK]
+            _, s, scatter, plane_var, _, rho = self._raw(self.points[p], skip=p)
+            used = rho <= self.inner
+            z.append(np.abs(s[used]) / np.sqrt(scatter[used] + plane_var[used]))
+        z = np.concatenate(z)
+        if len(z) >= 50:
+            self.calibration_ = float(np.quantile(z, COVERAGE) / Z95)
+        return self.calibration_
+
+    def read(self, xyz: np.ndarray) -> LocalReading:
+        """The local reading at (N, 3) points, metres, map frame."""
+        n = len(xyz)
+        out = LocalReading(np.full(n, -1, np.int32), np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan),
+                           np.full((n, 3), np.nan), np.zeros(n))
+        if not len(self.points):
+            return out
+        c2 = self.calibration_ ** 2
+        # Only points with a stored point within the radius are read (the others weigh 0):
+        # one cheap nearest-neighbour query first.
+        nearest, _ = self.tree.query(xyz, k=1, distance_upper_bound=self.radius, workers=-1)
+        near = np.flatnonzero(np.isfinite(nearest))
+        for start in range(0, len(near), CHUNK):
+            part = near[start:start + CHUNK]
+            fid, s, scatter, plane_var, normal, rho = self._raw(xyz[part])
+            if self.radius > self.inner:
+                w = smoothstep((self.radius - rho) / (self.radius - self.inner))
+            else:  # inner == radius: a switch
+                w = (rho <= self.radius).astype(np.float64)
+            out.facade[part] = np.where(w > 0, fid, -1)
+            out.signed_distance[part] = s
+            out.variance[part] = c2 * plane_var
+            out.noise_variance[part] = c2 * scatter
+            out.normal[part] = normal
+            out.weight[part] = w
+        return out
+
+
+def for_query(facades: Sequence[FacadeModel], points: dict[int, np.ndarray], config: QueryConfig
+              ) -> LocalSurface | None:
+    """The local surface a query with ``config`` (``query.*``) reads, calibrated; None for
+    ``query.surface`` 'raster' (the paper's reading)."""
+    if config.surface == 'raster':
+        return None
+    return LocalSurface.of(facades, points, config.local_neighbours, config.local_radius, config.local_inner)
