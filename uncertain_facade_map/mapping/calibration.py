@@ -28,7 +28,8 @@ its occupancy (:func:`~uncertain_facade_map.pipeline.step8_occupancy.carve`).
 
 :func:`scan_disagreement` measures, beyond the paper, how much scans disagree where they
 see the same surface (pose and registration noise between scans, which no within-scan
-fit sees): a map keeps its running sums and adds their excess to every answer's variance
+fit sees) beyond what the queries' local reading predicts for a point of another scan: a
+map keeps its running sums and adds their excess to every answer's variance
 (``FacadeMap.registration_var_``, :func:`registration_variance`).
 """
 
@@ -38,11 +39,11 @@ from dataclasses import dataclass
 from typing import Callable, Sequence
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..datatypes import FacadeModel
 from ..errors import InputError
 from ..params import MapParams
+from ..pipeline.step7_local_surface import LocalSurface
 from ..pipeline.step7_queries import PointQuery, query_points
 from ..pipeline.step8_occupancy import FIT_BAND, FIXED, PLSC, facade_half_depth, fit_carving, fit_plsc
 from ..voxels import ReferenceVoxels, pack_keys, ray_crossings, reference_voxels, unpack_keys, voxel_index
@@ -342,46 +343,52 @@ def _clustered_sample(index: np.ndarray, xyz: np.ndarray, n: int, rng: np.random
     return index[order[by_cell[take]]]  # a few more than n: cut in key order, the sample would lean
 
 
-def _trimmed_moment(r: np.ndarray) -> float:
-    """Robust second moment of (n,) residuals, m^2: the mean of r^2 over
-    |r| <= :data:`_TRIM` x 1.4826 x median |r|."""
-    a = np.abs(r)
-    return float(np.mean(r[a <= _TRIM * 1.4826 * np.median(a)] ** 2))
+def _trimmed_moments(s: np.ndarray, var: np.ndarray) -> tuple[float, float]:
+    """Robust means of (n,) residuals' squares and of their (n,) predicted variances, m^2,
+    over the same points: those with |s| <= :data:`_TRIM` x 1.4826 x median |s| and
+    var <= :data:`_TRIM`^2 x median var (edges, the other side of a thin wall, a plane
+    fitted across a corner)."""
+    keep = (np.abs(s) <= _TRIM * 1.4826 * np.median(np.abs(s))) & (var <= _TRIM ** 2 * np.median(var))
+    return float(np.mean(s[keep] ** 2)), float(np.mean(var[keep]))
 
 
 def scan_disagreement(xyz: np.ndarray, scan: np.ndarray, earlier: np.ndarray, k: int = 12,
-                      max_points: int = 2000, rng: np.random.Generator | None = None) -> np.ndarray:
-    """How far scans lie off each other's surface beyond their own noise, as sums.
+                      max_points: int = 2000, rng: np.random.Generator | None = None,
+                      inner: float = 0.2) -> np.ndarray:
+    """How far scans lie off each other's surface beyond what the map's reading predicts, as sums.
 
     For each scan of the new points, up to ``max_points / scans`` of its points (a seeded
-    draw, in clusters: :func:`_clustered_sample`) are compared, where the other scans saw
-    the same wall, with two local surfaces along one normal, the smallest principal axis of
-    the ``k`` nearest points (picked in 3-D) of the *other* scans (``earlier`` and the new
-    points of the other scans):
+    draw, in clusters: :func:`_clustered_sample`) are read, where the other scans saw the
+    same wall, from the *other* scans' points (``earlier`` and the new points of the other
+    scans) as the queries read the map where it holds dense data: the local reading
+    (:class:`~uncertain_facade_map.pipeline.step7_local_surface.LocalSurface`, ``k``
+    neighbours picked in 3-D, its variances scaled by a factor learnt leave-one-out on those
+    other-scan points, as the map's is on its stored points). Only points the local reading
+    answers alone count (a stored point within ``inner``), where the other scans' ``k``
+    nearest lie within :data:`_REACH` on a wall-like patch (:data:`_SPREAD`, :data:`_THICK`).
 
-    - cross: the point's distance to the plane through those other-scan points' centroid;
-    - within: the distance of the nearest of them to the parallel plane through the
-      centroid of its own ``k`` nearest other-scan points (itself left out).
+    - cross: the square of the point's signed distance ``s`` to the reading;
+    - within: what the reading predicts for it, ``variance + noise_variance``.
 
-    The cross one carries the point's noise, a k-point centroid's and the offset between
-    the scans; the within one the other scans' own scatter (their noise, and their offsets
-    from each other where several are stored), which is what the map's noise estimate,
-    fitted on the stored points, already holds. So E[cross^2] - E[within^2] is the variance
-    a later scan's points need besides the map's: for two scans, the mean square offset of
-    one against the other along the surface normal (pose and registration noise). Each
-    moment is trimmed (:func:`_trimmed_moment`): median-based, so that edges and outliers
-    do not dominate.
+    The reading's calibrated variances hold the other scans' own scatter and whatever of
+    their offsets from each other the leave-one-out residuals saw; a later scan's points
+    miss it by that and by their own offset. So E[s^2] - E[variance + noise] is the
+    variance a later scan's points need besides the reading's (pose and registration
+    noise). Both means are over the same points, trimmed (:func:`_trimmed_moments`):
+    median-based, so that edges and outliers do not dominate.
 
     Args:
         xyz: (N, 3) new points, metres, map frame.
         scan: (N,) int scan label of each new point.
         earlier: (M, 3) points of earlier scans (the map's stored points), metres, map frame.
-        k: neighbours of each local plane.
+        k: neighbours of each local plane (``query.local_neighbours``).
         max_points: points sampled in all.
         rng: the draw (default: seeded 0).
+        inner: a point counts where a stored point lies within this (``query.local_inner``),
+            metres.
 
     Returns:
-        (3,) float: [n, n * E[cross^2], n * E[within^2]] with n the points that counted
+        (3,) float: [n, n * E[s^2], n * E[variance + noise]] with n the points that counted
         (m^2 for the sums); zeros when no scan overlaps another.
     """
     rng = np.random.default_rng(0) if rng is None else rng
@@ -411,23 +418,26 @@ def scan_disagreement(xyz: np.ndarray, scan: np.ndarray, earlier: np.ndarray, k:
         if len(others) <= k:
             continue
         p = xyz[pick]
-        tree = cKDTree(others)
-        d_o, i_o = tree.query(p, k)
+        # The other scans read as the queries read the map: one façade (labels and normal
+        # only turn the sign; only s^2 counts), calibrated leave-one-out on these points.
+        surface = LocalSurface(others, np.zeros(len(others), np.int32), np.array([[0.0, 0.0, 1.0]]), k, inner,
+                               inner)
+        d_o, i_o = surface.tree.query(p, k)
         nb = others[i_o]  # (S, k, 3)
-        centre = nb.mean(axis=1)
-        dev = nb - centre[:, None]
-        w, v = np.linalg.eigh(np.einsum('ski,skj->sij', dev, dev))
-        normal = v[:, :, 0]
+        dev = nb - nb.mean(axis=1)[:, None]
+        w = np.linalg.eigvalsh(np.einsum('ski,skj->sij', dev, dev))
         ok = (d_o[:, -1] <= _REACH) & (w[:, 1] >= _SPREAD * w[:, 2]) & (w[:, 0] <= k * _THICK ** 2)
         if ok.sum() < 10:
             continue
-        q = others[i_o[:, 0]]  # the nearest other-scan point, against its own neighbours
-        _, i_q = tree.query(q, k + 1)
-        q_centre = others[i_q[:, 1:]].mean(axis=1)  # column 0: the point itself
-        cross = np.einsum('si,si->s', p - centre, normal)[ok]
-        within = np.einsum('si,si->s', q - q_centre, normal)[ok]
-        n = int(ok.sum())
-        out += [n, n * _trimmed_moment(cross), n * _trimmed_moment(within)]
+        surface.calibrate()
+        reading = surface.read(p[ok])
+        alone = reading.weight >= 1.0
+        if alone.sum() < 10:
+            continue
+        cross, within = _trimmed_moments(reading.signed_distance[alone],
+                                         reading.variance[alone] + reading.noise_variance[alone])
+        n = int(alone.sum())
+        out += [n, n * cross, n * within]
     return out
 
 

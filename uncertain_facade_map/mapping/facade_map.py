@@ -47,7 +47,7 @@ import numpy as np
 
 from ..datatypes import ExtractedFacade, FacadeFrame, FacadeModel
 from ..errors import InputError
-from ..params import MapParams
+from ..params import MapParams, QueryConfig
 from ..pipeline.step1_facades import (
     _final_frame,
     _grid_components,
@@ -93,8 +93,9 @@ class FacadeMap:
             (:meth:`calibrate_occupancy`), or the fixed formula's.
         occupancy_stored_: points stored at the last calibration (0: never calibrated).
         registration_sums_: (3,) running sums of how far each new scan's points lie off the
-            other scans' surface (:func:`~uncertain_facade_map.mapping.calibration.scan_disagreement`):
-            points compared, their cross-scan and their within-scan second moments (m^2).
+            other scans' local reading (:func:`~uncertain_facade_map.mapping.calibration.scan_disagreement`):
+            points compared, their squared signed distances and the reading's predicted
+            variances (m^2).
         registration_var_: the variance of scan-to-scan disagreement (pose and registration
             noise) learnt from those sums, m^2, added to every answer's variance
             (:func:`~uncertain_facade_map.mapping.calibration.registration_variance`; 0 until
@@ -360,7 +361,9 @@ class FacadeMap:
         earlier = np.vstack(list(self.points.values())) if self.points else np.empty((0, 3))
         labels = np.zeros(len(xyz), np.int64) if scan is None else scan
         rng = np.random.default_rng([self.params.seed, self.n_points, len(xyz)])
-        found = scan_disagreement(xyz, labels, earlier, max_points=up.registration_points, rng=rng)
+        reading = QueryConfig()  # the map does not know how it will be queried: the default local reading
+        found = scan_disagreement(xyz, labels, earlier, reading.local_neighbours, up.registration_points, rng,
+                                  reading.local_inner)
         if found[0]:
             self.registration_sums_ = self.registration_sums_ + found
             self.registration_var_ = registration_variance(self.registration_sums_, up.registration_max_std)
