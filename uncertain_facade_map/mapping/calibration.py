@@ -299,6 +299,10 @@ _CROP_CELL = _REACH
 #: however dense the stored points are.
 _PER_CLUSTER = 8
 _CLUSTER_CELL = 1.0
+#: The other scans' local reading learns its calibration on at most this many of their
+#: points near the sample (leave-one-out), so that an update's cost does not grow with
+#: the map's density.
+_CALIBRATION_POINTS = 2000
 
 
 def _cell_keys(xyz: np.ndarray, side: float = _CROP_CELL) -> np.ndarray:
@@ -429,7 +433,7 @@ def scan_disagreement(xyz: np.ndarray, scan: np.ndarray, earlier: np.ndarray, k:
         ok = (d_o[:, -1] <= _REACH) & (w[:, 1] >= _SPREAD * w[:, 2]) & (w[:, 0] <= k * _THICK ** 2)
         if ok.sum() < 10:
             continue
-        surface.calibrate()
+        surface.calibrate(max_points=_CALIBRATION_POINTS)
         reading = surface.read(p[ok])
         alone = reading.weight >= 1.0
         if alone.sum() < 10:
