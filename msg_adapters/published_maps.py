@@ -49,17 +49,18 @@ class PublishedMaps:
 
 def published_map_messages(facades: Sequence[Any], publish: Any, band_back: float, band_front: float,
                            frame_id: str, stamp_ns: int, serialize_message: Callable[[Any], bytes],
-                           occupancy: PLSC = FIXED, local: Any = None) -> PublishedMaps:
+                           occupancy: PLSC = FIXED, local: Any = None, registration_var: float = 0.0) -> PublishedMaps:
     """Every published map of ``facades`` (see :func:`~uncertain_facade_map.mapping.products.map_products`
     for ``publish`` and the bands), in ``frame_id`` at ``stamp_ns``, serialized by
     ``serialize_message`` (rclpy's ``rclpy.serialization.serialize_message``: a module-level
     function, so that the call pickles to a helper process); ``occupancy``: the PLSC
     parameters of the occupancy (the map's learnt ones or the fixed formula's); ``local``: the
     map's stored points read per point in the occupancy products
-    (:class:`~uncertain_facade_map.pipeline.step7_local_surface.LocalSurface`, None: the rasters alone)."""
+    (:class:`~uncertain_facade_map.pipeline.step7_local_surface.LocalSurface`, None: the rasters alone);
+    ``registration_var``: the map's scan-to-scan variance, m^2 (``FacadeMap.registration_var_``)."""
     types, cloud_types = rclpy_map_types(), rclpy_types()
     facades = list(facades)
-    products = mp.map_products(facades, publish, band_back, band_front, occupancy, local)
+    products = mp.map_products(facades, publish, band_back, band_front, occupancy, local, registration_var)
     surf = products.surface
     table = np.zeros(len(surf.xyz), dtype=[('x', 'f4'), ('y', 'f4'), ('z', 'f4'), ('std', 'f4'), ('facade', 'i4')])
     table['x'], table['y'], table['z'] = surf.xyz.T

@@ -386,6 +386,13 @@ class UpdateParams(Section):
     store_per_voxel: int = param(4, '... this many points at most, the first to arrive (4 per 0.1 m voxel: a few '
                                     'per cell of the 0.1 m surface raster, about 2x the density of one drive of the '
                                     'street scene)', allowed=_closed(1, 1_000_000_000))
+    registration_points: int = param(2000, 'each update compares up to this many of its points (a seeded draw) with '
+                                           "the other scans' surface where both saw a wall, to learn how far scans "
+                                           'lie off each other beyond their noise (pose and registration noise); '
+                                           'the excess is added to the variance of every answer; 0: not learnt, '
+                                           'no such term', allowed=_closed(0, 1_000_000))
+    registration_max_std: float = param(0.3, '... the learnt scan-to-scan standard deviation is bounded by this',
+                                        unit='m', allowed=_closed(0.0, 10.0))
 
 
 @dataclass(frozen=True)

@@ -75,7 +75,7 @@ def _query(work: Path, scene_name: str, surface: str = 'local') -> dict:
     band = fmap.params.extraction
     started = time.perf_counter()
     res = query_map(fmap.facades, fmap.points, pts, 0.1, band.band_back, band.band_front, fmap.occupancy_,
-                    QueryConfig(surface=surface))
+                    QueryConfig(surface=surface), registration_var=fmap.registration_var_)
     seconds = time.perf_counter() - started
     what = 'the stored points per point where dense (its set-up timed)' if surface == 'local' else 'rasters alone'
     return {'stage': f'query {scene_name}' + ('' if surface == 'local' else ' raster'), 'items': len(pts),

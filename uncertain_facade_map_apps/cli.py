@@ -256,7 +256,8 @@ def cmd_query(args: argparse.Namespace) -> int:
     resolution = args.resolution if args.resolution is not None else query.resolution
     started = time.perf_counter()
     result = query_map(fmap.facades, fmap.points, xyz, resolution, fmap.params.extraction.band_back,
-                       fmap.params.extraction.band_front, fmap.occupancy_, query)
+                       fmap.params.extraction.band_front, fmap.occupancy_, query,
+                       registration_var=fmap.registration_var_)
     seconds = time.perf_counter() - started
     out = Path(args.out)
     with open(out, 'wb') as fh:

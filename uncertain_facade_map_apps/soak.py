@@ -460,7 +460,7 @@ def offline_answers(path: Path, xyz: np.ndarray, resolution: float = 0.1) -> dic
     fmap = load_map(path)
     band = fmap.params.extraction
     return query_map(fmap.facades, fmap.points, xyz, resolution, band.band_back, band.band_front, fmap.occupancy_,
-                     QueryConfig()).as_dict()
+                     QueryConfig(), registration_var=fmap.registration_var_).as_dict()
 
 
 def as_int(values: dict | None, key: str) -> int | None:

@@ -633,7 +633,7 @@ class FacadeMapperNode(Node):
                 # Built and serialized in the helper process: here only bytes are handed over.
                 maps = self._compute(published_map_messages, facades, cfg, band.band_back, band.band_front,
                                      self.frame_id, stamp, serialize_message, self._occupancy(snap),
-                                     self._local_surface(snap))
+                                     self._local_surface(snap), snap.registration_var)
                 # The latched publishers keep these (and the grid) until the next ones.
                 self._published_bytes = (len(maps.surface) + len(maps.mesh) + len(maps.variance_grids)
                                          + len(maps.voxels) + (maps.grid.p.size if maps.grid is not None else 0))
@@ -679,7 +679,7 @@ class FacadeMapperNode(Node):
         p, origin, resolution = np.full((1, 1), np.nan), np.zeros(2), cfg.grid_resolution
         if snap.facades:
             g = grid or self._compute(mp.band_grid, list(snap.facades), cfg, params.band_back, params.band_front,
-                                      self._occupancy(snap), self._local_surface(snap))
+                                      self._occupancy(snap), self._local_surface(snap), snap.registration_var)
             p, origin, resolution = g.p, g.origin, g.resolution
             if resolution != cfg.grid_resolution:
                 self._warn(f'the 2D grid of this map would have more than publish.grid_max_cells = '
@@ -797,7 +797,8 @@ class FacadeMapperNode(Node):
             snap = self.worker.snapshot
             params = snap.params.extraction  # the map's own bands (a loaded map keeps its own)
             answers = query_map(snap.facades, snap.stored_points, xyz, resolution, params.band_back,
-                                params.band_front, snap.occupancy, self.config.query, self._local_surface(snap))
+                                params.band_front, snap.occupancy, self.config.query, self._local_surface(snap),
+                                snap.registration_var)
             mm.fill_query_response(response, answers, f'{len(xyz)} points, map version {snap.version}',
                                    msg_types=self.types)
             self._query_seconds.append(time.perf_counter() - started)

@@ -68,9 +68,11 @@ def test_many_calls_store_what_one_call_stores(tmp_path):
     scans = passes(5)
     xyz = np.concatenate([s[0] for s in scans])
     origins = np.concatenate([s[1] for s in scans])
-    whole = build_map(xyz, None, origins, params)
+    parts = np.array_split(np.arange(len(xyz)), 17)
+    # Each deferred call is a scan (FacadeMap.registration_var_): one call labels them so.
+    whole = build_map(xyz, None, origins, params, scan=np.repeat(np.arange(17), [len(p) for p in parts]))
     live = FacadeMap(params)
-    for part in np.array_split(np.arange(len(xyz)), 17):
+    for part in parts:
         live.add_points(xyz[part], None, origins[part], defer=True)
     live.flush()
     assert live.thinned == whole.thinned and whole.n_thinned > 0

@@ -308,18 +308,24 @@ def test_service_answers_equal_the_offline_core(client, mapped, scans, workdir):
     band = (offline.params.extraction.band_back, offline.params.extraction.band_front)
     # The occupancy's PLSC parameters, learnt as the map grew, are the offline core's too.
     assert offline.occupancy_.learnt and live.occupancy_ == offline.occupancy_
+    # So is the scan-to-scan variance (each cloud a scan).
+    reg = offline.registration_var_
+    assert live.registration_var_ == reg and offline.registration_sums_[0] > 0
     # The node answers as the command line reads a map (query_map: the stored points per point
     # where dense, the surface event, the learnt PLSC), from the offline core's map...
-    expected = query_map(offline.facades, offline.points, xyz, 0.1, *band, offline.occupancy_, QueryConfig()).as_dict()
+    expected = query_map(offline.facades, offline.points, xyz, 0.1, *band, offline.occupancy_, QueryConfig(),
+                         registration_var=reg).as_dict()
     assert (expected['facade'] >= 0).mean() > 0.3
     assert_answers_equal(answers_of(response), expected)
     # ... and from the node's own map file.
     assert_answers_equal(answers_of(response),
-                         query_map(live.facades, live.points, xyz, 0.1, *band, live.occupancy_, QueryConfig()).as_dict())
+                         query_map(live.facades, live.points, xyz, 0.1, *band, live.occupancy_, QueryConfig(),
+                                   registration_var=live.registration_var_).as_dict())
     # Another resolution.
     response = client.call(QueryPoints, 'query_points', query_request(xyz[:500], 0.05))
     assert_answers_equal(answers_of(response), query_map(offline.facades, offline.points, xyz[:500], 0.05, *band,
-                                                         offline.occupancy_, QueryConfig()).as_dict())
+                                                         offline.occupancy_, QueryConfig(),
+                                                         registration_var=reg).as_dict())
 
 
 def test_get_facades_describes_the_models(client, mapped, scans):

@@ -602,7 +602,7 @@ class PackageMap:
         """Answers for (N, 3) points by :func:`query_points` (NaN where on no façade)."""
         ex = self.fmap.params.extraction
         q = query_points(self.fmap.facades, xyz, resolution, ex.band_back, ex.band_front, local=self.local,
-                         event=self.config.occupancy_event)
+                         event=self.config.occupancy_event, registration_var=self.fmap.registration_var_)
         return Answers(q.signed_distance, q.variance, q.noise_variance, q.p_occupied)
 
 

@@ -6,18 +6,22 @@ An open format any numpy (or any zip + .npy reader) can read, no pickle. It hold
 - per façade ``i``: ``facade/<i>/<name>`` arrays (frame, layers, facets, length scales,
   surface raster: mean, variance, facet, source);
 - ``pending/xyz`` (and ``pending/building_id``, ``pending/sensor_origins``): points
-  received but held back for the next update (live mapping);
+  received but held back for the next update (live mapping), ``pending/scan`` the number
+  of the call (a scan) that brought each;
 - per building ``b``: ``building/<b>/points``, ``building/<b>/normals`` and, if known,
   ``building/<b>/sensor_origins`` (kept so that a loaded map goes on mapping exactly as
   the map that was saved would have); ``meta`` counts per building the points thinned
   (counted, not stored: see ``update.store_voxel``), 0 when absent; and the occupancy's
   learnt PLSC parameters (``occupancy``: scale, spread, the voxels they were learnt on and
-  the points stored then; the fixed formula's when absent).
+  the points stored then; the fixed formula's when absent); and the variance of
+  scan-to-scan disagreement (``registration``: ``var`` in m^2 and the running ``sums`` it
+  was learnt from, ``FacadeMap.registration_var_``).
 
 Version 2 added what incremental mapping needs (per façade the wall's ``plane_extent``,
 the block grid's ``anchor`` and the points at the last whole fit; per building the point
 normals and the pool size at the last RANSAC run); version 3 the wall's relief per façade
-(``relief_origin``, ``relief_values``, ``relief_spacing``). Older files are upgraded on load.
+(``relief_origin``, ``relief_values``, ``relief_spacing``); version 4 the scan-to-scan
+disagreement (``registration``). Older files are upgraded on load.
 
 Loading gives back every array bit for bit. A file of a newer version is refused with a
 message saying so; older versions are upgraded by the functions in :data:`MIGRATIONS`.
@@ -42,7 +46,7 @@ from ..params import map_params_from_record, map_params_record
 from ..pipeline.step8_occupancy import PLSC
 
 FORMAT = 'uncertain_facade_map.map'
-VERSION = 3
+VERSION = 4
 #: Upgrades of older files: version -> function(meta, arrays) returning the next version's.
 MIGRATIONS: dict[int, Callable[[dict, dict], tuple[dict, dict]]] = {}
 
@@ -139,6 +143,8 @@ def save_map(fmap: FacadeMap, path: str | Path) -> Path:
         'pool_checked': {str(b): int(n) for b, n in fmap.pool_checked.items()},
         'thinned': {str(b): int(n) for b, n in fmap.thinned.items()},
         'occupancy': dict(fmap.occupancy_.as_dict(), stored=fmap.occupancy_stored_),
+        'registration': {'var': float(fmap.registration_var_),
+                         'sums': [float(x) for x in fmap.registration_sums_]},
     }
     arrays: dict[str, np.ndarray] = {'meta': np.array(json.dumps(meta))}
     for f in fmap.facades:
@@ -159,6 +165,9 @@ def save_map(fmap: FacadeMap, path: str | Path) -> Path:
                 [p[1] if p[1] is not None else np.full(len(p[0]), -1, np.int64) for p in fmap.pending])
         if all(p[2] is not None for p in fmap.pending):
             arrays['pending/sensor_origins'] = np.vstack([p[2] for p in fmap.pending])
+        # Each call held back is one scan (FacadeMap.registration_var_): its number per point.
+        arrays['pending/scan'] = np.repeat(np.arange(len(fmap.pending), dtype=np.int64),
+                                           [len(p[0]) for p in fmap.pending])
     prefix, suffix = _temporary_name(path)
     fd, tmp = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=path.parent)
     try:
@@ -244,11 +253,18 @@ def _from_records(meta: dict, arrays: dict[str, np.ndarray]) -> FacadeMap:
     thinned = {int(b): int(n) for b, n in meta.get('thinned', {}).items()}  # absent before issue 13
     pending = []
     if 'pending/xyz' in arrays:
-        pending.append((arrays['pending/xyz'], arrays.get('pending/building_id'), arrays.get('pending/sensor_origins')))
+        xyz, ids, so = arrays['pending/xyz'], arrays.get('pending/building_id'), arrays.get('pending/sensor_origins')
+        scan = arrays.get('pending/scan', np.zeros(len(xyz), np.int64))  # absent before version 4: one part
+        cuts = np.flatnonzero(np.diff(scan)) + 1
+        for part in np.split(np.arange(len(xyz)), cuts):
+            pending.append((xyz[part], None if ids is None else ids[part], None if so is None else so[part]))
     occupancy = dict(meta.get('occupancy', {}))  # absent before issue 14: the fixed formula
     stored = int(occupancy.pop('stored', 0))
+    registration = meta['registration']
     return FacadeMap(params, np.asarray(meta['map_origin'], dtype=np.float64), facades, points, origins, normals,
-                     pool, pending=pending, thinned=thinned, occupancy_=PLSC(**occupancy), occupancy_stored_=stored)
+                     pool, pending=pending, thinned=thinned, occupancy_=PLSC(**occupancy), occupancy_stored_=stored,
+                     registration_sums_=np.asarray(registration['sums'], dtype=np.float64).reshape(3),
+                     registration_var_=float(registration['var']))
 
 
 def _upgrade_1(meta: dict, arrays: dict[str, np.ndarray]) -> tuple[dict, dict]:
@@ -296,3 +312,14 @@ def _upgrade_2(meta: dict, arrays: dict[str, np.ndarray]) -> tuple[dict, dict]:
 
 
 MIGRATIONS[2] = _upgrade_2
+
+
+def _upgrade_3(meta: dict, arrays: dict[str, np.ndarray]) -> tuple[dict, dict]:
+    """Version 3 -> 4: no scan-to-scan disagreement was learnt (variance 0), and the
+    parameters say none is, so that the map goes on as it was built."""
+    record = meta['params']
+    record['update'] = dict(record.get('update', {}), registration_points=0)
+    return dict(meta, version=4, registration={'var': 0.0, 'sums': [0.0, 0.0, 0.0]}), arrays
+
+
+MIGRATIONS[3] = _upgrade_3

@@ -25,6 +25,12 @@ holds some out, as R&W fit PLSC on leave-one-out predictions (Section 6.5):
 :func:`calibrate_free_space` learns, with the same sample and hold-out, the weight of the
 free-space extension (beyond the paper): how much each mapped ray through a voxel lowers
 its occupancy (:func:`~uncertain_facade_map.pipeline.step8_occupancy.carve`).
+
+:func:`scan_disagreement` measures, beyond the paper, how much scans disagree where they
+see the same surface (pose and registration noise between scans, which no within-scan
+fit sees) beyond what the queries' local reading predicts for a point of another scan: a
+map keeps its running sums and adds their excess to every answer's variance
+(``FacadeMap.registration_var_``, :func:`registration_variance`).
 """
 
 from __future__ import annotations
@@ -37,12 +43,14 @@ import numpy as np
 from ..datatypes import FacadeModel
 from ..errors import InputError
 from ..params import MapParams
+from ..pipeline.step7_local_surface import LocalSurface
 from ..pipeline.step7_queries import PointQuery, query_points
 from ..pipeline.step8_occupancy import FIT_BAND, FIXED, PLSC, facade_half_depth, fit_carving, fit_plsc
 from ..voxels import ReferenceVoxels, pack_keys, ray_crossings, reference_voxels, unpack_keys, voxel_index
 from .facade_map import FacadeMap, build_map
 
-__all__ = ['calibrate_free_space', 'calibrate_occupancy', 'scan_voxels', 'surface_terms']
+__all__ = ['calibrate_free_space', 'calibrate_occupancy', 'registration_variance', 'scan_disagreement', 'scan_voxels',
+           'surface_terms']
 
 
 def scan_voxels(xyz: np.ndarray, origins: np.ndarray, resolution: float, max_rays: int = 50_000,
@@ -269,3 +277,179 @@ def calibrate_free_space(xyz: np.ndarray, sensor_origins: np.ndarray, plsc: PLSC
     step = ray_step(len(xyz))  # as the whole map takes them
     crossings = ray_crossings(h.xyz[h.mapped][::step], h.origins[h.mapped][::step], resolution, keys, reach)
     return fit_carving(positive[near], weight[near], p[near], crossings[near])
+
+
+#: Scan disagreement: a sampled point counts where its other-scan neighbours lie within
+#: :data:`_REACH` (metres), spread over a surface (middle eigenvalue at least :data:`_SPREAD`
+#: times the largest: not one scan line) no thicker than :data:`_THICK` (rms along the
+#: normal, metres: a wall both scans see, not foliage). The bounds are absolute, not
+#: relative to the neighbourhood's extent, which shrinks as the map grows denser.
+_REACH = 1.0
+_SPREAD = 0.05
+_THICK = 0.1
+#: Residuals beyond this many robust standard deviations (1.4826 x the median absolute
+#: residual) are left out of a second moment (edges, the other side of a thin wall); for
+#: Gaussian residuals the moment loses 0.1 %.
+_TRIM = 4.0
+#: Cells (metres) by which the points near a sample are picked before the KD-tree: the
+#: cells of the samples and their neighbours hold every point within :data:`_REACH`.
+_CROP_CELL = _REACH
+#: The sample is drawn in clusters, up to this many points in each of random cells of
+#: :data:`_CLUSTER_CELL` metres, so that the points near it, the KD-tree's, stay few
+#: however dense the stored points are.
+_PER_CLUSTER = 8
+_CLUSTER_CELL = 1.0
+#: The other scans' local reading learns its calibration on at most this many of their
+#: points near the sample (leave-one-out), so that an update's cost does not grow with
+#: the map's density.
+_CALIBRATION_POINTS = 2000
+
+
+def _cell_keys(xyz: np.ndarray, side: float = _CROP_CELL) -> np.ndarray:
+    c = np.floor(xyz / side).astype(np.int64) & 0x1FFFFF
+    return (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
+
+
+def _near_cells(sample: np.ndarray) -> np.ndarray:
+    """Sorted keys of the crop cells of (S, 3) points and of their 26 neighbours."""
+    c = np.floor(sample / _CROP_CELL).astype(np.int64)
+    off = np.stack(np.meshgrid(*([np.arange(-1, 2)] * 3), indexing='ij'), axis=-1).reshape(-1, 3)
+    return np.unique(_cell_keys((np.unique(c, axis=0)[:, None, :] + off[None]).reshape(-1, 3) * _CROP_CELL
+                                + 0.5 * _CROP_CELL))
+
+
+def _clustered_sample(index: np.ndarray, xyz: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """About ``n`` of the points ``index`` (into (N, 3) ``xyz``), in clusters: random cells
+    of side :data:`_CLUSTER_CELL`, the same random share of the points of each (about
+    :data:`_PER_CLUSTER` a cell on average)."""
+    if len(index) <= n:
+        return index
+    if len(index) > 64 * n:  # a large scan: its clusters drawn from a uniform subsample
+        index = np.sort(rng.choice(index, 64 * n, replace=False))
+    order = rng.permutation(len(index))
+    keys = _cell_keys(xyz[index[order]], _CLUSTER_CELL)
+    by_cell = np.argsort(keys, kind='stable')  # stable: random order within a cell
+    sk = keys[by_cell]
+    first = np.r_[True, sk[1:] != sk[:-1]]
+    group = np.cumsum(first) - 1
+    rank = np.arange(len(sk)) - np.flatnonzero(first)[group]
+    # Cells in a random order, each giving the same share of its points (about
+    # _PER_CLUSTER on average, rounded at random): every point has the same odds, however
+    # the cells cut the surface.
+    counts = np.bincount(group)
+    share = max(_PER_CLUSTER / counts.mean(), n / len(index))  # few cells: more of each
+    quota = np.floor(counts * share + rng.random(len(counts))).astype(np.int64)
+    cells = rng.permutation(len(counts))
+    cells = cells[:int(np.searchsorted(np.cumsum(quota[cells]), n)) + 1]  # cells enough for n points
+    chosen = np.zeros(len(counts), bool)
+    chosen[cells] = True
+    take = (rank < quota[group]) & chosen[group]
+    return index[order[by_cell[take]]]  # a few more than n: cut in key order, the sample would lean
+
+
+def _trimmed_moments(s: np.ndarray, var: np.ndarray) -> tuple[float, float]:
+    """Robust means of (n,) residuals' squares and of their (n,) predicted variances, m^2,
+    over the same points: those with |s| <= :data:`_TRIM` x 1.4826 x median |s| and
+    var <= :data:`_TRIM`^2 x median var (edges, the other side of a thin wall, a plane
+    fitted across a corner)."""
+    keep = (np.abs(s) <= _TRIM * 1.4826 * np.median(np.abs(s))) & (var <= _TRIM ** 2 * np.median(var))
+    return float(np.mean(s[keep] ** 2)), float(np.mean(var[keep]))
+
+
+def scan_disagreement(xyz: np.ndarray, scan: np.ndarray, earlier: np.ndarray, k: int = 12,
+                      max_points: int = 2000, rng: np.random.Generator | None = None,
+                      inner: float = 0.2) -> np.ndarray:
+    """How far scans lie off each other's surface beyond what the map's reading predicts, as sums.
+
+    For each scan of the new points, up to ``max_points / scans`` of its points (a seeded
+    draw, in clusters: :func:`_clustered_sample`) are read, where the other scans saw the
+    same wall, from the *other* scans' points (``earlier`` and the new points of the other
+    scans) as the queries read the map where it holds dense data: the local reading
+    (:class:`~uncertain_facade_map.pipeline.step7_local_surface.LocalSurface`, ``k``
+    neighbours picked in 3-D, its variances scaled by a factor learnt leave-one-out on those
+    other-scan points, as the map's is on its stored points). Only points the local reading
+    answers alone count (a stored point within ``inner``), where the other scans' ``k``
+    nearest lie within :data:`_REACH` on a wall-like patch (:data:`_SPREAD`, :data:`_THICK`).
+
+    - cross: the square of the point's signed distance ``s`` to the reading;
+    - within: what the reading predicts for it, ``variance + noise_variance``.
+
+    The reading's calibrated variances hold the other scans' own scatter and whatever of
+    their offsets from each other the leave-one-out residuals saw; a later scan's points
+    miss it by that and by their own offset. So E[s^2] - E[variance + noise] is the
+    variance a later scan's points need besides the reading's (pose and registration
+    noise). Both means are over the same points, trimmed (:func:`_trimmed_moments`):
+    median-based, so that edges and outliers do not dominate.
+
+    Args:
+        xyz: (N, 3) new points, metres, map frame.
+        scan: (N,) int scan label of each new point.
+        earlier: (M, 3) points of earlier scans (the map's stored points), metres, map frame.
+        k: neighbours of each local plane (``query.local_neighbours``).
+        max_points: points sampled in all.
+        rng: the draw (default: seeded 0).
+        inner: a point counts where a stored point lies within this (``query.local_inner``),
+            metres.
+
+    Returns:
+        (3,) float: [n, n * E[s^2], n * E[variance + noise]] with n the points that counted
+        (m^2 for the sums); zeros when no scan overlaps another.
+    """
+    rng = np.random.default_rng(0) if rng is None else rng
+    out = np.zeros(3)
+    labels = np.unique(scan)
+    if max_points <= 0 or (len(labels) < 2 and not len(earlier)):
+        return out
+    per_scan = max(1, int(max_points) // len(labels))
+    picks = []
+    for s in labels:
+        own_idx = np.flatnonzero(scan == s)
+        picks.append(_clustered_sample(own_idx, xyz, per_scan, rng))
+    # The points near any sample, once (the stored points may be many).
+    sample = xyz[np.concatenate(picks)]
+    cells = _near_cells(sample)  # the sample's cells and their neighbours
+    lo, hi = sample.min(axis=0) - 2 * _CROP_CELL, sample.max(axis=0) + 2 * _CROP_CELL
+    near_new = np.flatnonzero(np.all((xyz >= lo) & (xyz <= hi), axis=1))
+    near_new = near_new[np.isin(_cell_keys(xyz[near_new]), cells)]
+    near_old = earlier[np.all((earlier >= lo) & (earlier <= hi), axis=1)] if len(earlier) else np.empty((0, 3))
+    near_old = near_old[np.isin(_cell_keys(near_old), cells)]
+    new_keys = _cell_keys(xyz[near_new])
+    old_keys = _cell_keys(near_old)
+    for s, pick in zip(labels, picks):
+        mine = _near_cells(xyz[pick])
+        in_cells = np.isin(new_keys, mine)
+        others = np.vstack([near_old[np.isin(old_keys, mine)], xyz[near_new[in_cells & (scan[near_new] != s)]]])
+        if len(others) <= k:
+            continue
+        p = xyz[pick]
+        # The other scans read as the queries read the map: one façade (labels and normal
+        # only turn the sign; only s^2 counts), calibrated leave-one-out on these points.
+        surface = LocalSurface(others, np.zeros(len(others), np.int32), np.array([[0.0, 0.0, 1.0]]), k, inner,
+                               inner)
+        d_o, i_o = surface.tree.query(p, k)
+        nb = others[i_o]  # (S, k, 3)
+        dev = nb - nb.mean(axis=1)[:, None]
+        w = np.linalg.eigvalsh(np.einsum('ski,skj->sij', dev, dev))
+        ok = (d_o[:, -1] <= _REACH) & (w[:, 1] >= _SPREAD * w[:, 2]) & (w[:, 0] <= k * _THICK ** 2)
+        if ok.sum() < 10:
+            continue
+        surface.calibrate(max_points=_CALIBRATION_POINTS)
+        reading = surface.read(p[ok])
+        alone = reading.weight >= 1.0
+        if alone.sum() < 10:
+            continue
+        cross, within = _trimmed_moments(reading.signed_distance[alone],
+                                         reading.variance[alone] + reading.noise_variance[alone])
+        n = int(alone.sum())
+        out += [n, n * cross, n * within]
+    return out
+
+
+def registration_variance(sums: np.ndarray, max_std: float, min_points: int = 100) -> float:
+    """The registration variance (m^2) of running :func:`scan_disagreement` sums: the excess
+    of the cross-scan second moment over the within-scan one, 0 below ``min_points``
+    compared points or when negative, at most ``max_std``^2."""
+    n, cross, within = (float(x) for x in np.asarray(sums, dtype=np.float64).reshape(3))
+    if n < min_points:
+        return 0.0
+    return float(min(max(0.0, (cross - within) / n), max_std ** 2))

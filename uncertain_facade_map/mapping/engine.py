@@ -68,6 +68,8 @@ class MapView:
         stored_points: per building label, its stored points (``FacadeMap.points``: the
             arrays, shared, never written), which queries read per point
             (:mod:`~uncertain_facade_map.pipeline.step7_local_surface`).
+        registration_var: the map's variance of scan-to-scan disagreement, m^2
+            (``FacadeMap.registration_var_``), added to every answer's variance.
     """
 
     facades: tuple[FacadeModel, ...]
@@ -82,6 +84,7 @@ class MapView:
     map_bytes: int = 0
     occupancy: PLSC = FIXED
     stored_points: dict[int, np.ndarray] = field(default_factory=dict)
+    registration_var: float = 0.0
 
 
 def view_of(fmap: FacadeMap, cpu_seconds: float = 0.0) -> MapView:
@@ -90,7 +93,8 @@ def view_of(fmap: FacadeMap, cpu_seconds: float = 0.0) -> MapView:
     origin.setflags(write=False)  # the façade models' arrays are read-only already
     return MapView(tuple(fmap.facades), origin, len(fmap.points), fmap.n_points, fmap.params, fmap.n_pending,
                    bool(fmap.pending) or any(f.fitted_points != len(f.point_index) for f in fmap.facades),
-                   fmap.n_stored, cpu_seconds, array_bytes(fmap), fmap.occupancy_, dict(fmap.points))
+                   fmap.n_stored, cpu_seconds, array_bytes(fmap), fmap.occupancy_, dict(fmap.points),
+                   fmap.registration_var_)
 
 
 @dataclass(frozen=True)

@@ -47,7 +47,7 @@ import numpy as np
 
 from ..datatypes import ExtractedFacade, FacadeFrame, FacadeModel
 from ..errors import InputError
-from ..params import MapParams
+from ..params import MapParams, QueryConfig
 from ..pipeline.step1_facades import (
     STOREY_OFFSET,
     _final_frame,
@@ -85,7 +85,8 @@ class FacadeMap:
             RANSAC run on them.
         last_update: what the last :meth:`add_points` did: ``buildings``, ``facades_new``,
             ``facades_refitted`` (whole), ``facades_updated`` (blocks only),
-            ``updated_cells`` and ``seconds``.
+            ``updated_cells``, ``seconds`` and ``registration_seconds`` (of those, comparing the
+            new scans with the stored points).
         pending: points held back by ``add_points(..., defer=True)``, in arrival order:
             (xyz, building_id or None, sensor_origins or None) per call.
         thinned: per building label, the number of its points counted but not stored
@@ -93,6 +94,15 @@ class FacadeMap:
         occupancy_: the occupancy's PLSC parameters learnt from the map's own scans
             (:meth:`calibrate_occupancy`), or the fixed formula's.
         occupancy_stored_: points stored at the last calibration (0: never calibrated).
+        registration_sums_: (3,) running sums of how far each new scan's points lie off the
+            other scans' local reading (:func:`~uncertain_facade_map.mapping.calibration.scan_disagreement`):
+            points compared, their squared signed distances and the reading's predicted
+            variances (m^2).
+        registration_var_: the variance of scan-to-scan disagreement (pose and registration
+            noise) learnt from those sums, m^2, added to every answer's variance
+            (:func:`~uncertain_facade_map.mapping.calibration.registration_variance`; 0 until
+            enough overlap between scans was seen, or with ``update.registration_points`` 0).
+            One value for the whole map: registration errors belong to scans, not buildings.
     """
 
     params: MapParams = field(default_factory=MapParams)
@@ -107,13 +117,16 @@ class FacadeMap:
     thinned: dict[int, int] = field(default_factory=dict)
     occupancy_: PLSC = FIXED
     occupancy_stored_: int = 0
+    registration_sums_: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    registration_var_: float = 0.0
     #: Per building label, its occupied storage voxels: (V,) sorted int64 keys and (V,) int32
     #: counts of stored points (rebuilt from ``points`` when missing, e.g. after loading).
     _voxels: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, init=False, repr=False)
 
     def add_points(self, xyz: np.ndarray, building_id: np.ndarray | None = None,
                    sensor_origins: np.ndarray | None = None,
-                   progress: Callable[[int, int], None] | None = None, defer: bool = False) -> list[int]:
+                   progress: Callable[[int, int], None] | None = None, defer: bool = False,
+                   scan: np.ndarray | None = None) -> list[int]:
         """Add building points and update the façades they touch.
 
         Args:
@@ -128,7 +141,11 @@ class FacadeMap:
                 :meth:`flush`). The map then depends only on the sequence of calls, not
                 on their timing. Live mapping also learns the occupancy's PLSC
                 parameters at each doubling of the stored points
-                (:meth:`calibrate_when_grown`).
+                (:meth:`calibrate_when_grown`). Each call held back is one scan.
+            scan: (N,) int scan label of each point when the call holds several scans
+                (e.g. the two lidars of a car), or None: the call is one scan. Each scan's
+                points are compared with the other scans' and the stored points where they
+                overlap (:attr:`registration_var_`). Not with ``defer`` (a call is a scan).
 
         Returns:
             The labels of the buildings updated (none while points are held back).
@@ -138,6 +155,14 @@ class FacadeMap:
                 before anything changes).
         """
         xyz, building_id, sensor_origins = self._checked(xyz, building_id, sensor_origins)
+        if scan is not None:
+            scan = np.asarray(scan)
+            if defer:
+                raise InputError('scan labels go with one add_points call holding several scans, not with defer '
+                                 '(each deferred call is one scan)')
+            if scan.shape != (len(xyz),) or not np.issubdtype(scan.dtype, np.integer):
+                raise InputError(f'scan must be (N,) integer labels for the {len(xyz)} points, got {scan.dtype} '
+                                 f'{scan.shape}')
         if defer:
             self.pending.append((xyz, building_id, sensor_origins))
             if self.n_pending < self.params.update.batch_points:
@@ -147,8 +172,8 @@ class FacadeMap:
             return updated
         if self.pending:
             self.pending.append((xyz, building_id, sensor_origins))
-            return self._map_pending(progress)
-        return self._add(xyz, building_id, sensor_origins, progress)
+            return self._map_pending(progress, scan)
+        return self._add(xyz, building_id, sensor_origins, progress, scan)
 
     def clone(self) -> FacadeMap:
         """A copy that later updates of either map do not change (the containers are copied,
@@ -242,16 +267,23 @@ class FacadeMap:
         """Number of points held back."""
         return int(sum(len(p[0]) for p in self.pending))
 
-    def _map_pending(self, progress: Callable[[int, int], None] | None = None) -> list[int]:
+    def _map_pending(self, progress: Callable[[int, int], None] | None = None,
+                     last_scan: np.ndarray | None = None) -> list[int]:
+        """Map the points held back, each call one scan (the last one's points labelled
+        ``last_scan`` if given)."""
         parts, self.pending = self.pending, []
         if not parts:
             return []
+        scan = np.repeat(np.arange(len(parts), dtype=np.int64), [len(p[0]) for p in parts])
+        if last_scan is not None:
+            _, local = np.unique(last_scan, return_inverse=True)
+            scan[len(scan) - len(last_scan):] = len(parts) - 1 + local.reshape(-1)
         xyz = np.vstack([p[0] for p in parts])
         ids = None
         if any(p[1] is not None for p in parts):
             ids = np.concatenate([p[1] if p[1] is not None else np.full(len(p[0]), -1, np.int64) for p in parts])
         origins = None if any(p[2] is None for p in parts) else np.vstack([p[2] for p in parts])
-        return self._add(xyz, ids, origins, progress)
+        return self._add(xyz, ids, origins, progress, scan)
 
     def flush(self, consolidate: bool = True) -> list[int]:
         """Map the points held back, then (``consolidate``) fit whole every façade that
@@ -292,11 +324,13 @@ class FacadeMap:
         return xyz, building_id, sensor_origins
 
     def _add(self, xyz: np.ndarray, building_id: np.ndarray | None, sensor_origins: np.ndarray | None,
-             progress: Callable[[int, int], None] | None) -> list[int]:
+             progress: Callable[[int, int], None] | None, scan: np.ndarray | None = None) -> list[int]:
         t0 = time.perf_counter()
+        self._learn_registration(xyz, scan)
+        learnt = time.perf_counter()
         labels = self._labels(xyz, building_id)
         self.last_update = {'buildings': [], 'facades_new': [], 'facades_refitted': [], 'facades_updated': [],
-                            'updated_cells': 0}
+                            'updated_cells': 0, 'registration_seconds': learnt - t0}
         changed = [int(b) for b in np.unique(labels)]
         # Every building's points first: without sensor origins the others' points turn a
         # building's walls (``_context``), whichever building comes first.
@@ -317,6 +351,24 @@ class FacadeMap:
         self.last_update['buildings'] = changed
         self.last_update['seconds'] = time.perf_counter() - t0
         return changed
+
+    def _learn_registration(self, xyz: np.ndarray, scan: np.ndarray | None) -> None:
+        """Compare the new points, scan by scan, with the other scans' and the stored points
+        (before they are thinned or stored) and update :attr:`registration_var_`."""
+        up = self.params.update
+        if up.registration_points <= 0:
+            return
+        from .calibration import registration_variance, scan_disagreement
+
+        earlier = np.vstack(list(self.points.values())) if self.points else np.empty((0, 3))
+        labels = np.zeros(len(xyz), np.int64) if scan is None else scan
+        rng = np.random.default_rng([self.params.seed, self.n_points, len(xyz)])
+        reading = QueryConfig()  # the map does not know how it will be queried: the default local reading
+        found = scan_disagreement(xyz, labels, earlier, reading.local_neighbours, up.registration_points, rng,
+                                  reading.local_inner)
+        if found[0]:
+            self.registration_sums_ = self.registration_sums_ + found
+            self.registration_var_ = registration_variance(self.registration_sums_, up.registration_max_std)
 
     def _labels(self, xyz: np.ndarray, building_id: np.ndarray | None) -> np.ndarray:
         """Building label of each new point: its id, else the clustered building it touches."""
@@ -661,8 +713,8 @@ def stored_mask(xyz: np.ndarray, params: MapParams) -> np.ndarray:
 
 def build_map(xyz: np.ndarray, building_id: np.ndarray | None = None, sensor_origins: np.ndarray | None = None,
               params: MapParams | None = None, map_origin: np.ndarray | None = None,
-              progress: Callable[[int, int], None] | None = None) -> FacadeMap:
+              progress: Callable[[int, int], None] | None = None, scan: np.ndarray | None = None) -> FacadeMap:
     """Build a map from building points in one go (see :meth:`FacadeMap.add_points`)."""
     fmap = FacadeMap(params or MapParams(), np.zeros(3) if map_origin is None else np.asarray(map_origin, float))
-    fmap.add_points(xyz, building_id, sensor_origins, progress)
+    fmap.add_points(xyz, building_id, sensor_origins, progress, scan=scan)
     return fmap

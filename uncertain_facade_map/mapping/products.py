@@ -556,7 +556,7 @@ def _too_many(what: str, count: int, noun: str, name: str, limit: int, resolutio
 def voxel_occupancy(facades: Sequence[FacadeModel], resolution: float = 0.1, shell: float = 0.3, *,
                     band_back: float = BAND_BACK, band_front: float = BAND_FRONT,
                     max_voxels: int = 2_000_000, occupancy: PLSC = FIXED,
-                    local: LocalSurface | None = None) -> VoxelOccupancy:
+                    local: LocalSurface | None = None, registration_var: float = 0.0) -> VoxelOccupancy:
     """Occupancy of the map-frame voxels around the façades' mean surfaces.
 
     The grid is axis-aligned in the map frame, voxel (i, j, k) centred at
@@ -581,6 +581,7 @@ def voxel_occupancy(facades: Sequence[FacadeModel], resolution: float = 0.1, she
         occupancy: the query's PLSC parameters (the map's learnt ones or the fixed formula's).
         local: the map's stored points read per point (``query.surface`` 'local'), as the
             query reads them; None: the rasters alone.
+        registration_var: the map's scan-to-scan variance, m^2 (``FacadeMap.registration_var_``).
 
     Returns:
         The voxels: centres (M, 3) map frame, metres; integer indices (M, 3); p_occupied
@@ -615,7 +616,8 @@ def voxel_occupancy(facades: Sequence[FacadeModel], resolution: float = 0.1, she
     facade = np.empty(len(idx), np.int32)
     for start in range(0, len(idx), _BATCH):  # the query is pointwise: batches bound its memory
         part = slice(start, start + _BATCH)
-        res = query_points(facades, centres[part], resolution, band_back, band_front, occupancy, local)
+        res = query_points(facades, centres[part], resolution, band_back, band_front, occupancy, local,
+                           registration_var=registration_var)
         p[part], facade[part] = res.p_occupied, res.facade
     keep = facade >= 0
     return VoxelOccupancy(centres[keep], idx[keep], p[keep], facade[keep], resolution, shell)
@@ -685,7 +687,7 @@ def height_band_grid(facades: Sequence[FacadeModel], resolution: float, z_min: f
                      margin: float = 1.0, band_back: float = BAND_BACK, band_front: float = BAND_FRONT,
                      max_cells: int = 4_000_000, max_samples: int = 50_000_000,
                      coarsen: bool = False, occupancy: PLSC = FIXED,
-                     local: LocalSurface | None = None) -> OccupancyGrid2D:
+                     local: LocalSurface | None = None, registration_var: float = 0.0) -> OccupancyGrid2D:
     """2D occupancy grid of the height band ``z_min..z_max`` (map frame z).
 
     Cells are the voxel columns of :func:`voxel_occupancy` (side ``resolution``, cell
@@ -754,7 +756,7 @@ def height_band_grid(facades: Sequence[FacadeModel], resolution: float, z_min: f
         xy = np.stack([x[part], y[part]], axis=1)
         for z in layers:
             res = query_points(facades, np.c_[xy, np.full(len(xy), z)], resolution, band_back, band_front,
-                               occupancy, local)
+                               occupancy, local, registration_var=registration_var)
             best[part] = np.where(res.facade >= 0, np.maximum(best[part], res.p_occupied), best[part])
     p = np.full(shape, np.nan)
     p[rows, cols] = np.where(np.isfinite(best), best, np.nan)
@@ -781,7 +783,7 @@ class MapProducts:
 
 def map_products(facades: Sequence[FacadeModel], publish: Any, band_back: float = BAND_BACK,
                  band_front: float = BAND_FRONT, occupancy: PLSC = FIXED,
-                 local: LocalSurface | None = None) -> MapProducts:
+                 local: LocalSurface | None = None, registration_var: float = 0.0) -> MapProducts:
     """Every published product of a map at once (the node computes them in a helper process).
 
     Args:
@@ -795,22 +797,25 @@ def map_products(facades: Sequence[FacadeModel], publish: Any, band_back: float 
         local: the map's stored points read per point, for the occupancy products (None:
             the rasters alone). The occupancy products keep the solid event (a building is
             solid behind its façades for a planner), whatever ``query.occupancy_event`` says.
+        registration_var: the map's variance of scan-to-scan disagreement
+            (``FacadeMap.registration_var_``), m^2, added to every answer's.
     """
     facades = list(facades)
     return MapProducts(
         surface=surface_grid(facades, publish.surface_step),
         mesh=surface_mesh(facades, publish.mesh_step) if facades else None,
         voxels=voxel_occupancy(facades, publish.voxel_resolution, publish.voxel_shell, band_back=band_back,
-                               band_front=band_front, occupancy=occupancy, local=local),
-        grid=band_grid(facades, publish, band_back, band_front, occupancy, local) if facades else None)
+                               band_front=band_front, occupancy=occupancy, local=local,
+                               registration_var=registration_var),
+        grid=band_grid(facades, publish, band_back, band_front, occupancy, local, registration_var) if facades else None)
 
 
 def band_grid(facades: Sequence[FacadeModel], publish: Any, band_back: float = BAND_BACK,
               band_front: float = BAND_FRONT, occupancy: PLSC = FIXED,
-              local: LocalSurface | None = None) -> OccupancyGrid2D:
+              local: LocalSurface | None = None, registration_var: float = 0.0) -> OccupancyGrid2D:
     """The node's 2D grid: :func:`height_band_grid` at ``publish.grid_resolution`` or, for a
     map too wide for ``publish.grid_max_cells`` cells, at the finest of 2, 4, 8, ... times it."""
     return height_band_grid(list(facades), publish.grid_resolution, publish.grid_z_min, publish.grid_z_max,
                             band_back=band_back, band_front=band_front, max_cells=publish.grid_max_cells,
                             max_samples=max(50_000_000, 25 * publish.grid_max_cells), coarsen=True,
-                            occupancy=occupancy, local=local)
+                            occupancy=occupancy, local=local, registration_var=registration_var)

@@ -69,6 +69,8 @@ class MapSnapshot:
         map_bytes: bytes of the map's arrays where it is updated (``MapView.map_bytes``).
         occupancy: the occupancy's PLSC parameters the map has learnt (``MapView.occupancy``).
         stored_points: per building label, its stored points (``MapView.stored_points``).
+        registration_var: the map's variance of scan-to-scan disagreement, m^2
+            (``MapView.registration_var``).
     """
 
     version: int
@@ -82,6 +84,7 @@ class MapSnapshot:
     map_bytes: int = 0
     occupancy: PLSC = FIXED
     stored_points: dict[int, np.ndarray] = field(default_factory=dict)
+    registration_var: float = 0.0
 
 
 @dataclass
@@ -301,7 +304,8 @@ class MapWorker:
     def _snapshot(self, version: int) -> MapSnapshot:
         view: MapView = self._engine.view
         return MapSnapshot(version, view.facades, view.map_origin, view.buildings, view.points, self._stamp,
-                           view.params, view.stored, view.map_bytes, view.occupancy, view.stored_points)
+                           view.params, view.stored, view.map_bytes, view.occupancy, view.stored_points,
+                           view.registration_var)
 
     def _publish(self) -> None:
         self.snapshot = self._snapshot(self.snapshot.version + 1)

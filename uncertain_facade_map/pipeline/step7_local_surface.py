@@ -285,15 +285,15 @@ class LocalSurface:
         rho = np.where(fid >= 0, rho, np.inf)
         return fid, s, scatter, plane_var, normal, rho
 
-    def calibrate(self, seed: int = 0) -> float:
-        """Learn ``calibration_`` leave-one-out on (at most ``CALIBRATION_POINTS`` of) the stored
+    def calibrate(self, seed: int = 0, max_points: int = CALIBRATION_POINTS) -> float:
+        """Learn ``calibration_`` leave-one-out on (at most ``max_points`` of) the stored
         points where the local reading answers alone; returns it (1 with too few points)."""
         m = len(self.points)
         self.calibration_ = 1.0
         if m <= self.neighbours + 2:
             return self.calibration_
         rng = np.random.default_rng(seed)
-        pick = np.sort(rng.choice(m, CALIBRATION_POINTS, replace=False)) if m > CALIBRATION_POINTS else np.arange(m)
+        pick = np.sort(rng.choice(m, max_points, replace=False)) if m > max_points else np.arange(m)
         z = []
         for start in range(0, len(pick), CHUNK):
             p = pick[start:start + CHUNK]

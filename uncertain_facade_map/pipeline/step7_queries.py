@@ -275,7 +275,7 @@ def assign_facades(facades: Sequence[FacadeModel], xyz: np.ndarray, band_back: f
 
 def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: float, band_back: float,
                  band_front: float, occupancy: PLSC = FIXED, local: LocalSurface | None = None,
-                 event: str = 'solid') -> PointQuery:
+                 event: str = 'solid', registration_var: float = 0.0) -> PointQuery:
     """Answer the 3D point query for (N, 3) points in the map frame.
 
     Args:
@@ -344,6 +344,7 @@ def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: fl
         if reading is not None:
             use_local = weight >= 0.5
             normal[part][use_local] = reading.normal[use_local]
+    var = var + registration_var  # scan-to-scan disagreement (FacadeMap.registration_var_), m^2
     noise0 = np.where(np.isfinite(noise), noise, 0.0)
     if event == 'solid':
         p = occupancy.solid(dist, var, noise0, resolution)
@@ -389,7 +390,7 @@ def _blend(answer: tuple[np.ndarray, ...], reading: LocalReading, w: np.ndarray)
 
 def query_map(facades: Sequence[FacadeModel], stored_points: dict[int, np.ndarray], xyz: np.ndarray,
               resolution: float, band_back: float, band_front: float, learnt: PLSC, config: QueryConfig,
-              local: LocalSurface | None | bool = True) -> PointQuery:
+              local: LocalSurface | None | bool = True, registration_var: float = 0.0) -> PointQuery:
     """What the command line's ``query`` and the node's ``query_points`` answer: :func:`query_points`
     with the ``query.*`` settings (the reading, the occupancy's parameters and event).
 
@@ -404,8 +405,10 @@ def query_map(facades: Sequence[FacadeModel], stored_points: dict[int, np.ndarra
         config: the query settings.
         local: the local surface of ``facades`` and ``stored_points`` when the caller keeps
             one (the node, per snapshot); True: built here as ``config`` says.
+        registration_var: the map's scan-to-scan variance (``FacadeMap.registration_var_``),
+            m^2, added to every answered point's variance.
     """
     if local is True:
         local = for_query(facades, stored_points, config)
     return query_points(facades, xyz, resolution, band_back, band_front, occupancy_model(learnt, config.occupancy),
-                        local or None, config.occupancy_event)
+                        local or None, config.occupancy_event, registration_var)

@@ -125,7 +125,7 @@ class FacadeGPMethod(OccupancyMethod):
         if self._query is None or self._query[0] is not xyz:
             ex = self.params.extraction
             self._query = (xyz, query_points(self.map_.facades, xyz, self.resolution, ex.band_back, self.free_reach,
-                                             local=self.local_))
+                                             local=self.local_, registration_var=self.map_.registration_var_))
         return self._query[1]
 
     def predict(self, xyz: np.ndarray) -> np.ndarray:
