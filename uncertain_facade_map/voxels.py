@@ -28,12 +28,21 @@ from .errors import InputError
 _BITS = 21
 _OFFSET = 1 << (_BITS - 1)
 
-__all__ = ['ReferenceVoxels', 'pack_keys', 'ray_crossings', 'reference_voxels', 'unpack_keys', 'voxel_index']
+__all__ = ['ReferenceVoxels', 'pack_keys', 'ray_crossings', 'reference_voxels', 'unpack_keys', 'voxel_index',
+           'wrapped_keys']
 
 
 def voxel_index(xyz: np.ndarray, resolution: float) -> np.ndarray:
     """(N, 3) int64 index of the voxel holding each point: ``floor(x / r)`` per axis."""
     return np.floor(np.asarray(xyz, dtype=np.float64) / resolution).astype(np.int64)
+
+
+def wrapped_keys(xyz: np.ndarray, side: float) -> np.ndarray:
+    """(N,) int64 keys of the ``side``-metre cells of (N, 3) points, metres: 21 bits per axis
+    that wrap, so keys repeat only 2^21 cells apart (105 km at 0.05 m), further than the
+    points compared by key lie; unlike :func:`pack_keys`, never refused."""
+    c = np.floor(xyz / side).astype(np.int64) & ((1 << _BITS) - 1)
+    return (c[:, 0] << (2 * _BITS)) | (c[:, 1] << _BITS) | c[:, 2]
 
 
 def pack_keys(index: np.ndarray, unit: str = 'voxels') -> np.ndarray:

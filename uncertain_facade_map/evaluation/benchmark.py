@@ -72,7 +72,8 @@ from ..mapping.facade_map import FacadeMap, build_map
 from ..params import InputConfig, MapParams, QueryConfig
 from ..pipeline.step1_facades import extract_facades, split_buildings
 from ..pipeline.step7_local_surface import for_query
-from ..pipeline.step7_queries import query_points
+from ..pipeline.step7_queries import query_map
+from ..pipeline.step8_occupancy import FIXED
 from ..voxels import pack_keys, unpack_keys, voxel_index
 from .occupancy import pr_auc
 from .references import Answers, FacadePlaneMap, LocalPlaneMap
@@ -599,10 +600,12 @@ class PackageMap:
         self.local = for_query(fmap.facades, fmap.points, self.config)
 
     def query(self, xyz: np.ndarray, resolution: float) -> Answers:
-        """Answers for (N, 3) points by :func:`query_points` (NaN where on no façade)."""
+        """Answers for (N, 3) points by :func:`~uncertain_facade_map.pipeline.step7_queries.query_map`
+        (NaN where on no façade)."""
         ex = self.fmap.params.extraction
-        q = query_points(self.fmap.facades, xyz, resolution, ex.band_back, ex.band_front, local=self.local,
-                         event=self.config.occupancy_event, registration_var=self.fmap.registration_var_)
+        # The fixed occupancy formula, as the benchmark always scored it (the references have no PLSC).
+        q = query_map(self.fmap.facades, self.fmap.points, xyz, resolution, ex.band_back, ex.band_front, FIXED,
+                      self.config, self.local, self.fmap.registration_var_)
         return Answers(q.signed_distance, q.variance, q.noise_variance, q.p_occupied)
 
 

@@ -46,7 +46,7 @@ from ..params import MapParams
 from ..pipeline.step7_local_surface import LocalSurface
 from ..pipeline.step7_queries import PointQuery, query_points
 from ..pipeline.step8_occupancy import FIT_BAND, FIXED, PLSC, facade_half_depth, fit_carving, fit_plsc
-from ..voxels import ReferenceVoxels, pack_keys, ray_crossings, reference_voxels, unpack_keys, voxel_index
+from ..voxels import ReferenceVoxels, pack_keys, ray_crossings, reference_voxels, unpack_keys, voxel_index, wrapped_keys
 from .facade_map import FacadeMap, build_map
 
 __all__ = ['calibrate_free_space', 'calibrate_occupancy', 'registration_variance', 'scan_disagreement', 'scan_voxels',
@@ -306,8 +306,7 @@ _CALIBRATION_POINTS = 2000
 
 
 def _cell_keys(xyz: np.ndarray, side: float = _CROP_CELL) -> np.ndarray:
-    c = np.floor(xyz / side).astype(np.int64) & 0x1FFFFF
-    return (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
+    return wrapped_keys(xyz, side)
 
 
 def _near_cells(sample: np.ndarray) -> np.ndarray:

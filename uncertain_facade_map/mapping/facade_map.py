@@ -61,6 +61,7 @@ from ..pipeline.step1_facades import (
 )
 from ..pipeline.step6_surface import _extent, fit_facade, update_facade
 from ..pipeline.step8_occupancy import FIXED, PLSC
+from ..voxels import wrapped_keys
 
 #: Offsets of a clustering cell's 3x3 neighbourhood in cell keys (see FacadeMap._cell_keys).
 _CELL_NEIGHBOURS = np.array([du * (1 << 32) + dv for du in (-1, 0, 1) for dv in (-1, 0, 1)], dtype=np.int64)
@@ -420,10 +421,9 @@ class FacadeMap:
 
     def _voxel_keys(self, xyz: np.ndarray) -> np.ndarray:
         """(N,) int64 keys of the storage voxels (side ``update.store_voxel``) of (N, 3) points,
-        metres, map frame: 21 bits per axis, so keys repeat only 2^21 voxels apart (105 km at
-        0.05 m), further than the points of one building lie."""
-        c = np.floor(xyz / self.params.update.store_voxel).astype(np.int64) & 0x1FFFFF
-        return (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
+        metres, map frame (:func:`~uncertain_facade_map.voxels.wrapped_keys`: they repeat only
+        2^21 voxels apart, further than the points of one building lie)."""
+        return wrapped_keys(xyz, self.params.update.store_voxel)
 
     def _voxel_index(self, b: int) -> tuple[np.ndarray, np.ndarray]:
         """Building ``b``'s (V,) sorted voxel keys and (V,) int32 counts of stored points."""

@@ -6,7 +6,7 @@ blocks, :mod:`~uncertain_facade_map.pipeline.step7_queries`). On real scans the 
 body is as good as a plane through the nearest points, but its tails are not: at raster
 borders, depth steps, window reveals and the sides of recesses, one depth per cell cannot
 hold the surface, and a 2.5-D point's (u, v) picks the cell, not its depth. Where the map
-holds dense data, the surface is therefore read per point from the stored façade points
+holds dense data, the surface is therefore read per point from the stored building points
 picked in 3-D near the query, so that the query's own depth chooses the layer at a step
 and the distance is measured along the local normal; the raster answers where the data
 are sparse or missing (occlusions, holes, far range), and the two blend continuously.
@@ -70,7 +70,7 @@ AGREEMENT = 3.0
 OUTLIER_Z = 3.0
 #: Floor of the agreement factor: bounds the blend's slope in the weight (1 / it).
 MIN_AGREEMENT = 0.05
-#: Points read at once (bounds the (B, K, 3) neighbour arrays: about 60 MB at K = 24).
+#: Points read at once (bounds the (B, K + 1, 3) neighbour arrays: about 20 MB each at K = 12).
 CHUNK = 65_536
 #: Floor of the scatter sigma^2, m^2 (exactly coplanar neighbours give 0).
 MIN_VAR = 1e-8
@@ -152,12 +152,13 @@ def fit_local_planes(x: np.ndarray, nb: np.ndarray, dist: np.ndarray
 
 @dataclass(eq=False)
 class LocalSurface:
-    """The stored façade points of a map, read per query point (see the module's text).
+    """The stored building points of a map, read per query point (see the module's text).
 
     Attributes:
-        points: (M, 3) stored façade points (the chi-squared outliers left out), metres,
-            map frame.
-        facade: (M,) int32 façade id of each.
+        points: (M, 3) stored building points (the chi-squared outliers that stand alone
+            left out, :meth:`of`), metres, map frame.
+        facade: (M,) int32 façade id of each (of the nearest point on a façade for those on
+            none).
         normals: (F, 3) outward unit normal of each façade, map frame.
         neighbours: K, the stored points a plane is fitted to.
         radius: beyond this distance of the ``NEAR``-th nearest stored point the raster

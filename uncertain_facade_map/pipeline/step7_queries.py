@@ -217,6 +217,12 @@ class PointQuery:
                                               'signed_distance', 'p_occupied')}
 
 
+def raster_bounds(raster: SurfaceRaster) -> tuple[float, float, float, float]:
+    """``(u_min, u_max, v_min, v_max)`` of a raster's cells, metres, façade frame."""
+    h, w = raster.mean.shape
+    return (raster.origin[0], raster.origin[0] + w * raster.cell, raster.origin[1], raster.origin[1] + h * raster.cell)
+
+
 #: Metres added to a point's ``|d|`` from a façade without a facet at the point when
 #: façades compete for it (:func:`assign_facades`).
 NO_FACET_PENALTY = 1.0
@@ -250,8 +256,7 @@ def assign_facades(facades: Sequence[FacadeModel], xyz: np.ndarray, band_back: f
     for i, f in enumerate(facades):
         r = f.surface
         h, w = r.mean.shape
-        u0, u1 = r.origin[0], r.origin[0] + w * r.cell
-        v0, v1 = r.origin[1], r.origin[1] + h * r.cell
+        u0, u1, v0, v1 = raster_bounds(r)
         # Cheap pre-selection by the map-frame box around the façade's slab.
         corners = f.frame.to_world(np.array([[u, v, d] for u in (u0, u1) for v in (v0, v1)
                                              for d in (-band_back, band_front)]))
@@ -330,10 +335,8 @@ def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: fl
             for i in np.unique(which[adopt]):
                 sel = np.flatnonzero(adopt & (which == i))
                 uvd[sel] = facades[i].frame.to_local(xyz[part][sel])
-                r = facades[i].surface
-                h, w = r.mean.shape
-                off = ((uvd[sel, 0] < r.origin[0]) | (uvd[sel, 0] > r.origin[0] + w * r.cell)
-                       | (uvd[sel, 1] < r.origin[1]) | (uvd[sel, 1] > r.origin[1] + h * r.cell))
+                u0, u1, v0, v1 = raster_bounds(facades[i].surface)
+                off = (uvd[sel, 0] < u0) | (uvd[sel, 0] > u1) | (uvd[sel, 1] < v0) | (uvd[sel, 1] > v1)
                 weight[sel[off]] = 1.0
         answer = _raster_answer(facades, which, uvd)
         if reading is not None:
