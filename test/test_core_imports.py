@@ -20,9 +20,9 @@ LAYERS = {
     # laspy, pypcd4, lzf: file formats; octomap, threadpoolctl: baselines; matplotlib: the
     # evaluation report's figures; pypatchworkpp: ground removal of clouds without classes
     # (selection.building_points); pyarrow: Argoverse 2's feather files (io.av2) (each imported
-    # inside the function that needs it).
+    # inside the function that needs it); numba: compiled kernels of the hot paths (issue 27).
     'uncertain_facade_map': {'numpy', 'scipy', 'sklearn', 'yaml', 'plyfile', 'laspy', 'pypcd4', 'lzf',
-                             'threadpoolctl', 'octomap', 'matplotlib', 'pypatchworkpp', 'pyarrow',
+                             'threadpoolctl', 'octomap', 'matplotlib', 'pypatchworkpp', 'pyarrow', 'numba',
                              'uncertain_facade_map'},
     'msg_adapters': {'numpy', 'rosbags', 'msg_adapters', 'uncertain_facade_map', 'builtin_interfaces',
                      'diagnostic_msgs', 'geometry_msgs', 'nav_msgs', 'sensor_msgs', 'std_msgs', 'tf2_msgs',
