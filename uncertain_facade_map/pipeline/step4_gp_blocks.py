@@ -16,8 +16,10 @@ apart, the paper's eq. 7 adds it.)
 Blocks (Section III.D): the block size per axis is the distance at which the kernel with
 sigma_p = 1 falls to c_min, ``s_m = sqrt(-2 ln(c_min) / b_m)``; each block is predicted
 from the training points of its extended block (itself and its 8 neighbours) of the same
-facet. All blocks of a façade are solved at once: padded to a common size per bucket and
-factorised by batched Cholesky.
+facet. All blocks of a façade are solved in one call of a compiled kernel
+(:mod:`~uncertain_facade_map.pipeline._gp_kernels`, block by block without padding, in two
+threads); :func:`solve_blocks`, :func:`predict_blocks` and :func:`loo_statistic` are the
+same arithmetic batched in numpy, kept as the reference the kernel is tested against.
 
 Hyper-parameters: b_1, b_2 by maximum marginal likelihood in log space within bounds
 (L-BFGS-B with the analytic gradient, R&W eq. 5.9), started at 1/b = 0.0025 m^2, on a
@@ -331,11 +333,7 @@ _NB = np.int64(1 << 20)  # codes: (facet * NB + bu) * NB + bv, block indices off
 _HALF = np.int64(1 << 19)
 #: Code offsets of a block's extended block: itself and its 8 neighbours (same facet).
 _NEIGHBOURS = np.array([du * _NB + dv for du in (-1, 0, 1) for dv in (-1, 0, 1)], dtype=np.int64)
-#: Padded sizes of block systems; a block with n points goes to the first size >= n.
-BUCKETS = (8, 16, 32, 48, 64, 96, 128, 192, 256)
-#: Blocks factorised at once (bounds memory: 1000 x 64 x 64 doubles = 33 MB).
-CHUNK = 1000
-#: Threads factorising chunks.
+#: Threads solving blocks (the compiled kernel releases the GIL).
 THREADS = 2
 
 
@@ -394,35 +392,6 @@ def gather_blocks(blocks: np.ndarray, train_codes: np.ndarray, cap: int, rng: np
     return block[keep], point[keep], rank[keep]
 
 
-def padded_systems(block: np.ndarray, point: np.ndarray, rank: np.ndarray, n_blocks: int
-                   ) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Group blocks into buckets of padded size.
-
-    Returns:
-        Per non-empty bucket and chunk: (block ids (Bk,), member index matrix (Bk, n),
-        -1 on padding).
-    """
-    n_of = np.bincount(block, minlength=n_blocks)
-    out = []
-    lower = 0
-    for size in BUCKETS + (int(n_of.max(initial=0)),):
-        if size <= lower:
-            continue
-        ids = np.flatnonzero((n_of > lower) & (n_of <= size))
-        lower = size
-        if not len(ids):
-            continue
-        slot = np.full(n_blocks, -1, dtype=np.int64)
-        slot[ids] = np.arange(len(ids))
-        members = np.full((len(ids), size), -1, dtype=np.int64)
-        rows = slot[block]
-        sel = rows >= 0
-        members[rows[sel], rank[sel]] = point[sel]
-        for c in range(0, len(ids), CHUNK):
-            out.append((ids[c:c + CHUNK], members[c:c + CHUNK]))
-    return out
-
-
 @dataclass(frozen=True, eq=False)
 class BlockData:
     """Training data of one façade's local GPs, with what each facet's GP needs.
@@ -452,45 +421,56 @@ class BlockData:
         return BlockData(self.uv[keep], self.y[keep], self.facet[keep], self.sigma_p, self.lengthscale2, self.origin)
 
 
-def _systems(data: BlockData, blocks: np.ndarray, params: GPParams, rng: np.random.Generator, then=None):
-    """Yield (block ids, BlockSystem, then(ids, system)) for all blocks that see training points.
+def _run_blocks(data: BlockData, blocks: np.ndarray, tests: np.ndarray, test_start: np.ndarray, uv: np.ndarray,
+                params: GPParams, rng: np.random.Generator, want_loo: bool
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Solve blocks ``blocks`` on their extended blocks' training points and predict at their tests.
 
-    Chunks are factorised two at a time in threads (numpy's linear algebra releases the
-    GIL), in a fixed order, so results do not depend on timing; ``then`` runs in the
-    worker thread too.
+    Args:
+        data: training data.
+        blocks: (B,) block codes.
+        tests: (P,) indices into ``uv`` of the test locations, grouped by block.
+        test_start: (B + 1,) block b's tests are ``tests[test_start[b]:test_start[b + 1]]``.
+        uv: (N, 2) all test locations, metres, façade frame.
+        params: GP settings.
+        rng: random source for capping large blocks.
+        want_loo: compute the leave-one-out statistic of each block's own points too (in its
+            extended block: each training point is tested once, by the block it lies in).
+
+    Returns:
+        ``(mean, var, solved, members, member_block, loo)``: (P,) deviation and (P,) variance
+        at ``tests``; (B,) blocks with training points; (M,) the members (indices into
+        ``data``), (M,) their block and (M,) the leave-one-out statistic of the block's own
+        points (NaN for the others and without ``want_loo``).
     """
-    from concurrent.futures import ThreadPoolExecutor
+    from ._gp_kernels import solve_predict_blocks
 
     codes = block_codes(data.uv, data.facet, data.origin, data.sizes(params.c_min))
-    block, point, rank = gather_blocks(blocks, codes, params.max_block_points, rng)
+    block, point, _ = gather_blocks(blocks, codes, params.max_block_points, rng)
+    member_start = np.searchsorted(block, np.arange(len(blocks) + 1))
     facet_of_block = (blocks // _NB // _NB).astype(np.int64)
-    noise2 = params.noise_sigma**2
+    mean = np.zeros(len(tests))
+    var = np.zeros(len(tests))
+    loo = np.full(len(point), np.nan)
+    own = (codes[point] == blocks[block]) if want_loo else np.zeros(len(point), dtype=bool)
+    solved = np.zeros(len(blocks), dtype=bool)
+    args = (np.ascontiguousarray(data.uv, dtype=np.float64), np.ascontiguousarray(data.y, dtype=np.float64),
+            np.ascontiguousarray(data.sigma_p[facet_of_block], dtype=np.float64),
+            np.ascontiguousarray(data.lengthscale2[facet_of_block], dtype=np.float64), float(params.noise_sigma**2),
+            member_start, np.ascontiguousarray(point), test_start,
+            np.ascontiguousarray(uv[tests], dtype=np.float64), own, mean, var, loo, solved)
+    # Two ranges of blocks of about equal work (n^2 (n + m) per block), one per thread.
+    n = np.diff(member_start).astype(np.float64)
+    work = np.cumsum(n * n * (n + np.diff(test_start)))
+    if THREADS <= 1 or len(blocks) < 2 or work[-1] < 1e6:
+        solve_predict_blocks(0, len(blocks), *args)
+    else:
+        from concurrent.futures import ThreadPoolExecutor
 
-    def solve(chunk):
-        ids, members = chunk
-        mask = members >= 0
-        safe = np.where(mask, members, 0)
-        f = facet_of_block[ids]
-        system = solve_blocks(np.where(mask[..., None], data.uv[safe], 0.0), data.y[safe], mask, members,
-                              data.sigma_p[f], data.lengthscale2[f], noise2)
-        return ids, system, (then(ids, system) if then is not None else None)
-
-    chunks = padded_systems(block, point, rank, len(blocks))
-    if len(chunks) <= 1 or THREADS <= 1:
-        yield from map(solve, chunks)
-        return
-    with ThreadPoolExecutor(max_workers=THREADS) as pool:
-        yield from pool.map(solve, chunks)
-
-
-def _test_slots(inverse_order: np.ndarray, starts: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(Bk, m) test-location indices of blocks ``ids`` (-1 padding) and the mask."""
-    counts = starts[ids + 1] - starts[ids]
-    m = max(int(counts.max(initial=0)), 1)
-    slot = np.arange(m)[None, :]
-    tests = np.where(slot < counts[:, None],
-                     inverse_order[np.minimum(starts[ids][:, None] + slot, len(inverse_order) - 1)], -1)
-    return tests, tests >= 0
+        cuts = np.r_[0, np.searchsorted(work, work[-1] * np.arange(1, THREADS) / THREADS), len(blocks)]
+        with ThreadPoolExecutor(max_workers=THREADS) as pool:
+            list(pool.map(lambda r: solve_predict_blocks(int(r[0]), int(r[1]), *args), zip(cuts[:-1], cuts[1:])))
+    return mean, var, solved, point, block, loo
 
 
 def fit_surface(data: BlockData, uv: np.ndarray, facet: np.ndarray, params: GPParams, rng: np.random.Generator,
@@ -534,39 +514,29 @@ def fit_surface(data: BlockData, uv: np.ndarray, facet: np.ndarray, params: GPPa
     todo = np.arange(len(blocks))
     for round_ in range(outlier_iterations + 1):
         test = outlier_alpha is not None and round_ < outlier_iterations
-        stat = np.full(len(data.y), np.nan)
         live = np.flatnonzero(active)
-        sub = data.subset(active)
-        touched = np.zeros(len(blocks), dtype=bool)
-        def work(ids, system):
-            ids = todo[ids]
-            tests, tmask = _test_slots(order, starts, ids)
-            xs = np.where(tmask[..., None], uv[np.where(tmask, tests, 0)], 0.0)
-            mu, v = predict_blocks(system, xs, tmask)
-            own_stat = None
-            if test:
-                members = np.where(system.mask, live[np.where(system.mask, system.point, 0)], -1)
-                own = system.mask & (train_codes[np.maximum(members, 0)] == blocks[ids][:, None])
-                own_stat = (members[own], loo_statistic(system)[own])
-            return ids, tests, tmask, mu, v, own_stat
-
-        for _, _, (ids, tests, tmask, mu, v, own_stat) in _systems(sub, blocks[todo], params, rng, work):
-            # Blocks solved again get their prediction replaced; blocks that lost all points revert below.
-            mean[tests[tmask]] = mu[tmask]
-            var[tests[tmask]] = v[tmask]
-            seen[tests[tmask]] = True
-            touched[ids] = True
-            if own_stat is not None:
-                stat[own_stat[0]] = own_stat[1]
-        # Blocks to redo that have no training point left fall back to the prior.
-        lost = np.setdiff1d(todo, np.flatnonzero(touched))
-        for b in lost:
-            cells = order[starts[b]:starts[b + 1]]
-            mean[cells] = 0.0
-            var[cells] = data.sigma_p[facet[cells]] ** 2
-            seen[cells] = False
+        # The test locations of the blocks to do, grouped by block.
+        counts = starts[todo + 1] - starts[todo]
+        test_start = np.r_[0, np.cumsum(counts)]
+        tests = order[np.repeat(starts[todo] - test_start[:-1], counts) + np.arange(test_start[-1])]
+        mu, v, solved, members, member_block, loo = _run_blocks(data.subset(active), blocks[todo], tests,
+                                                                test_start, uv, params, rng, test)
+        # Blocks solved again get their prediction replaced; blocks left without training points revert.
+        got = np.repeat(solved, counts)
+        cells = tests[got]
+        mean[cells] = mu[got]
+        var[cells] = v[got]
+        seen[cells] = True
+        lost = tests[~got]
+        mean[lost] = 0.0
+        var[lost] = data.sigma_p[facet[lost]] ** 2
+        seen[lost] = False
         if not test:
             break
+        # Each training point is tested by the block that owns it (R&W eq. 5.12 in its extended block).
+        stat = np.full(len(data.y), np.nan)
+        own = solved[member_block] & np.isfinite(loo)
+        stat[live[members[own]]] = loo[own]
         flagged = flag_outliers(stat, outlier_alpha) & active
         if not flagged.any():
             break

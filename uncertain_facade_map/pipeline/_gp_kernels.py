@@ -1,0 +1,142 @@
+"""Compiled kernels of the local GPs in blocks (numba), one block at a time.
+
+The street's blocks hold under 64 training points each: with numpy, the cost of a block
+solve is the calls (kernel, batched Cholesky, n-step triangular solves, einsum), not the
+flops. These kernels do the same arithmetic (R&W Algorithm 2.1; paper eqs. 4, 6 and 7;
+the leave-one-out statistic of R&W eq. 5.12) block by block in compiled loops, without
+padding. They release the GIL (``nogil``), so the caller runs them over disjoint ranges of
+blocks in threads; each block's arithmetic is sequential and independent of the others,
+so results do not depend on the number of threads or their timing.
+
+:func:`~uncertain_facade_map.pipeline.step4_gp_blocks.solve_blocks`,
+``predict_blocks`` and ``loo_statistic`` are the batched numpy reference the tests compare
+these kernels with.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True, fastmath=True)
+def _cholesky_in_place(a: np.ndarray, n: int) -> bool:  # pragma: no cover - compiled
+    """Lower Cholesky factor of a[:n, :n] (lower triangle read) in place; False if not PD."""
+    for j in range(n):
+        s = a[j, j]
+        for k in range(j):
+            s -= a[j, k] * a[j, k]
+        if s <= 0.0:
+            return False
+        d = math.sqrt(s)
+        a[j, j] = d
+        for i in range(j + 1, n):
+            s = a[i, j]
+            for k in range(j):
+                s -= a[i, k] * a[j, k]
+            a[i, j] = s / d
+    return True
+
+
+@njit(cache=True, nogil=True, fastmath=True)
+def solve_predict_blocks(first: int, last: int, uv: np.ndarray, y: np.ndarray, sigma_p: np.ndarray,
+                         lengthscale2: np.ndarray, noise2: float, member_start: np.ndarray, members: np.ndarray,
+                         test_start: np.ndarray, test_uv: np.ndarray, loo_of: np.ndarray, mean: np.ndarray,
+                         var: np.ndarray, loo: np.ndarray, solved: np.ndarray) -> None:  # pragma: no cover
+    """Factorise blocks ``first .. last - 1`` and predict at their test locations.
+
+    Args:
+        first, last: the range of blocks to do.
+        uv: (T, 2) training inputs, metres, façade frame.
+        y: (T,) targets minus the prior mean, metres.
+        sigma_p: (B,) prior standard deviation of each block's facet, metres.
+        lengthscale2: (B, 2) 1/b of each block's facet, m^2.
+        noise2: sigma_eta^2, m^2.
+        member_start: (B + 1,) block b's training points are ``members[member_start[b]:member_start[b + 1]]``.
+        members: (M,) indices into ``uv``/``y``.
+        test_start: (B + 1,) block b's test locations are ``test_uv[test_start[b]:test_start[b + 1]]``.
+        test_uv: (P, 2) test locations grouped by block, metres.
+        loo_of: (M,) bool, the members whose leave-one-out statistic is wanted (all False:
+            none; each costs (n - rank)^2 / 2 with the members factorised in reverse order,
+            so a block's own points, listed first, are cheap).
+        mean: (P,) out: posterior deviation from the prior mean (eq. 6), metres.
+        var: (P,) out: posterior variance of the surface, noise excluded (eq. 7), m^2.
+        loo: (M,) out: (y_i - mu_-i)^2 / sigma_-i^2 with the noise in sigma_-i^2 (R&W eq. 5.12),
+            where ``loo_of``.
+        solved: (B,) out: True for blocks with training points (others are left alone).
+    """
+    n_max = 0
+    for b in range(first, last):
+        n_max = max(n_max, member_start[b + 1] - member_start[b])
+    low = np.empty((n_max, n_max))
+    alpha = np.empty(n_max)
+    ks = np.empty(n_max)
+    for b in range(first, last):
+        m0 = member_start[b]
+        n = member_start[b + 1] - m0
+        if n == 0:
+            continue
+        s2 = sigma_p[b] * sigma_p[b]
+        b0 = 1.0 / lengthscale2[b, 0]
+        b1 = 1.0 / lengthscale2[b, 1]
+        # K + sigma_eta^2 I (eq. 4 with the noise of eq. 5), lower triangle; then L (Alg. 2.1 line 2).
+        # Members in reverse order: the block's own points (listed first) factorised last.
+        last_member = m0 + n - 1
+        for i in range(n):
+            pi = members[last_member - i]
+            ui = uv[pi, 0]
+            vi = uv[pi, 1]
+            for j in range(i + 1):
+                pj = members[last_member - j]
+                du = ui - uv[pj, 0]
+                dv = vi - uv[pj, 1]
+                low[i, j] = s2 * math.exp(-0.5 * (b0 * du * du + b1 * dv * dv))
+            low[i, i] += noise2
+        if not _cholesky_in_place(low, n):
+            continue
+        solved[b] = True
+        # alpha = L^T \ (L \ y) (Alg. 2.1 line 3).
+        for i in range(n):
+            s = y[members[last_member - i]]
+            for k in range(i):
+                s -= low[i, k] * alpha[k]
+            alpha[i] = s / low[i, i]
+        for i in range(n - 1, -1, -1):
+            s = alpha[i]
+            for k in range(i + 1, n):
+                s -= low[k, i] * alpha[k]
+            alpha[i] = s / low[i, i]
+        # Predictions: mean = k*^T alpha (eq. 6), var = k(x*, x*) - |L \ k*|^2 (eq. 7).
+        for t in range(test_start[b], test_start[b + 1]):
+            ut = test_uv[t, 0]
+            vt = test_uv[t, 1]
+            mu = 0.0
+            for i in range(n):
+                pi = members[last_member - i]
+                du = uv[pi, 0] - ut
+                dv = uv[pi, 1] - vt
+                ks[i] = s2 * math.exp(-0.5 * (b0 * du * du + b1 * dv * dv))
+                mu += ks[i] * alpha[i]
+            q = 0.0
+            for i in range(n):
+                s = ks[i]
+                for k in range(i):
+                    s -= low[i, k] * ks[k]
+                ks[i] = s / low[i, i]
+                q += ks[i] * ks[i]
+            mean[t] = mu
+            var[t] = max(s2 - q, 0.0)
+        # [K^-1]_ii = sum_r (L^-1)_ri^2; column i of L^-1 by forward substitution of e_i.
+        for i in range(n):
+            if not loo_of[last_member - i]:
+                continue
+            q = 0.0
+            for r in range(i, n):
+                s = 1.0 if r == i else 0.0
+                for k in range(i, r):
+                    s -= low[r, k] * ks[k]
+                ks[r] = s / low[r, r]
+                q += ks[r] * ks[r]
+            loo[last_member - i] = alpha[i] * alpha[i] / q
