@@ -368,6 +368,12 @@ class UpdateParams(Section):
                                      'its points have grown by this share since its last whole fit; below it only '
                                      'the blocks near new training points and the cells whose facet changed are '
                                      'recomputed', allowed=_positive(1e3))
+    refit_max_points: int = param(20000, "... but only while the façade's last whole fit had fewer points than this: "
+                                         'its layers and length scales are settled by then, and a whole fit costs '
+                                         'all its points, so larger façades are updated block by block and fitted '
+                                         'whole by flush() (the idle flush of live mapping, the end of a replay), '
+                                         'which keeps the cost of an update following the new points',
+                                  allowed=_closed(0, 1_000_000_000))
     extraction_growth: float = param(0.5, "RANSAC runs again on a building's unallocated points once they have "
                                           'grown by this share (and by at least min_facade_points) since the last '
                                           'run', allowed=_positive(1e3))

@@ -16,10 +16,12 @@ the extraction's own rule); the rest wait in the building's pool, where RANSAC r
 once the pool has grown enough. A façade's frame and its block grid's anchor never move,
 so cells and blocks keep their identity. A façade whose points have grown by
 ``refit_growth`` since its last whole fit is fitted whole again (layers, length scales,
-every block); otherwise only the blocks whose extended block received a new training
-point, and the cells whose facet changed, are recomputed (:func:`update_facade`), so the
-cost of an update follows the new data. Whole refits at geometric steps cost a bounded
-multiple of one batch build in all.
+every block) while that fit had fewer than ``refit_max_points`` points; otherwise only
+the blocks whose extended block received a new training point, and the cells whose facet
+changed, are recomputed (:func:`update_facade`), so the cost of an update follows the new
+data, and :meth:`FacadeMap.flush` fits whole what was updated block by block (the idle
+flush of live mapping, the end of a replay). Whole refits of small façades at geometric
+steps cost a bounded multiple of ``refit_max_points`` per façade in all.
 
 **Copies for free** (:meth:`FacadeMap.clone`): an array the map holds is never written
 again; an update replaces it (and the frozen façade models) by new ones. A clone copies
@@ -61,6 +63,7 @@ from ..pipeline.step1_facades import (
 )
 from ..pipeline.step6_surface import _extent, fit_facade, update_facade
 from ..pipeline.step8_occupancy import FIXED, PLSC
+from ..threads import one_blas_thread
 from ..voxels import wrapped_keys
 
 #: Offsets of a clustering cell's 3x3 neighbourhood in cell keys (see FacadeMap._cell_keys).
@@ -140,9 +143,9 @@ class FacadeMap:
             defer: hold the points back (:attr:`pending`) until ``update.batch_points``
                 points are pending, then map them all in one update (live mapping; see
                 :meth:`flush`). The map then depends only on the sequence of calls, not
-                on their timing. Live mapping also learns the occupancy's PLSC
-                parameters at each doubling of the stored points
-                (:meth:`calibrate_when_grown`). Each call held back is one scan.
+                on their timing. Each call held back is one scan. The occupancy's PLSC
+                parameters are not learnt here (it builds a second map): :meth:`flush`
+                learns them when the stored points have doubled.
             scan: (N,) int scan label of each point when the call holds several scans
                 (e.g. the two lidars of a car), or None: the call is one scan. Each scan's
                 points are compared with the other scans' and the stored points where they
@@ -168,9 +171,7 @@ class FacadeMap:
             self.pending.append((xyz, building_id, sensor_origins))
             if self.n_pending < self.params.update.batch_points:
                 return []
-            updated = self._map_pending(progress)
-            self.calibrate_when_grown()
-            return updated
+            return self._map_pending(progress)
         if self.pending:
             self.pending.append((xyz, building_id, sensor_origins))
             return self._map_pending(progress, scan)
@@ -203,8 +204,9 @@ class FacadeMap:
         if not self.points:
             return self.occupancy_
         xyz, origins, ids = self._stored_rays()
-        self.occupancy_ = calibrate_occupancy(xyz, origins, self.params, ids, resolution, seed=self.params.seed,
-                                              progress=progress)
+        with one_blas_thread():
+            self.occupancy_ = calibrate_occupancy(xyz, origins, self.params, ids, resolution, seed=self.params.seed,
+                                                  progress=progress)
         self.occupancy_stored_ = len(xyz)
         return self.occupancy_
 
@@ -254,7 +256,7 @@ class FacadeMap:
 
     def calibrate_when_grown(self, growth: float = 1.0, min_points: int = 20_000) -> bool:
         """Calibrate (:meth:`calibrate_occupancy`) once the stored points have grown by
-        ``growth`` times those of the last calibration (live mapping: the cost, a map of
+        ``growth`` times those of the last calibration (at :meth:`flush`: the cost, a map of
         at most 200,000 points, calibration's ``max_points``, is spent at each doubling),
         with at least ``min_points`` stored and sensor origins for all; True when it did."""
         n = self.n_stored
@@ -291,19 +293,21 @@ class FacadeMap:
         was only updated block by block since its last whole fit, so that the map is as
         good as one built in one go from the same points.
 
-        Then, as live mapping does after each update, the occupancy's PLSC parameters are
-        learnt again if the stored points have doubled (:meth:`calibrate_when_grown`).
+        Then the occupancy's PLSC parameters are learnt again if the stored points have
+        doubled (:meth:`calibrate_when_grown`): live mapping learns them here, when the input
+        pauses (the worker's idle flush), not in its updates.
 
         Returns:
             The ids of the façades fitted whole.
         """
-        self._map_pending()
-        done = []
-        for f in list(self.facades) if consolidate else []:
-            if f.fitted_points != len(f.point_index):
-                self._refit_whole(f.building, f.facade_id, f.point_index, f.plane_extent)
-                done.append(f.facade_id)
-        self.calibrate_when_grown()
+        with one_blas_thread():
+            self._map_pending()
+            done = []
+            for f in list(self.facades) if consolidate else []:
+                if f.fitted_points != len(f.point_index):
+                    self._refit_whole(f.building, f.facade_id, f.point_index, f.plane_extent)
+                    done.append(f.facade_id)
+            self.calibrate_when_grown()
         return done
 
     def _checked(self, xyz: np.ndarray, building_id: np.ndarray | None, sensor_origins: np.ndarray | None
@@ -326,6 +330,12 @@ class FacadeMap:
 
     def _add(self, xyz: np.ndarray, building_id: np.ndarray | None, sensor_origins: np.ndarray | None,
              progress: Callable[[int, int], None] | None, scan: np.ndarray | None = None) -> list[int]:
+        # Small matrices only: BLAS in one thread (uncertain_facade_map.threads).
+        with one_blas_thread():
+            return self._add_points(xyz, building_id, sensor_origins, progress, scan)
+
+    def _add_points(self, xyz: np.ndarray, building_id: np.ndarray | None, sensor_origins: np.ndarray | None,
+                    progress: Callable[[int, int], None] | None, scan: np.ndarray | None = None) -> list[int]:
         t0 = time.perf_counter()
         self._learn_registration(xyz, scan)
         learnt = time.perf_counter()
@@ -603,7 +613,8 @@ class FacadeMap:
             on_plane = uvd_new[np.abs(uvd_new[:, 2]) <= ex.ransac_threshold]
             if len(on_plane) >= 3:
                 plane = _union(plane, _plane_box(on_plane))
-            if len(index) >= (1.0 + params.update.refit_growth) * model.fitted_points:
+            up = params.update
+            if model.fitted_points < up.refit_max_points and len(index) >= (1.0 + up.refit_growth) * model.fitted_points:
                 updated = self._refit_whole(b, fid, index, plane)
             else:
                 rng = np.random.default_rng([params.seed, b, fid, len(index)])

@@ -140,3 +140,50 @@ def solve_predict_blocks(first: int, last: int, uv: np.ndarray, y: np.ndarray, s
                 ks[r] = s / low[r, r]
                 q += ks[r] * ks[r]
             loo[last_member - i] = alpha[i] * alpha[i] / q
+
+
+@njit(cache=True, nogil=True)
+def gather_capped(start: np.ndarray, count: np.ndarray, order: np.ndarray, central: np.ndarray, key: np.ndarray,
+                  cap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Members of each block's extended block, at most ``cap``, ordered by a random key.
+
+    Args:
+        start, count: (B, 9) where each of a block's 9 neighbour blocks starts in ``order``
+            and how many points it holds.
+        order: (T,) training point indices sorted by block code.
+        central: (9,) True for the neighbour offset that is the block itself.
+        key: (sum(count),) random numbers in [0, 1), one per (block, neighbour, point) in
+            that nested order; a point of the block itself sorts before the neighbours'.
+        cap: at most this many members per block.
+
+    Returns:
+        ``(block, point, rank)`` as :func:`~uncertain_facade_map.pipeline.step4_gp_blocks.gather_blocks`.
+    """
+    n_blocks = start.shape[0]
+    kept = np.empty(n_blocks, np.int64)
+    for b in range(n_blocks):
+        kept[b] = min(cap, count[b].sum())
+    total = kept.sum()
+    out_block = np.empty(total, np.int64)
+    out_point = np.empty(total, np.int64)
+    out_rank = np.empty(total, np.int64)
+    pos = 0  # position in key
+    out = 0
+    for b in range(n_blocks):
+        n = count[b].sum()
+        cand = np.empty(n, np.int64)
+        ck = np.empty(n)
+        c = 0
+        for j in range(9):
+            for t in range(count[b, j]):
+                cand[c] = order[start[b, j] + t]
+                ck[c] = key[pos] + (0.0 if central[j] else 1.0)
+                c += 1
+                pos += 1
+        arrange = np.argsort(ck, kind='mergesort')
+        for r in range(kept[b]):
+            out_block[out] = b
+            out_point[out] = cand[arrange[r]]
+            out_rank[out] = r
+            out += 1
+    return out_block, out_point, out_rank

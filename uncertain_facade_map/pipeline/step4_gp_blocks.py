@@ -373,23 +373,17 @@ def gather_blocks(blocks: np.ndarray, train_codes: np.ndarray, cap: int, rng: np
         position in ``blocks``, the member's index in the training arrays, and its slot
         (0 .. n_b - 1).
     """
+    from ._gp_kernels import gather_capped
+
     order = np.argsort(train_codes, kind='stable')
     sorted_codes = train_codes[order]
     neighbours = blocks[:, None] + _NEIGHBOURS[None, :]  # (B, 9); facet stays, |du|,|dv| <= 1
     start = np.searchsorted(sorted_codes, neighbours, side='left')
     count = np.searchsorted(sorted_codes, neighbours, side='right') - start
-    counts = count.ravel()
-    total = int(counts.sum())
-    block = np.repeat(np.repeat(np.arange(len(blocks)), 9), counts)
-    first = np.repeat(start.ravel() - (np.cumsum(counts) - counts), counts)
-    point = order[first + np.arange(total)]
-    central = np.repeat(np.tile(_NEIGHBOURS == 0, len(blocks)), counts)
-    key = rng.random(total) + np.where(central, 0.0, 1.0)
-    arrange = np.lexsort((key, block))
-    block, point = block[arrange], point[arrange]
-    rank = _ranks(block)
-    keep = rank < cap
-    return block[keep], point[keep], rank[keep]
+    # One key per (block, neighbour, point); the block's own points sort first (key + 0), the
+    # neighbours' after (key + 1), each in random order; the first ``cap`` are kept.
+    key = rng.random(int(count.sum()))
+    return gather_capped(start, count, order, _NEIGHBOURS == 0, key, int(cap))
 
 
 @dataclass(frozen=True, eq=False)

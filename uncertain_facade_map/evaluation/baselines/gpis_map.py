@@ -108,7 +108,6 @@ What was simplified / chosen here:
 
 from __future__ import annotations
 
-from contextlib import nullcontext
 from dataclasses import dataclass
 
 import numpy as np
@@ -117,6 +116,7 @@ from scipy.spatial import cKDTree
 
 from ...errors import InputError
 from ...pipeline.step8_occupancy import READINGS, occupancy_probability, surface_probability
+from ...threads import one_blas_thread
 from .base import OccupancyMethod, check_positive, check_queries, check_scans
 
 #: ``OnGPIS::testSinglePoint`` (3D): prior variance of f plus this constant ("Noise param!").
@@ -135,18 +135,6 @@ _MAX_GPS = 3
 _MIN_NORMAL_NEIGHBOURS = 5
 #: Bound on (training rows x queries) handled at once in prediction (memory).
 _CHUNK_ELEMENTS = 4_000_000
-
-
-def _one_blas_thread():
-    """Context limiting BLAS to one thread: the local GPs are small (a few hundred rows),
-    and a multi-threaded BLAS spends more on synchronisation than on them (~100x slower
-    Cholesky factors on a busy 2-core machine). threadpoolctl comes with scikit-learn."""
-    try:
-        from threadpoolctl import threadpool_limits  # noqa: PLC0415 - scikit-learn's dependency
-    except ImportError:  # pragma: no cover - depends on the environment
-        return nullcontext()
-    return threadpool_limits(limits=1, user_api='blas')
-
 
 
 def joint_covariance(xa: np.ndarray, grad_a: np.ndarray, xb: np.ndarray, grad_b: np.ndarray,
@@ -377,7 +365,7 @@ class GPISMapMethod(OccupancyMethod):
             InputError: bad shapes, an empty or non-finite input.
         """
         points, origins = check_scans(points, origins)
-        with _one_blas_thread():
+        with one_blas_thread():
             self._fit(points, origins)
         return self
 
@@ -438,7 +426,7 @@ class GPISMapMethod(OccupancyMethod):
         xyz = check_queries(xyz)
         if self._cache is not None and self._cache[0] is xyz:
             return self._cache[1]
-        with _one_blas_thread():
+        with one_blas_thread():
             out = self._query(xyz)
         self._cache = (xyz, out)
         return out

@@ -104,7 +104,6 @@ What was simplified / chosen here:
 
 from __future__ import annotations
 
-import contextlib
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -114,6 +113,7 @@ import scipy.linalg
 from scipy.special import expit, log_ndtr, ndtr
 
 from ...errors import InputError
+from ...threads import one_blas_thread
 from ...voxels import pack_keys, unpack_keys
 from .base import (
     OccupancyMethod,
@@ -172,15 +172,6 @@ def _size_class(n: np.ndarray) -> np.ndarray:
     p = 2 ** np.floor(np.log2(n)).astype(np.int64)
     out = np.where(n <= p, p, np.where(n <= p + p // 2, p + p // 2, 2 * p))
     return np.maximum(out, 4)
-
-
-def _single_thread():
-    """Context limiting BLAS to one thread (faster for many small matrices), if possible."""
-    try:
-        from threadpoolctl import threadpool_limits  # noqa: PLC0415 - a scikit-learn dependency
-    except ImportError:  # pragma: no cover - depends on the environment
-        return contextlib.nullcontext()
-    return threadpool_limits(limits=1, user_api='blas')
 
 
 def _lower_solve(lower: np.ndarray, rhs: np.ndarray) -> np.ndarray:
@@ -621,7 +612,7 @@ class FastGPOMMethod(OccupancyMethod):
         if self.plsc_alpha is not None:
             self.alpha_, self.beta_ = self.plsc_alpha, self.plsc_beta
         else:
-            with _single_thread():
+            with one_blas_thread():
                 self.alpha_, self.beta_ = self._fit_plsc()
         return self
 
@@ -643,7 +634,7 @@ class FastGPOMMethod(OccupancyMethod):
             tkeys, tstart, tcount = np.unique(qkeys[order], return_index=True, return_counts=True)
             # The batches' GPs are independent: predicted on one thread per core (at most 4;
             # their BLAS calls release the GIL), fused in batch order, so the sums are the same.
-            with _single_thread(), ThreadPoolExecutor(min(4, os.cpu_count() or 1)) as pool:
+            with one_blas_thread(), ThreadPoolExecutor(min(4, os.cpu_count() or 1)) as pool:
                 for query, mean, var in pool.map(
                         lambda batch: self._predict_batch(batch, xyz, order, tkeys, tstart, tcount), self.batches_):
                     var = np.maximum(var, _MIN_GP_VAR)

@@ -1,0 +1,22 @@
+"""Threads of the numerical libraries.
+
+The map's linear algebra is many small matrices (GP blocks of at most 64 points, marginal
+likelihood patches of a few hundred): a multi-threaded BLAS spends more on synchronising its
+threads than on them, and on a busy 2-core machine its spinning threads make a 150 x 150
+Cholesky solve 20-100 times slower (measured: the street build's length-scale fits went from
+0.3 s to 5 s while two other processes ran). The map uses its cores itself instead (the
+compiled block kernel in two threads, the mapping process beside the node's).
+"""
+
+from __future__ import annotations
+
+from contextlib import AbstractContextManager, nullcontext
+
+
+def one_blas_thread() -> AbstractContextManager:
+    """Context limiting BLAS to one thread (threadpoolctl, a scikit-learn dependency)."""
+    try:
+        from threadpoolctl import threadpool_limits  # noqa: PLC0415 - scikit-learn's dependency
+    except ImportError:  # pragma: no cover - depends on the environment
+        return nullcontext()
+    return threadpool_limits(limits=1, user_api='blas')
