@@ -47,6 +47,9 @@ venv: $(READY)
 # The pins are installed by uv (from PyPI, into the venv, which keeps its own pip): it
 # fetches and unpacks the 230 wheels in parallel, 9 s against pip's 85 s on the 2-core
 # machine, which is what lets `make demo` finish within five minutes of a fresh clone.
+# --compile-bytecode: the .pyc files are written once here (12 s), not by every process that
+# imports a package (numba alone takes 1.6 s to import from source; many shells and CI set
+# PYTHONDONTWRITEBYTECODE, so nothing would ever cache them).
 # editable_mode=compat: a plain .pth with the repository's path, so that the import system
 # finds the core here before the generated package in $(IFC_PY) (setuptools' default editable
 # finder would only be asked after every sys.path entry).
@@ -55,7 +58,7 @@ $(STAMP): requirements.lock setup.py
 	  "ROS 2 Jazzy wheels need CPython 3.11, found " + sys.version.split()[0]'
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet "uv==$(UV_VERSION)"
-	$(UV) pip install --quiet --python $(PY) "pip==25.3" "setuptools==80.9.0" "wheel==0.45.1" -r requirements.lock
+	$(UV) pip install --quiet --compile-bytecode --python $(PY) "pip==25.3" "setuptools==80.9.0" "wheel==0.45.1" -r requirements.lock
 	$(UV) pip install --quiet --python $(PY) --no-deps --no-build-isolation -e . -C editable_mode=compat
 	touch $(STAMP)
 
