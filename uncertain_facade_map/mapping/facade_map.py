@@ -580,7 +580,7 @@ class FacadeMap:
             context, labels = (None, None) if so is not None else self._context(b, rng)
             extracted, _ = extract_facades(pts[pool], ex, sensor_origins=None if so is None else so[pool], rng=rng,
                                            context=context, context_labels=labels,
-                                           walls=() if so is not None else self._walls(b))
+                                           walls=() if so is not None else self._walls(b), normals=self.normals[b][pool])
             for e in extracted:
                 index = pool[e.index]
                 target = self._coplanar(b, e, index)

@@ -996,8 +996,8 @@ def _final_frame(points: np.ndarray, normals: np.ndarray, frame: FacadeFrame,
 
 def extract_facades(xyz: np.ndarray, params: ExtractionParams, *, sensor_origins: np.ndarray | None = None,
                     rng: np.random.Generator, context: np.ndarray | None = None,
-                    context_labels: np.ndarray | None = None, walls: Sequence[tuple[FacadeFrame, np.ndarray]] = ()
-                    ) -> tuple[list[ExtractedFacade], np.ndarray]:
+                    context_labels: np.ndarray | None = None, walls: Sequence[tuple[FacadeFrame, np.ndarray]] = (),
+                    normals: np.ndarray | None = None) -> tuple[list[ExtractedFacade], np.ndarray]:
     """Extract the façades of ONE building.
 
     Args:
@@ -1015,6 +1015,9 @@ def extract_facades(xyz: np.ndarray, params: ExtractionParams, *, sensor_origins
         walls: the building's façades found before (incremental mapping) as (frame, (K, 3)
             points on its plane, metres, map frame); without sensor origins a sloped façade
             faces like the wall it adjoins, among these too.
+        normals: (N, 3) unit point normals (any sign) when the caller has them (the map
+            keeps every building point's, :func:`point_normals` with ``normal_neighbours``
+            among the building's points); None: computed here among ``xyz``.
 
     Returns:
         ``(facades, unallocated)``: the façades, most points first, and an (N,) bool mask
@@ -1056,7 +1059,10 @@ def extract_facades(xyz: np.ndarray, params: ExtractionParams, *, sensor_origins
         return [], unallocated
     # Final frames from the subsample's allocation (the subsample pins a plane down to
     # well under 0.01 degree; the full cloud would only cost time).
-    normals = _point_normals(local, min(params.normal_neighbours, n))
+    if normals is None:
+        normals = _point_normals(local, min(params.normal_neighbours, n))
+    elif np.shape(normals) != xyz.shape:
+        raise InputError(f'normals must have the shape of xyz {xyz.shape}, got {np.shape(normals)}')
     which = _Bands(sub_xyz, [p.frame for p in planes], params).allocate([p.box for p in planes])
     frames: list[FacadeFrame] = []
     boxes: list[tuple[float, float, float, float]] = []
