@@ -103,7 +103,7 @@ def _nearest(uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     the same for points moved by any rounding of the same transform.
     """
     k = min(_TIE_CANDIDATES, len(uv))
-    dist, idx = cKDTree(uv).query(uv, k=k)
+    dist, idx = cKDTree(uv).query(uv, k=k, workers=-1)
     dist, idx = dist[:, 1:], idx[:, 1:]
     tied = dist <= dist[:, :1] * (1.0 + TIE_TOLERANCE) + 1e-12
     pick = np.argmin(np.where(tied, idx, np.iinfo(np.int64).max), axis=1)
