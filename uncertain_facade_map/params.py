@@ -562,9 +562,13 @@ class NodeConfig(Section):
 
     qos: str = param('sensor_data', 'QoS of the points subscription: sensor_data (best effort, as drivers publish) '
                                     'or reliable', allowed=Options(('sensor_data', 'reliable')))
-    queue_size: int = param(20, 'clouds waiting for the mapping worker at most; when full the oldest waiting cloud '
-                                'is dropped (and counted), so the map follows the newest data',
-                            allowed=_closed(1, 10000))
+    queue_size: int = param(1000, 'clouds waiting for the mapping worker at most; when full (or queue_points is '
+                                  'reached) the oldest waiting cloud is dropped (and counted), so the map follows '
+                                  'the newest data', allowed=_closed(1, 100000))
+    queue_points: int = param(2_000_000, '... and building points waiting at most (memory: about 50 bytes each): '
+                                         'the queue is bounded by what it holds, so small clouds at a high rate '
+                                         '(the street drive at 8x: 80 clouds of 5,600 points a second) wait through '
+                                         'an update instead of being dropped', allowed=_closed(1, 1_000_000_000))
     max_cloud_points: int = param(5_000_000, 'a cloud with more points is refused with a warning',
                                   allowed=_closed(1, 1_000_000_000))
     mapping_process: bool = param(True, 'update the map in a process of its own, so that queries and incoming '

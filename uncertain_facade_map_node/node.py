@@ -229,7 +229,8 @@ class FacadeMapperNode(Node):
         self._helper = HelperProcess('facade_products', cfg.node.mapping_nice) if cfg.node.mapping_process else None
         self.worker = MapWorker(fmap, cfg.node.queue_size, on_error=self._cloud_failed, idle_flush=cfg.node.idle_flush,
                                on_flush=self._flushed, on_flush_error=self._flush_failed,
-                               process=cfg.node.mapping_process, nice=cfg.node.mapping_nice)
+                               process=cfg.node.mapping_process, nice=cfg.node.mapping_nice,
+                               queue_points=cfg.node.queue_points)
 
         latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                              reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
@@ -241,9 +242,9 @@ class FacadeMapperNode(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
 
         # Best effort (sensor data) or reliable; either way the reader keeps as many clouds as the
-        # node's queue, so that a cloud placed or selected for a while (0.1-0.5 s) does not make
+        # node's queue (up to 100: DDS holds them whole, whatever their size), so that a cloud placed or selected for a while (0.1-0.5 s) does not make
         # DDS drop the ones behind it unseen (sensor data's own depth is 5).
-        depth = max(10, cfg.node.queue_size)
+        depth = min(max(10, cfg.node.queue_size), 100)
         qos = QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE) if cfg.node.qos == 'reliable' else \
             QoSProfile(depth=depth, reliability=qos_profile_sensor_data.reliability,
                        durability=qos_profile_sensor_data.durability, history=qos_profile_sensor_data.history)

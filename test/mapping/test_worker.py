@@ -35,6 +35,29 @@ def test_drop_policy_drops_the_oldest_waiting_cloud():
     worker.stop()
 
 
+def test_the_queue_is_bounded_by_points_too():
+    """Small clouds wait through an update while their points fit in queue_points; a cloud
+    that would pass it drops the oldest ones until it fits (a cloud larger than the bound
+    alone still waits)."""
+    gate = threading.Event()
+    worker = MapWorker(FacadeMap(), queue_size=1000, idle_flush=0, queue_points=25)
+    started = threading.Event()
+    threading.Thread(target=lambda: worker.call(lambda m: (started.set(), gate.wait(10)), changes=False)).start()
+    assert started.wait(5)
+    sizes = [10, 10, 5, 12, 40]
+    kept = [worker.put(Cloud(wall(n, seed=i), None, None, i)) for i, n in enumerate(sizes)]
+    # 10 + 10 + 5 = 25 fit; 12 drops the oldest (10); 40 alone exceeds 25: all others dropped.
+    assert kept == [True, True, True, False, False]
+    assert worker.counters['clouds_dropped'] == 4 and worker.counters['points_dropped'] == 10 + 10 + 5 + 12
+    assert [item.stamp_ns for item in worker._queue if isinstance(item, Cloud)] == [4]
+    gate.set()
+    assert worker.wait_idle(30)
+    assert worker.counters['clouds_mapped'] + worker.counters['clouds_failed'] == 1
+    worker.stop()
+    with pytest.raises(ValueError, match='queue_points'):
+        MapWorker(FacadeMap(), queue_points=0)
+
+
 def test_clouds_are_mapped_in_order_and_flushed_when_idle():
     params = MapParams(update=UpdateParams(batch_points=1000))
     worker = MapWorker(FacadeMap(params), queue_size=100, idle_flush=0.3)

@@ -5,7 +5,8 @@ The facade_mapper node (and the replay command) hand clouds of building points t
 time, in arrival order, so that a node fed the same clouds builds the same map as the
 offline core fed them in one loop. Nothing slow runs in the caller's thread.
 
-**Drop policy.** At most ``queue_size`` clouds wait. When a cloud arrives at a full queue,
+**Drop policy.** At most ``queue_size`` clouds and ``queue_points`` points wait. When a
+cloud arrives at a full queue,
 the *oldest* waiting cloud is dropped: a live map should follow the newest data, and the
 cloud that waited longest is the one most likely covered again by what follows. Drops are
 counted (:attr:`MapWorker.counters`). Commands (save, load, reset, any function given to
@@ -121,6 +122,7 @@ class MapWorker:
     Args:
         fmap: the map to grow (the worker owns it from now on; read :attr:`snapshot`).
         queue_size: clouds waiting at most (>= 1); see the module's drop policy.
+        queue_points: points waiting at most (a cloud is queued even when it alone holds more).
         on_change: called in the worker thread with each new snapshot.
         on_error: called in the worker thread with (cloud, exception) when a cloud cannot
             be mapped; the cloud is skipped and the map is left exactly as it was.
@@ -141,13 +143,17 @@ class MapWorker:
                  on_error: Callable[[Cloud, BaseException], None] | None = None, idle_flush: float = 1.0,
                  on_flush: Callable[[int, list[int]], None] | None = None,
                  on_flush_error: Callable[[BaseException], None] | None = None, process: bool = False,
-                 nice: int = 0) -> None:
+                 nice: int = 0, queue_points: int | None = None) -> None:
         if queue_size < 1:
             raise ValueError(f'queue_size must be >= 1, got {queue_size}')
+        if queue_points is not None and queue_points < 1:
+            raise ValueError(f'queue_points must be >= 1, got {queue_points}')
         self._engine: LocalEngine | ProcessEngine = ProcessEngine(fmap, nice) if process else LocalEngine(fmap)
         self._queue: deque[Cloud | _Command] = deque()
         self._clouds = 0
+        self._points = 0  # points of the clouds waiting
         self._size = queue_size
+        self._max_points = queue_points
         self._cond = threading.Condition()
         self._on_change = on_change
         self._on_error = on_error
@@ -188,20 +194,24 @@ class MapWorker:
             self.counters['clouds_in'] += 1
             self.counters['points_in'] += len(cloud.xyz)
             kept = True
-            if self._clouds >= self._size:
-                for i, item in enumerate(self._queue):
-                    if isinstance(item, Cloud):
-                        del self._queue[i]
-                        self._clouds -= 1
-                        self.counters['clouds_dropped'] += 1
-                        self.counters['points_dropped'] += len(item.xyz)
-                        kept = False
-                        break
+            while self._clouds and (self._clouds >= self._size or self._over_points(len(cloud.xyz))):
+                oldest = next(i for i, item in enumerate(self._queue) if isinstance(item, Cloud))
+                item = self._queue[oldest]
+                del self._queue[oldest]
+                self._clouds -= 1
+                self._points -= len(item.xyz)
+                self.counters['clouds_dropped'] += 1
+                self.counters['points_dropped'] += len(item.xyz)
+                kept = False
             self._queue.append(cloud)
             self._clouds += 1
+            self._points += len(cloud.xyz)
             self._last_cloud = time.monotonic()
             self._cond.notify_all()
         return kept
+
+    def _over_points(self, arriving: int) -> bool:
+        return self._max_points is not None and self._points + arriving > self._max_points
 
     def call(self, fn: Callable[[FacadeMap], Any], timeout: float | None = None, changes: bool = True) -> Any:
         """Run ``fn(map)`` in the worker after the clouds queued so far, and return its result.
@@ -333,6 +343,7 @@ class MapWorker:
                 item = _Command(None) if idle_flush else self._queue.popleft()
                 if isinstance(item, Cloud):
                     self._clouds -= 1
+                    self._points -= len(item.xyz)
                     self._working = item
                 self._busy = True
             try:
