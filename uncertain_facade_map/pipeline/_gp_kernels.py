@@ -167,12 +167,15 @@ def gather_capped(start: np.ndarray, count: np.ndarray, order: np.ndarray, centr
     out_block = np.empty(total, np.int64)
     out_point = np.empty(total, np.int64)
     out_rank = np.empty(total, np.int64)
+    n_max = 0
+    for b in range(n_blocks):
+        n_max = max(n_max, count[b].sum())
+    cand = np.empty(n_max, np.int64)
+    ck = np.empty(n_max)
     pos = 0  # position in key
     out = 0
     for b in range(n_blocks):
         n = count[b].sum()
-        cand = np.empty(n, np.int64)
-        ck = np.empty(n)
         c = 0
         for j in range(9):
             for t in range(count[b, j]):
@@ -180,7 +183,7 @@ def gather_capped(start: np.ndarray, count: np.ndarray, order: np.ndarray, centr
                 ck[c] = key[pos] + (0.0 if central[j] else 1.0)
                 c += 1
                 pos += 1
-        arrange = np.argsort(ck, kind='mergesort')
+        arrange = np.argsort(ck[:n], kind='mergesort')
         for r in range(kept[b]):
             out_block[out] = b
             out_point[out] = cand[arrange[r]]

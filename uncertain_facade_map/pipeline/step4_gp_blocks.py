@@ -415,6 +415,19 @@ class BlockData:
         return BlockData(self.uv[keep], self.y[keep], self.facet[keep], self.sigma_p, self.lengthscale2, self.origin)
 
 
+_POOL: list = []
+
+
+def _pool():
+    """The threads solving blocks, started once per process (a thread start costs
+    milliseconds on a busy machine, and a façade update calls the kernel twice)."""
+    if not _POOL:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _POOL.append(ThreadPoolExecutor(max_workers=THREADS, thread_name_prefix='gp_blocks'))
+    return _POOL[0]
+
+
 def _run_blocks(data: BlockData, blocks: np.ndarray, tests: np.ndarray, test_start: np.ndarray, uv: np.ndarray,
                 params: GPParams, rng: np.random.Generator, want_loo: bool
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -459,11 +472,8 @@ def _run_blocks(data: BlockData, blocks: np.ndarray, tests: np.ndarray, test_sta
     if THREADS <= 1 or len(blocks) < 2 or work[-1] < 1e6:
         solve_predict_blocks(0, len(blocks), *args)
     else:
-        from concurrent.futures import ThreadPoolExecutor
-
         cuts = np.r_[0, np.searchsorted(work, work[-1] * np.arange(1, THREADS) / THREADS), len(blocks)]
-        with ThreadPoolExecutor(max_workers=THREADS) as pool:
-            list(pool.map(lambda r: solve_predict_blocks(int(r[0]), int(r[1]), *args), zip(cuts[:-1], cuts[1:])))
+        list(_pool().map(lambda r: solve_predict_blocks(int(r[0]), int(r[1]), *args), zip(cuts[:-1], cuts[1:])))
     return mean, var, solved, point, block, loo
 
 
