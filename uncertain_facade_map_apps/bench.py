@@ -9,7 +9,9 @@ its peak memory (max RSS) is its own:
 - ``query``: 500 000 points near the façades against the saved map (loading not timed), as
   the command line's ``query`` answers them (``query.surface`` 'local': the stored points
   read per point where dense, the set-up of their KD-tree and calibration timed too);
-- ``query raster``: the same read from the façade rasters alone (the paper's reading).
+- ``query raster``: the same read from the façade rasters alone (the paper's reading);
+- ``select``: the building selection of clouds without classes, per sweep (simulated 64-beam
+  car lidar sweeps; the real ones of ``../shared/data/real`` too when present).
 
 Rates are input points per second of the timed part.
 """
@@ -87,7 +89,45 @@ def _query_raster(work: Path, scene_name: str) -> dict:
     return _query(work, scene_name, 'raster')
 
 
-STAGES = {'simulate': _simulate, 'build': _build, 'query': _query, 'query_raster': _query_raster}
+def _select(work: Path, scene_name: str) -> dict:
+    """The building selection of clouds without classes, one sweep at a time as the node
+    selects them: 4 simulated sweeps of the 64-beam car lidar on ``residential`` (whatever
+    ``--scene``; simulating not timed), each 3 times, and the real sweeps of
+    ``../shared/data/real`` when they are there (read from there: non-commercial). The first
+    call (loading the compiled kernels) is not timed."""
+    import numpy as np
+
+    from uncertain_facade_map.selection import select_building_points
+    from uncertain_facade_map.selection.evaluation import REAL_DATA, simulated_clouds
+
+    def seconds(xyz: np.ndarray, origins: np.ndarray | None, runs: int = 3) -> list[float]:
+        times = []
+        for _ in range(runs):
+            started = time.perf_counter()
+            select_building_points(xyz, origins)
+            times.append(time.perf_counter() - started)
+        return times
+
+    sweeps = [(np.stack([p['x'], p['y'], p['z']], axis=1), np.stack([p['origin_x'], p['origin_y'], p['origin_z']],
+                                                                     axis=1))
+              for p in simulated_clouds('residential', 'hdl64', 0.1, 6.0)]
+    select_building_points(*sweeps[0])
+    timed = [(len(xyz), t) for xyz, origins in sweeps for t in seconds(xyz, origins)]
+    per_100k = [t / n * 1e5 for n, t in timed]
+    note = f'{len(sweeps)} hdl64 sweeps: {np.median(per_100k) * 1e3:.0f} ms per 100,000 points (median)'
+    real = sorted(REAL_DATA.glob('*.ply')) if REAL_DATA.is_dir() else []
+    if real:
+        from uncertain_facade_map.io.clouds import read_cloud
+
+        clouds = [read_cloud(path) for path in real]
+        ms = [np.median(seconds(c.xyz, c.sensor_origins)) / len(c.xyz) * 1e8 for c in clouds]
+        note += '; real: ' + ', '.join(f'{path.stem} {m:.0f}' for path, m in zip(real, ms)) + ' ms (median of 3)'
+    return {'stage': 'select hdl64', 'items': sum(n for n, _ in timed), 'unit': 'points',
+            'seconds': sum(t for _, t in timed), 'note': note}
+
+
+STAGES = {'simulate': _simulate, 'build': _build, 'query': _query, 'query_raster': _query_raster,
+          'select': _select}
 
 
 def _run(stage: str, work: str, scene: str, queue: mp.Queue) -> None:

@@ -72,6 +72,10 @@ them (85-94 % within the picker's 40 m); see docs/selection.md for the figures a
 of the wall points and 98-100 % of what it keeps is building (without the field-of-view
 rule: under 3 % of the wall points; ``python -m uncertain_facade_map.selection.evaluation
 --simulated``).
+
+The loops over cells and windows are compiled (:mod:`._kernels`, numba), summing as the
+numpy version did, so that the selection is the same bit for bit; Patchwork++ is about a
+third of the time left (``make bench``, stage ``select``: the time per 100,000 points).
 """
 
 from __future__ import annotations
@@ -91,6 +95,7 @@ from scipy.spatial import cKDTree
 
 from ..errors import InputError
 from ..params import SelectionConfig
+from . import _kernels
 
 __all__ = ['DROP_RULES', 'Selection', 'select_building_points', 'selection_warning']
 
@@ -252,7 +257,9 @@ def _points(values: np.ndarray, what: str, single: bool = False) -> np.ndarray:
         raise InputError(f'{what} must be of shape (N, 3){" or (3,)" if single else ""}, got {arr.shape}')
     if arr.dtype.kind not in 'iuf':
         raise InputError(f'{what} must be numbers, got type {arr.dtype}')
-    arr = arr.astype(np.float64)
+    arr = arr.astype(np.float64, copy=False)
+    if np.isfinite(arr).all():
+        return arr
     bad = ~np.isfinite(arr).all(axis=-1)
     if bad.any():
         raise InputError(f'{int(np.sum(bad))} of {bad.size} {what} have NaN or infinite coordinates')
@@ -271,24 +278,37 @@ def _scans(xyz: np.ndarray, origins: np.ndarray | None, params: SelectionConfig)
         return
     if origins is not None:
         keys = np.floor(origins[:, :2] / params.scan_cell).astype(np.int64)
-    elif np.ptp(xyz[:, :2], axis=0).max() > 2 * params.max_range:
+        if (keys == keys[0]).all():  # one cell: the usual sweep
+            yield np.arange(n), np.array(_kernels.column_means(origins[:, :2]))
+            return
+    elif max(np.ptp(xyz[:, 0]), np.ptp(xyz[:, 1])) > 2 * params.max_range:
         keys = np.floor(xyz[:, :2] / params.max_range).astype(np.int64)
     else:
         yield np.arange(n), np.median(xyz[:, :2], axis=0)
         return
-    _, group = _cell_index(keys, 1.0)
-    order = np.argsort(group, kind='stable')
-    bounds = np.flatnonzero(np.diff(group[order])) + 1
-    for idx in np.split(order, bounds):
+    low = np.array([keys[:, 0].min(), keys[:, 1].min()])
+    rel = keys - low
+    codes, order = _grouped(rel[:, 0] * (int(rel[:, 1].max()) + 1) + rel[:, 1])
+    for idx in np.split(order, np.flatnonzero(np.diff(codes)) + 1):
         centre = origins[idx, :2].mean(axis=0) if origins is not None else np.median(xyz[idx, :2], axis=0)
         yield idx, centre
+
+
+def _grouped(codes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(M,) non-negative int64 ``codes`` sorted, and the (M,) order that sorts them, by
+    ascending index among equal codes (a stable argsort)."""
+    n = len(codes)
+    if n and (int(codes.max()) + 1) * n < 2 ** 62:  # one sort of code * n + index: faster than a stable argsort
+        return np.divmod(np.sort(codes * n + np.arange(n)), n)
+    order = np.argsort(codes, kind='stable')  # a cloud thousands of kilometres wide
+    return codes[order], order
 
 
 def _cell_index(xy: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
     """The occupied square cells of (M, 2) places: their (C, 2) int64 keys (sorted) and
     each place's cell index (M,)."""
     keys = np.floor(xy / cell).astype(np.int64)
-    low = keys.min(axis=0)
+    low = np.array([keys[:, 0].min(), keys[:, 1].min()])  # (axis=0 is slow on 2 columns)
     rel = keys - low
     width = int(rel[:, 1].max()) + 1
     codes, first, inverse = np.unique(rel[:, 0] * width + rel[:, 1], return_index=True, return_inverse=True)
@@ -298,11 +318,13 @@ def _cell_index(xy: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
 def _ground_level(xyz: np.ndarray, centre: np.ndarray) -> float:
     """Ground level around ``centre`` (x, y): the median of the lowest point of each 1 m
     cell within 20 m (of all cells if fewer than 10 points are that close)."""
-    near = np.sum((xyz[:, :2] - centre) ** 2, axis=1) <= _LEVEL_RADIUS ** 2
-    pts = xyz[near] if near.sum() >= 10 else xyz
-    _, cell = _cell_index(pts[:, :2], _LEVEL_CELL)
-    low = np.full(cell.max() + 1, np.inf)
-    np.minimum.at(low, cell, pts[:, 2])
+    low = _kernels.lowest_per_cell(xyz, float(centre[0]), float(centre[1]), _LEVEL_RADIUS, _LEVEL_CELL, 10)
+    if not len(low):  # wider than the dense grid: numpy's way
+        near = np.sum((xyz[:, :2] - centre) ** 2, axis=1) <= _LEVEL_RADIUS ** 2
+        pts = xyz[near] if near.sum() >= 10 else xyz
+        _, cell = _cell_index(pts[:, :2], _LEVEL_CELL)
+        low = np.full(cell.max() + 1, np.inf)
+        np.minimum.at(low, cell, pts[:, 2])
     return float(np.median(low))
 
 
@@ -346,7 +368,7 @@ def _ground(xyz: np.ndarray, origins: np.ndarray | None, params: SelectionConfig
     ground = np.zeros(len(xyz), dtype=bool)
     levels = []
     for idx, centre in _scans(xyz, origins, params):
-        pts = xyz[idx]
+        pts = xyz if len(idx) == len(xyz) else xyz[idx]  # one scan: idx is arange(N)
         level = _ground_level(pts, centre)
         levels.append(level)
         ground[idx] = _patchwork(pts - np.array([centre[0], centre[1], level + params.sensor_height]), params)
@@ -358,8 +380,10 @@ def _ground_height(xy: np.ndarray, ground: np.ndarray, fallback: float, cell: fl
     else in the nearest cell with ground; ``fallback`` everywhere without ground points."""
     if not len(ground):
         return np.full(len(xy), fallback)
-    keys, inverse = _cell_index(ground[:, :2], cell)
-    height = np.bincount(inverse, ground[:, 2]) / np.bincount(inverse)
+    keys, height = _kernels.mean_height_per_cell(ground, cell)  # keys in (x, y) order, as _cell_index's
+    if not len(keys):  # wider than the dense grid: numpy's way
+        keys, inverse = _cell_index(ground[:, :2], cell)
+        height = np.bincount(inverse, ground[:, 2]) / np.bincount(inverse)
     _, nearest = cKDTree((keys + 0.5) * cell).query(xy)
     return height[nearest]
 
@@ -418,27 +442,29 @@ def _field_of_view(xyz: np.ndarray, origins: np.ndarray | None, params: Selectio
 # 3.-5. Walls
 # ----------------------------------------------------------------------------------------
 class _Cells:
-    """Occupied square cells, as sorted int64 codes, and lookups of neighbours by offset."""
+    """Occupied square cells: their sorted int64 codes, keys and centres, each point's cell,
+    and the points of each cell (``start``, ``members``: see :mod:`._kernels`)."""
 
     def __init__(self, xy: np.ndarray, cell: float, margin: int):
         keys = np.floor(xy / cell).astype(np.int64)
-        self.low = keys.min(axis=0) - margin
+        self.low = np.array([keys[:, 0].min(), keys[:, 1].min()]) - margin  # (axis=0 is slow on 2 columns)
         self.width = int(keys[:, 1].max() - self.low[1]) + margin + 1
         codes = self.code(keys)
-        self.codes, self.of_point = np.unique(codes, return_inverse=True)
-        self.of_point = self.of_point.ravel()
-        self.keys = keys[np.unique(self.of_point, return_index=True)[1]]
+        sorted_codes, self.members = _grouped(codes)
+        self.codes, self.start, self.of_point = _kernels.group_cells(sorted_codes, self.members)
+        rel_x, rel_y = np.divmod(self.codes, self.width)
+        self.keys = np.stack([rel_x + self.low[0], rel_y + self.low[1]], axis=1)
         self.centres = (self.keys + 0.5) * cell
 
     def code(self, keys: np.ndarray) -> np.ndarray:
         rel = keys - self.low
         return rel[:, 0] * self.width + rel[:, 1]
 
-    def find(self, keys: np.ndarray) -> np.ndarray:
-        """Index of the cell of each (M, 2) key, -1 for an empty one."""
-        codes = self.code(keys)
-        pos = np.minimum(np.searchsorted(self.codes, codes), len(self.codes) - 1)
-        return np.where(self.codes[pos] == codes, pos, -1)
+    def neighbours(self, offsets: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+        """(R, K) index of the cell at each of the (K, 2) ``offsets`` (dx, dy) from each of the
+        cells ``rows`` (ascending; all if None), -1 for an empty one (offsets up to the margin)."""
+        rows = np.arange(len(self.codes)) if rows is None else rows
+        return _kernels.neighbours(self.codes, rows, offsets[:, 0] * self.width + offsets[:, 1])
 
 
 def _walls(q: np.ndarray, ground: np.ndarray, level: float, view: _View | None,
@@ -460,52 +486,35 @@ def _walls(q: np.ndarray, ground: np.ndarray, level: float, view: _View | None,
     link = math.ceil(params.link_distance / params.cell)
     cells = _Cells(q[:, :2], params.cell, max(params.window_radius, link) + 1)
     n_cells = len(cells.codes)
-    point_keys = cells.keys[cells.of_point]
-    # (point, window) pairs: each point is in the window of every cell within window_radius of its own.
-    r = params.window_radius
-    pairs_p, pairs_w = [], []
-    for dx in range(-r, r + 1):
-        for dy in range(-r, r + 1):
-            window = cells.find(point_keys - np.array([dx, dy]))
-            ok = window >= 0
-            pairs_p.append(np.flatnonzero(ok))
-            pairs_w.append(window[ok])
-    pi, wi = np.concatenate(pairs_p), np.concatenate(pairs_w)
-    rel = q[pi, :2] - cells.centres[wi]
-    weight = np.ones(len(pi))
-    for _ in range(_PASSES):
-        total = np.maximum(np.bincount(wi, weight, n_cells), 1e-12)
-        mean = np.stack([np.bincount(wi, weight * rel[:, k], n_cells) / total for k in (0, 1)], axis=1)
-        d = rel - mean[wi]
-        sxx = np.bincount(wi, weight * d[:, 0] ** 2, n_cells) / total
-        syy = np.bincount(wi, weight * d[:, 1] ** 2, n_cells) / total
-        sxy = np.bincount(wi, weight * d[:, 0] * d[:, 1], n_cells) / total
+    # Each window holds the points of the cells within window_radius of its own (the loops in
+    # _kernels), read in cell order.
+    nbr = cells.neighbours(_kernels.window_offsets(params.window_radius))
+    order = cells.members
+    xyz = q[order]
+    xy = np.ascontiguousarray(xyz[:, :2])
+    fit = (cells.centres, cells.start, nbr)
+    mean = normal = np.zeros((n_cells, 2))
+    for k in range(_PASSES):
+        total, mean, sxx, syy, sxy = _kernels.moments(xy, *fit, mean, normal, params.band, k == 0)
         angle = 0.5 * np.arctan2(2 * sxy, sxx - syy)  # of the line's direction
         normal = np.stack([-np.sin(angle), np.cos(angle)], axis=1)
-        dist = np.einsum('ij,ij->i', d, normal[wi])
-        weight = (np.abs(dist) < params.band).astype(np.float64)
-    band = weight > 0
-    count = np.bincount(wi, band, n_cells)
-    points = np.bincount(wi, minlength=n_cells)
-    thickness = np.sqrt(np.bincount(wi, band * dist ** 2, n_cells) / np.maximum(count, 1))
+    if view is not None:
+        at_top, origin = view.at_top[order], view.origin[order]
+    else:
+        at_top, origin = np.zeros(len(q), dtype=bool), np.zeros((len(q), 2))
+    points, count, sq, top, bottom, n_top, origin_sum = _kernels.band_stats(
+        xyz, *fit, mean, normal, params.band, at_top, origin)
+    thickness = np.sqrt(sq / np.maximum(count, 1))
     spread = 0.5 * (sxx + syy) + np.sqrt(0.25 * (sxx - syy) ** 2 + sxy ** 2)  # along the line
     length = np.sqrt(12.0 * spread)
-    z = q[pi[band], 2]
-    top = np.full(n_cells, -np.inf)
-    bottom = np.full(n_cells, np.inf)
-    np.maximum.at(top, wi[band], z)
-    np.minimum.at(bottom, wi[band], z)
     foot = np.minimum(_ground_height(cells.centres, ground, level, params.ground_cell), bottom)
     tall = top - foot >= params.min_structure_height
     cut = np.zeros(n_cells, dtype=bool)
     if view is not None:
         # Cut off by the field of view: seen as high as the sensor could see it. A wall if its
         # plane passes far enough from the sensor: a van's side, along the road, passes near.
-        seen = band & view.at_top[pi]
-        n_top = np.bincount(wi[seen], minlength=n_cells)
         rows = np.flatnonzero(n_top)
-        origin = np.stack([np.bincount(wi[seen], view.origin[pi[seen], k], n_cells)[rows] for k in (0, 1)],
-                          axis=1) / n_top[rows, None]
+        origin = origin_sum[rows] / n_top[rows, None]
         plane = np.abs(np.einsum('ij,ij->i', cells.centres[rows] + mean[rows] - origin, normal[rows]))
         cut[rows] = plane >= params.min_cut_distance
     # A wall cut off at the top shows its lower part only where hedges and cars leave it.
@@ -521,7 +530,7 @@ def _walls(q: np.ndarray, ground: np.ndarray, level: float, view: _View | None,
     failed[short] = DROP_RULES.index('selection.min_segment_length')
     failed[kept] = DROP_RULES.index('selection.band')
     keep = np.zeros(len(q), dtype=bool)
-    keep[pi[band & kept[wi]]] = True
+    keep[order] = _kernels.band_points(xy, *fit, mean, normal, params.band, np.flatnonzero(kept))
     return keep, segments, failed[cells.of_point]
 
 
@@ -534,23 +543,11 @@ def _segments(wall: np.ndarray, cells: _Cells, centroid: np.ndarray, normal: np.
         return wall, 0, np.zeros_like(wall)
     cos_max = math.cos(math.radians(params.segment_angle))
     reach2 = (params.link_distance / params.cell) ** 2
-    a_all, b_all = [idx], [idx]
-    for dx in range(0, link + 1):
-        for dy in range(-link, link + 1):
-            if (dx == 0 and dy <= 0) or dx * dx + dy * dy > reach2:
-                continue
-            other = cells.find(cells.keys[idx] + np.array([dx, dy]))
-            ok = other >= 0
-            a, b = idx[ok], other[ok]
-            ok = wall[b]
-            a, b = a[ok], b[ok]
-            step = centroid[b] - centroid[a]
-            ok = ((np.abs(np.einsum('ij,ij->i', normal[a], normal[b])) >= cos_max)
-                  & (np.abs(np.einsum('ij,ij->i', step, normal[a])) < params.band)
-                  & (np.abs(np.einsum('ij,ij->i', step, normal[b])) < params.band))
-            a_all.append(a[ok])
-            b_all.append(b[ok])
-    a, b = np.concatenate(a_all), np.concatenate(b_all)
+    offsets = np.array([(dx, dy) for dx in range(0, link + 1) for dy in range(-link, link + 1)
+                        if not (dx == 0 and dy <= 0) and dx * dx + dy * dy <= reach2], dtype=np.int64).reshape(-1, 2)
+    a, b = _kernels.links(idx, wall, cells.neighbours(offsets, idx), np.ascontiguousarray(centroid), normal, cos_max,
+                          params.band)
+    a, b = np.r_[idx, a], np.r_[idx, b]
     n_cells = len(wall)
     graph = coo_matrix((np.ones(len(a)), (a, b)), shape=(n_cells, n_cells))
     _, label = connected_components(graph, directed=False)
