@@ -67,17 +67,14 @@ def _query(work: Path, scene_name: str, surface: str = 'local') -> dict:
     from uncertain_facade_map.io.map_file import load_map
     from uncertain_facade_map.io.npz import read_npz
     from uncertain_facade_map.params import QueryConfig
-    from uncertain_facade_map.pipeline.step7_queries import query_map
 
     fmap = load_map(work / 'map.npz')
     cloud = read_npz(work / 'cloud.npz')
     xyz = cloud.xyz[cloud.points['class'] == 1]
     rng = np.random.default_rng(0)
     pts = xyz[rng.choice(len(xyz), 500_000)] + rng.normal(0.0, 0.3, (500_000, 3))
-    band = fmap.params.extraction
     started = time.perf_counter()
-    res = query_map(fmap.facades, fmap.points, pts, 0.1, band.band_back, band.band_front, fmap.occupancy_,
-                    QueryConfig(surface=surface), registration_var=fmap.registration_var_)
+    res = fmap.query(pts, QueryConfig(surface=surface), 0.1)
     seconds = time.perf_counter() - started
     what = 'the stored points per point where dense (its set-up timed)' if surface == 'local' else 'rasters alone'
     return {'stage': f'query {scene_name}' + ('' if surface == 'local' else ' raster'), 'items': len(pts),

@@ -240,7 +240,6 @@ def cmd_query(args: argparse.Namespace) -> int:
 
     from uncertain_facade_map.io.map_file import load_map
     from uncertain_facade_map.io.parameter_file import load_config
-    from uncertain_facade_map.pipeline.step7_queries import query_map
 
     fmap = load_map(args.map)
     path = Path(args.points)
@@ -255,9 +254,7 @@ def cmd_query(args: argparse.Namespace) -> int:
     query = load_config(args.config).query
     resolution = args.resolution if args.resolution is not None else query.resolution
     started = time.perf_counter()
-    result = query_map(fmap.facades, fmap.points, xyz, resolution, fmap.params.extraction.band_back,
-                       fmap.params.extraction.band_front, fmap.occupancy_, query,
-                       registration_var=fmap.registration_var_)
+    result = fmap.query(xyz, query, resolution)
     seconds = time.perf_counter() - started
     out = Path(args.out)
     with open(out, 'wb') as fh:

@@ -455,12 +455,9 @@ def offline_answers(path: Path, xyz: np.ndarray, resolution: float = 0.1) -> dic
     node's default ``query.*`` settings)."""
     from uncertain_facade_map.io.map_file import load_map
     from uncertain_facade_map.params import QueryConfig
-    from uncertain_facade_map.pipeline.step7_queries import query_map
 
     fmap = load_map(path)
-    band = fmap.params.extraction
-    return query_map(fmap.facades, fmap.points, xyz, resolution, band.band_back, band.band_front, fmap.occupancy_,
-                     QueryConfig(), registration_var=fmap.registration_var_).as_dict()
+    return fmap.query(xyz, QueryConfig(), resolution).as_dict()
 
 
 def as_int(values: dict | None, key: str) -> int | None:

@@ -87,8 +87,7 @@ from uncertain_facade_map.params import (
     map_params,
     parameters,
 )
-from uncertain_facade_map.pipeline.step7_local_surface import LocalSurface, for_query
-from uncertain_facade_map.pipeline.step7_queries import query_map
+from uncertain_facade_map.pipeline.step7_local_surface import LocalSurface
 from uncertain_facade_map.pipeline.step8_occupancy import PLSC, occupancy_model
 from uncertain_facade_map.srv import GetFacades, LoadMap, QueryPoints, SaveMap
 from uncertain_facade_map.transforms import Placement, TransformBuffer
@@ -212,7 +211,6 @@ class FacadeMapperNode(Node):
         self._summary_version = -1  # the map version the last summary line told of (set at the end)
         self._grid: tuple[int, Any] | None = None
         self._facades_size: tuple[int, float] = (-1, 0.0)  # (snapshot version, MB of its façade arrays)
-        self._local: tuple[int, LocalSurface | None] = (-1, None)  # (snapshot version, its local surface)
         self._published_bytes = 0  # of the latest published maps (serialized; the grid's cells)
         self._query_seconds: deque[float] = deque(maxlen=200)  # time in the node of the latest queries
         self._published_version = -1
@@ -655,11 +653,7 @@ class FacadeMapperNode(Node):
     def _local_surface(self, snap: MapSnapshot) -> LocalSurface | None:
         """The snapshot's stored points read per point (``query.surface``), built at the first
         query of each snapshot version and kept until the next."""
-        version, local = self._local
-        if version != snap.version:
-            local = for_query(snap.facades, snap.stored_points, self.config.query)
-            self._local = (snap.version, local)
-        return local
+        return snap.local_surface(self.config.query)
 
     def _occupancy(self, snap: MapSnapshot) -> PLSC:
         """The occupancy's PLSC parameters for a snapshot's answers (``query.occupancy``)."""
@@ -796,10 +790,7 @@ class FacadeMapperNode(Node):
             if not np.isfinite(resolution) or resolution <= 0:
                 raise InputError(f'resolution must be a positive number of metres, got {request.resolution}')
             snap = self.worker.snapshot
-            params = snap.params.extraction  # the map's own bands (a loaded map keeps its own)
-            answers = query_map(snap.facades, snap.stored_points, xyz, resolution, params.band_back,
-                                params.band_front, snap.occupancy, self.config.query, self._local_surface(snap),
-                                snap.registration_var)
+            answers = snap.query(xyz, self.config.query, resolution)  # its own bands (a loaded map keeps its own)
             mm.fill_query_response(response, answers, f'{len(xyz)} points, map version {snap.version}',
                                    msg_types=self.types)
             self._query_seconds.append(time.perf_counter() - started)

@@ -19,7 +19,6 @@ from support import REPO
 
 from uncertain_facade_map.mapping.facade_map import build_map
 from uncertain_facade_map.params import MapParams, QueryConfig
-from uncertain_facade_map.pipeline.step7_queries import query_map
 
 SHARED = REPO.parent / 'shared'
 REAL = SHARED / 'data' / 'real'
@@ -100,9 +99,7 @@ def test_held_out_wall_points(name, max_ratio):
     rc = _checker()
     xyz, mapped, held, patch = _split(name)
     fmap = build_map(xyz[mapped], params=MapParams())
-    ex = fmap.params.extraction
-    q = query_map(fmap.facades, fmap.points, xyz[held], 0.1, ex.band_back, ex.band_front, fmap.occupancy_,
-                  QueryConfig())
+    q = fmap.query(xyz[held], QueryConfig(), 0.1)
     answered = (q.facade >= 0) & np.isfinite(q.signed_distance)
     assert answered.mean() > 0.99
     observed = answered & ~patch[held]
@@ -133,8 +130,7 @@ def test_held_out_wall_points(name, max_ratio):
             normal_of[piece] = n
         wall = mapped | held
         centres, positive = _voxels(xyz, wall, held, normal_of)
-        ours = query_map(fmap.facades, fmap.points, centres, 0.1, ex.band_back, ex.band_front, fmap.occupancy_,
-                         QueryConfig()).p_occupied
+        ours = fmap.query(centres, QueryConfig(), 0.1).p_occupied
         r_s, r_var = _local_plane(xyz[mapped], centres)
         sd = np.sqrt(r_var + 0.02**2)
         plane = norm.cdf((np.abs(r_s) + 0.05) / sd) - norm.cdf((np.abs(r_s) - 0.05) / sd)

@@ -10,7 +10,6 @@ from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.io.map_file import FORMAT, VERSION, load_map, save_map
 from uncertain_facade_map.mapping.facade_map import build_map
 from uncertain_facade_map.params import QueryConfig
-from uncertain_facade_map.pipeline.step7_queries import query_map, query_points
 
 
 @pytest.fixture(scope='module')
@@ -36,14 +35,14 @@ def test_round_trip_is_bit_for_bit(tmp_path, fmap):
         assert a[key].dtype == b[key].dtype and a[key].tobytes() == b[key].tobytes(), key
     np.testing.assert_array_equal(loaded.map_origin, fmap.map_origin)
     xyz = np.random.default_rng(0).uniform(fmap.points[1].min(0) - 1, fmap.points[1].max(0) + 1, (20000, 3))
-    band = (fmap.params.extraction.band_back, fmap.params.extraction.band_front)
-    before = query_points(fmap.facades, xyz, 0.1, *band).as_dict()
-    after = query_points(loaded.facades, xyz, 0.1, *band).as_dict()
+    raster = QueryConfig(surface='raster')
+    before = fmap.query(xyz, raster, 0.1).as_dict()
+    after = loaded.query(xyz, raster, 0.1).as_dict()
     for key in before:
         np.testing.assert_array_equal(before[key], after[key])
     # The per-point reading (query.surface: local) needs the stored points: the file has them.
-    before = query_map(fmap.facades, fmap.points, xyz, 0.1, *band, fmap.occupancy_, QueryConfig()).as_dict()
-    after = query_map(loaded.facades, loaded.points, xyz, 0.1, *band, loaded.occupancy_, QueryConfig()).as_dict()
+    before = fmap.query(xyz, QueryConfig(), 0.1).as_dict()
+    after = loaded.query(xyz, QueryConfig(), 0.1).as_dict()
     for key in before:
         np.testing.assert_array_equal(before[key], after[key])
     assert loaded.params == fmap.params

@@ -7,13 +7,14 @@ from support import wall_scan
 from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.mapping.calibration import _sample_regions, calibrate_occupancy, scan_voxels
 from uncertain_facade_map.mapping.facade_map import build_map
+from uncertain_facade_map.params import QueryConfig
 from uncertain_facade_map.pipeline.step7_queries import query_points
 from uncertain_facade_map.pipeline.step8_occupancy import FIXED, PLSC, facade_half_depth, plsc_log_likelihood
 
 
 def _log_likelihood(model: PLSC, fmap, labels, resolution: float) -> float:
     """Mean log-likelihood of a scan's own voxel labels under a map read with ``model``."""
-    q = query_points(fmap.facades, labels.centres, resolution, 1.0, 2.0)
+    q = fmap.query(labels.centres, QueryConfig(surface='raster'), resolution)  # its own bands, 1 and 2 m
     normals = np.array([f.frame.axes[2] for f in fmap.facades]).reshape(-1, 3)
     use = np.isfinite(q.signed_distance) & (np.abs(q.signed_distance) <= 0.5)
     sd2 = q.variance + q.noise_variance

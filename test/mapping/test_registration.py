@@ -151,8 +151,7 @@ def test_query_adds_it_to_answered_points():
     ex = fmap.params.extraction
     pts = np.array([[0.0, 0.0, 5.0], [0.05, 3.0, 2.0], [50.0, 50.0, 50.0]])
     plain = query_points(fmap.facades, pts, 0.1, ex.band_back, ex.band_front, fmap.occupancy_)
-    wider = query_points(fmap.facades, pts, 0.1, ex.band_back, ex.band_front, fmap.occupancy_,
-                         registration_var=fmap.registration_var_)
+    wider = fmap.query(pts, QueryConfig(surface='raster'), 0.1, event='solid')  # the map's own term
     assert np.allclose(wider.variance[:2], plain.variance[:2] + fmap.registration_var_)
     assert np.isnan(wider.variance[2]) and wider.facade[2] == -1  # unanswered stays so
     assert np.array_equal(wider.signed_distance[:2], plain.signed_distance[:2])

@@ -36,7 +36,7 @@ from uncertain_facade_map.params import (  # noqa: E402
     QueryConfig,
     map_params,  # noqa: E402  # FIXME
 )
-from uncertain_facade_map.pipeline.step7_queries import query_map, query_points  # noqa: E402
+from uncertain_facade_map.pipeline.step7_queries import query_points  # noqa: E402
 from uncertain_facade_map.simulation.export import split_scans  # noqa: E402
 from uncertain_facade_map_apps.ros_client import SpinningClient, answers_of, query_request  # noqa: E402
 
@@ -305,7 +305,6 @@ def test_service_answers_equal_the_offline_core(client, mapped, scans, workdir):
 
     response = client.call(QueryPoints, 'query_points', query_request(xyz))
     assert response.success, response.message
-    band = (offline.params.extraction.band_back, offline.params.extraction.band_front)
     # The occupancy's PLSC parameters, learnt as the map grew, are the offline core's too.
     assert offline.occupancy_.learnt and live.occupancy_ == offline.occupancy_
     # So is the scan-to-scan variance (each cloud a scan).
@@ -313,19 +312,14 @@ def test_service_answers_equal_the_offline_core(client, mapped, scans, workdir):
     assert live.registration_var_ == reg and offline.registration_sums_[0] > 0
     # The node answers as the command line reads a map (query_map: the stored points per point
     # where dense, the surface event, the learnt PLSC), from the offline core's map...
-    expected = query_map(offline.facades, offline.points, xyz, 0.1, *band, offline.occupancy_, QueryConfig(),
-                         registration_var=reg).as_dict()
+    expected = offline.query(xyz, QueryConfig(), 0.1).as_dict()
     assert (expected['facade'] >= 0).mean() > 0.3
     assert_answers_equal(answers_of(response), expected)
     # ... and from the node's own map file.
-    assert_answers_equal(answers_of(response),
-                         query_map(live.facades, live.points, xyz, 0.1, *band, live.occupancy_, QueryConfig(),
-                                   registration_var=live.registration_var_).as_dict())
+    assert_answers_equal(answers_of(response), live.query(xyz, QueryConfig(), 0.1).as_dict())
     # Another resolution.
     response = client.call(QueryPoints, 'query_points', query_request(xyz[:500], 0.05))
-    assert_answers_equal(answers_of(response), query_map(offline.facades, offline.points, xyz[:500], 0.05, *band,
-                                                         offline.occupancy_, QueryConfig(),
-                                                         registration_var=reg).as_dict())
+    assert_answers_equal(answers_of(response), offline.query(xyz[:500], QueryConfig(), 0.05).as_dict())
 
 
 def test_get_facades_describes_the_models(client, mapped, scans):
@@ -687,9 +681,9 @@ def test_autosave_keeps_the_map_up_to_date(client, env, workdir, scans):
         assert not list(workdir.glob('.auto.npz.*')), 'a temporary file was left behind'
         # The file the killed node left answers as the offline core fed the same scans.
         xyz = probe_points(fmap, 300)
-        band = (fmap.params.extraction.band_back, fmap.params.extraction.band_front)
-        expected = query_points(offline_map(scans[:10]).facades, xyz, 0.1, *band).as_dict()
-        assert_answers_equal(query_points(fmap.facades, xyz, 0.1, *band).as_dict(), expected)
+        raster = QueryConfig(surface='raster')
+        expected = offline_map(scans[:10]).query(xyz, raster, 0.1).as_dict()
+        assert_answers_equal(fmap.query(xyz, raster, 0.1).as_dict(), expected)
     finally:
         node.stop()
 

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from uncertain_facade_map.io.map_file import load_map
-from uncertain_facade_map.pipeline.step7_queries import query_points
+from uncertain_facade_map.params import QueryConfig
 from uncertain_facade_map_apps.cli import main
 
 REPO = Path(__file__).resolve().parents[2]
@@ -87,8 +87,8 @@ def assert_same_map_within(path_a: Path, path_b: Path, xyz: np.ndarray) -> None:
         np.testing.assert_allclose(fa.frame.normal, fb.frame.normal, atol=1e-6)
         np.testing.assert_allclose(fa.frame.origin, fb.frame.origin, atol=1e-4)
         assert fa.surface.mean.shape == fb.surface.mean.shape
-    ra = query_points(a.facades, xyz, 0.1, a.params.extraction.band_back, a.params.extraction.band_front)
-    rb = query_points(b.facades, xyz, 0.1, b.params.extraction.band_back, b.params.extraction.band_front)
+    ra = a.query(xyz, QueryConfig(surface='raster'), 0.1)  # each map's own bands
+    rb = b.query(xyz, QueryConfig(surface='raster'), 0.1)
     np.testing.assert_array_equal(ra.facade, rb.facade)
     on = ra.facade >= 0
     assert on.mean() > 0.5

@@ -57,7 +57,7 @@ decides instead, with the thresholds of :mod:`.surface` (a step when the true de
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
 import numpy as np
@@ -71,9 +71,6 @@ from ..io.inputs import select_building_points
 from ..mapping.facade_map import FacadeMap, build_map
 from ..params import InputConfig, MapParams, QueryConfig
 from ..pipeline.step1_facades import extract_facades, split_buildings
-from ..pipeline.step7_local_surface import for_query
-from ..pipeline.step7_queries import query_map
-from ..pipeline.step8_occupancy import FIXED
 from ..voxels import pack_keys, unpack_keys, voxel_index
 from .occupancy import pr_auc
 from .references import Answers, FacadePlaneMap, LocalPlaneMap
@@ -595,17 +592,15 @@ class PackageMap:
 
     def __init__(self, fmap: FacadeMap, query: QueryConfig | None = None) -> None:
         self.fmap = fmap
-        self.config = query or QueryConfig()
+        # The fixed occupancy formula, as the benchmark always scored it (the references have no PLSC).
+        self.config = replace(query or QueryConfig(), occupancy='fixed')
         self.name = MAP_NAMES[0] if self.config.surface == 'local' else RASTER_NAME
-        self.local = for_query(fmap.facades, fmap.points, self.config)
+        fmap.local_surface(self.config)  # built here (the map keeps it for the queries)
 
     def query(self, xyz: np.ndarray, resolution: float) -> Answers:
         """Answers for (N, 3) points by :func:`~uncertain_facade_map.pipeline.step7_queries.query_map`
         (NaN where on no façade)."""
-        ex = self.fmap.params.extraction
-        # The fixed occupancy formula, as the benchmark always scored it (the references have no PLSC).
-        q = query_map(self.fmap.facades, self.fmap.points, xyz, resolution, ex.band_back, ex.band_front, FIXED,
-                      self.config, self.local, self.fmap.registration_var_)
+        q = self.fmap.query(xyz, self.config, resolution)
         return Answers(q.signed_distance, q.variance, q.noise_variance, q.p_occupied)
 
 

@@ -36,7 +36,10 @@ from scipy.stats import norm
 
 from ..errors import InputError
 from ..mapping.facade_map import FacadeMap
-from ..pipeline.step7_queries import query_points
+from ..params import QueryConfig
+
+#: The package map's façade of a point: the rasters' bands alone (the paper's reading).
+_RASTER = QueryConfig(surface='raster')
 
 #: Points answered at once by the local-plane map (bounds the (chunk, k, 3) arrays).
 _CHUNK = 200_000
@@ -157,8 +160,7 @@ class FacadePlaneMap:
     def query(self, xyz: np.ndarray, resolution: float) -> Answers:
         """Answers for (N, 3) points: NaN where the package map gives the point no façade."""
         xyz = np.asarray(xyz, dtype=np.float64)
-        ex = self.fmap.params.extraction
-        facade = query_points(self.fmap.facades, xyz, resolution, ex.band_back, ex.band_front).facade
+        facade = self.fmap.query(xyz, _RASTER, resolution).facade
         s, var = np.full(len(xyz), np.nan), np.full(len(xyz), np.nan)
         on = np.flatnonzero(facade >= 0)
         f = facade[on]

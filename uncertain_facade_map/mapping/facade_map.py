@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import copy
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
@@ -62,6 +62,8 @@ from ..pipeline.step1_facades import (
     side_by_side,
 )
 from ..pipeline.step6_surface import _extent, fit_facade, update_facade
+from ..pipeline.step7_local_surface import LocalSurface, for_query
+from ..pipeline.step7_queries import PointQuery, query_map
 from ..pipeline.step8_occupancy import FIXED, PLSC
 from ..threads import one_blas_thread
 from ..voxels import wrapped_keys
@@ -702,6 +704,67 @@ class FacadeMap:
     def n_thinned(self) -> int:
         """Number of building points counted but not stored (their voxel was full)."""
         return int(sum(self.thinned.values()))
+
+    def query(self, xyz: np.ndarray, config: QueryConfig | None = None, resolution: float | None = None,
+              event: str | None = None) -> PointQuery:
+        """Answer the 3D point query for (N, 3) points (metres, map frame) from this map:
+        :func:`~uncertain_facade_map.pipeline.step7_queries.query_map` with the map's own
+        façades, stored points, depth bands (``extraction.band_back`` / ``band_front``),
+        learnt occupancy (:attr:`occupancy_`) and :attr:`registration_var_`.
+
+        Args:
+            xyz: (N, 3) points, metres, map frame.
+            config: the query settings (``query.*``; default: the defaults, as the node's).
+            resolution: voxel side of the occupancy probability, metres (default:
+                ``config.resolution``).
+            event: what ``p_occupied`` is the probability of, 'surface' or 'solid'
+                (default: ``config.occupancy_event``).
+
+        Raises:
+            InputError: bad points, resolution or event.
+        """
+        config, resolution = query_settings(config, resolution, event)
+        ex = self.params.extraction
+        return query_map(self.facades, self.points, xyz, resolution, ex.band_back, ex.band_front, self.occupancy_,
+                         config, self.local_surface(config), self.registration_var_)
+
+    def local_surface(self, config: QueryConfig | None = None) -> LocalSurface | None:
+        """The stored points read per point as queries with ``config`` read them
+        (:func:`~uncertain_facade_map.pipeline.step7_local_surface.for_query`; None for
+        ``query.surface`` 'raster'), kept until the map changes: the cache holds the façade
+        models and stored arrays it was built from, and the map replaces, never writes, what it
+        holds, so an identity check per query tells whether it still stands."""
+        config = QueryConfig() if config is None else config
+        state = (tuple(self.facades), tuple(self.points.items()))
+        cache = self.__dict__.get('_local_cache')
+        if cache is None or not _same_state(cache[0], state):
+            cache = (state, {})
+            self.__dict__['_local_cache'] = cache
+        key = reading_key(config)
+        if key not in cache[1]:
+            cache[1][key] = for_query(self.facades, self.points, config)
+        return cache[1][key]
+
+
+def query_settings(config: QueryConfig | None, resolution: float | None, event: str | None
+                    ) -> tuple[QueryConfig, float]:
+    """The query settings with ``event`` (if given) in them, and the resolution (default:
+    the settings')."""
+    config = QueryConfig() if config is None else config
+    if event is not None and event != config.occupancy_event:
+        config = replace(config, occupancy_event=event)
+    return config, config.resolution if resolution is None else resolution
+
+
+def reading_key(config: QueryConfig) -> tuple:
+    """The settings a local surface depends on (:func:`~uncertain_facade_map.pipeline.step7_local_surface.for_query`)."""
+    return config.surface, config.local_neighbours, config.local_radius, config.local_inner
+
+
+def _same_state(a: tuple, b: tuple) -> bool:
+    """Whether two ``(façade models, (label, points) pairs)`` states hold the same objects."""
+    return (len(a[0]) == len(b[0]) and len(a[1]) == len(b[1]) and all(x is y for x, y in zip(a[0], b[0]))
+            and all(x[0] == y[0] and x[1] is y[1] for x, y in zip(a[1], b[1])))
 
 
 def _plane_corners_in(e: ExtractedFacade, frame: FacadeFrame) -> np.ndarray:

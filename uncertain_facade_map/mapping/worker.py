@@ -42,10 +42,12 @@ import numpy as np
 
 from ..datatypes import FacadeModel
 from ..errors import InputError
-from ..params import MapParams
+from ..params import MapParams, QueryConfig
+from ..pipeline.step7_local_surface import LocalSurface, for_query
+from ..pipeline.step7_queries import PointQuery, query_map
 from ..pipeline.step8_occupancy import FIXED, PLSC
 from .engine import LocalEngine, MapView, ProcessEngine, ReplaceMap, replace_with
-from .facade_map import FacadeMap
+from .facade_map import FacadeMap, query_settings, reading_key
 
 __all__ = ['Cloud', 'MapSnapshot', 'MapWorker', 'ReplaceMap', 'ReplaySummary', 'map_scans', 'replace_with']
 
@@ -86,6 +88,31 @@ class MapSnapshot:
     occupancy: PLSC = FIXED
     stored_points: dict[int, np.ndarray] = field(default_factory=dict)
     registration_var: float = 0.0
+    #: Its local surfaces by reading settings (:meth:`local_surface`; a snapshot never changes).
+    _local: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def query(self, xyz: np.ndarray, config: QueryConfig | None = None, resolution: float | None = None,
+              event: str | None = None) -> PointQuery:
+        """Answer the 3D point query for (N, 3) points (metres, map frame) from this snapshot,
+        as :meth:`FacadeMap.query <uncertain_facade_map.mapping.facade_map.FacadeMap.query>`
+        answers from the map (its own bands, learnt occupancy and registration variance).
+
+        Raises:
+            InputError: bad points, resolution or event.
+        """
+        config, resolution = query_settings(config, resolution, event)
+        ex = self.params.extraction
+        return query_map(self.facades, self.stored_points, xyz, resolution, ex.band_back, ex.band_front,
+                         self.occupancy, config, self.local_surface(config), self.registration_var)
+
+    def local_surface(self, config: QueryConfig | None = None) -> LocalSurface | None:
+        """The stored points read per point as queries with ``config`` read them (None for
+        ``query.surface`` 'raster'), built at the first query that needs it."""
+        config = QueryConfig() if config is None else config
+        key = reading_key(config)
+        if key not in self._local:
+            self._local[key] = for_query(self.facades, self.stored_points, config)
+        return self._local[key]
 
 
 @dataclass
