@@ -5,8 +5,8 @@ import pytest
 from support import wall_scan
 
 from uncertain_facade_map.errors import InputError
-from uncertain_facade_map.mapping.calibration import _sample_regions, calibrate_occupancy, scan_voxels
-from uncertain_facade_map.mapping.facade_map import build_map
+from uncertain_facade_map.mapping.calibration import _sample_regions, scan_voxels
+from uncertain_facade_map.mapping.facade_map import build_map, calibrate_occupancy
 from uncertain_facade_map.params import QueryConfig
 from uncertain_facade_map.pipeline.step7_queries import query_points
 from uncertain_facade_map.pipeline.step8_occupancy import FIXED, PLSC, facade_half_depth, plsc_log_likelihood

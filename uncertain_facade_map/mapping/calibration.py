@@ -6,8 +6,8 @@ parameters must be learnt from labelled data. The only labels a map may use are 
 scans': the voxels holding mapped points are occupied, the voxels the mapped rays crossed
 are free (:func:`~uncertain_facade_map.voxels.reference_voxels`, as the evaluation labels a
 reference campaign). Asked about those voxels, a map built on all the points would be
-too sure of the occupied ones (it was fitted to them), so :func:`calibrate_occupancy`
-holds some out, as R&W fit PLSC on leave-one-out predictions (Section 6.5):
+too sure of the occupied ones (it was fitted to them), so the calibration holds some
+out, as R&W fit PLSC on leave-one-out predictions (Section 6.5):
 
 1. **Sample.** At most ``max_points`` points, whole cubes of ``region`` side drawn at
    random (a seeded draw), so that the cost does not grow with the map.
@@ -17,12 +17,15 @@ holds some out, as R&W fit PLSC on leave-one-out predictions (Section 6.5):
    holds (``extraction.band_back`` behind its plane to ``band_front`` in front), where the
    surface is the model of occupancy; the air farther out is free by any reading.
 3. **Hold-out.** A seeded ``holdout`` share of the hit voxels, with every point in them,
-   is left out of a map built on the rest of the sample.
+   is left out of a map built on the rest of the sample (:func:`hold_out` draws steps 1
+   and 3; the map builder, :meth:`FacadeMap.calibrate_occupancy
+   <uncertain_facade_map.mapping.facade_map.FacadeMap.calibrate_occupancy>`, maps the rest
+   and calls :func:`fit_occupancy`: this module does not build maps).
 4. **Fit.** That map's signed distance and variance at the held-out hit voxels (each
    weighing ``1 / holdout``, so that they stand for all hit voxels) and at the crossed
    voxels, and :func:`~uncertain_facade_map.pipeline.step8_occupancy.fit_plsc`.
 
-:func:`calibrate_free_space` learns, with the same sample and hold-out, the weight of the
+:func:`fit_free_space` learns, with the same sample and hold-out, the weight of the
 free-space extension (beyond the paper): how much each mapped ray through a voxel lowers
 its occupancy (:func:`~uncertain_facade_map.pipeline.step8_occupancy.carve`).
 
@@ -45,12 +48,11 @@ from ..errors import InputError
 from ..params import MapParams
 from ..pipeline.step7_local_surface import LocalSurface
 from ..pipeline.step7_queries import PointQuery, query_points
-from ..pipeline.step8_occupancy import FIT_BAND, FIXED, PLSC, facade_half_depth, fit_carving, fit_plsc
+from ..pipeline.step8_occupancy import FIT_BAND, PLSC, facade_half_depth, fit_carving, fit_plsc
 from ..voxels import ReferenceVoxels, pack_keys, ray_crossings, reference_voxels, unpack_keys, voxel_index, wrapped_keys
-from .facade_map import FacadeMap, build_map
 
-__all__ = ['calibrate_free_space', 'calibrate_occupancy', 'registration_variance', 'scan_disagreement', 'scan_voxels',
-           'surface_terms']
+__all__ = ['HeldOut', 'Settings', 'fit_free_space', 'fit_occupancy', 'hold_out', 'registration_variance',
+           'scan_disagreement', 'scan_voxels', 'surface_terms']
 
 
 def scan_voxels(xyz: np.ndarray, origins: np.ndarray, resolution: float, max_rays: int = 50_000,
@@ -78,30 +80,63 @@ def _sample_regions(xyz: np.ndarray, region: float, max_points: int, rng: np.ran
     return np.flatnonzero(np.isin(cube, taken))
 
 
-def _checked(xyz: np.ndarray, origins: np.ndarray, holdout: float, resolution: float, region: float,
-             reach: float) -> tuple[np.ndarray, np.ndarray]:
+@dataclass(frozen=True)
+class Settings:
+    """How the calibration samples, holds out and labels (module docstring).
+
+    Attributes:
+        band_front: how far in front of a façade plane a voxel still takes its surface,
+            metres (None: the map's ``extraction.band_front``).
+        holdout: share of the hit voxels held out of the map, in (0, 1).
+        max_points: at most this many points are sampled.
+        region: side of the sampling cubes, metres.
+        max_rays: rays traced for the free voxels.
+        max_negatives: free voxels kept (weighted).
+        reach: metres of each ray traced, back from its point.
+
+    Raises:
+        InputError: a holdout outside (0, 1), or a region or reach that is not positive.
+    """
+
+    band_front: float | None = None
+    holdout: float = 0.2
+    max_points: int = 200_000
+    region: float = 10.0
+    max_rays: int = 50_000
+    max_negatives: int = 200_000
+    reach: float = 5.0
+
+    def __post_init__(self) -> None:
+        if not (0.0 < self.holdout < 1.0):
+            raise InputError(f'holdout must be in (0, 1), got {self.holdout!r}')
+        if not all(np.isfinite(x) and x > 0 for x in (self.region, self.reach)):
+            raise InputError(f'region and reach must be positive, got {self.region!r} and {self.reach!r}')
+
+
+def _checked(xyz: np.ndarray, origins: np.ndarray, resolution: float) -> tuple[np.ndarray, np.ndarray]:
     xyz = np.asarray(xyz, dtype=np.float64)
     origins = np.asarray(origins, dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3 or origins.shape != xyz.shape:
         raise InputError(f'calibration needs (N, 3) points and sensor origins, got {xyz.shape} and {origins.shape}')
-    if not (0.0 < holdout < 1.0):
-        raise InputError(f'holdout must be in (0, 1), got {holdout!r}')
-    if not all(np.isfinite(x) and x > 0 for x in (resolution, region, reach)):
-        raise InputError(f'resolution, region and reach must be positive, got {resolution!r}, {region!r} and {reach!r}')
+    if not (np.isfinite(resolution) and resolution > 0):
+        raise InputError(f'resolution must be positive, got {resolution!r}')
     return xyz, origins
 
 
 @dataclass(frozen=True, eq=False)
-class _HeldOut:
-    """Steps 1 and 3 of the module docstring: the sample and what is held out of it.
+class HeldOut:
+    """Steps 1 and 3 of the module docstring: the sample and what is held out of it (the
+    map of the rest is the caller's: :meth:`~uncertain_facade_map.mapping.facade_map.FacadeMap.calibrate_occupancy`
+    builds it).
 
     Attributes:
         xyz, origins, ids: the sampled points (M, 3), their sensor origins (M, 3) and
             building labels (M,) or None.
         hit_keys: (H,) sorted keys of the voxels holding sampled points.
         held_keys: (h,) sorted keys of the hit voxels held out.
-        mapped: (M,) bool, the points outside the held-out voxels.
-        fmap: the map of the mapped points.
+        mapped: (M,) bool, the points outside the held-out voxels (those to map).
+        n_points: number of points the sample was drawn from.
+        resolution: voxel side of the keys, metres.
     """
 
     xyz: np.ndarray
@@ -110,12 +145,9 @@ class _HeldOut:
     hit_keys: np.ndarray
     held_keys: np.ndarray
     mapped: np.ndarray
-    fmap: FacadeMap
+    n_points: int
+    resolution: float
 
-
-#: The last hold-out (``key``, ``held``): learning PLSC and then the free-space weight from
-#: the same points draws the same sample and hold-out, so the map of it is built once.
-_LAST: dict = {}
 
 #: The free-space evidence takes at most about this many of a map's stored rays (every
 #: :func:`ray_step`-th, in calibration and use alike), so that its cost stays bounded.
@@ -128,33 +160,28 @@ def ray_step(n_stored: int) -> int:
     return max(1, -(-int(n_stored) // RAY_BUDGET))
 
 
-def _hold_out(xyz: np.ndarray, origins: np.ndarray, ids: np.ndarray | None, params: MapParams, resolution: float,
-              holdout: float, max_points: int, region: float, seed: int) -> _HeldOut | None:
-    """Sample whole cubes, hold out a share of their hit voxels and map the rest (None:
-    too few points to map); seeded by ``seed``."""
-    key = (xyz.shape, float(xyz.sum()), float(origins.sum()), None if ids is None else float(np.sum(ids)), params,
-           resolution, holdout, max_points, region, seed)
-    if _LAST.get('key') != key:
-        _LAST.clear()
-        _LAST.update(key=key, held=_new_hold_out(xyz, origins, ids, params, resolution, holdout, max_points, region,
-                                                 np.random.default_rng(seed)))
-    return _LAST['held']
+def hold_out(xyz: np.ndarray, sensor_origins: np.ndarray, building_id: np.ndarray | None, params: MapParams,
+             resolution: float, settings: Settings = Settings(), seed: int = 0) -> HeldOut | None:
+    """Sample whole cubes of (N, 3) mapped points (metres, map frame) with their (N, 3) sensor
+    origins and (N,) building labels (or None), and hold out a share of their hit voxels
+    (module docstring, steps 1 and 3; seeded by ``seed``). None: too few points to map.
 
-
-def _new_hold_out(xyz: np.ndarray, origins: np.ndarray, ids: np.ndarray | None, params: MapParams,
-                  resolution: float, holdout: float, max_points: int, region: float, rng: np.random.Generator
-                  ) -> _HeldOut | None:
-    pick = _sample_regions(xyz, region, max_points, rng)
+    Raises:
+        InputError: bad shapes, non-finite values or a resolution that is not positive.
+    """
+    xyz, origins = _checked(xyz, sensor_origins, resolution)
+    rng = np.random.default_rng(seed)
+    pick = _sample_regions(xyz, settings.region, settings.max_points, rng)
+    n_points = len(xyz)
     xyz, origins = xyz[pick], origins[pick]
-    ids = None if ids is None else np.asarray(ids)[pick]
+    ids = None if building_id is None else np.asarray(building_id)[pick]
     if len(xyz) < params.extraction.min_facade_points:
         return None
     point_keys = pack_keys(voxel_index(xyz, resolution))
     hit_keys = np.unique(point_keys)
-    held_keys = np.sort(rng.choice(hit_keys, max(1, int(round(holdout * len(hit_keys)))), replace=False))
+    held_keys = np.sort(rng.choice(hit_keys, max(1, int(round(settings.holdout * len(hit_keys)))), replace=False))
     mapped = ~np.isin(point_keys, held_keys)
-    fmap = build_map(xyz[mapped], None if ids is None else ids[mapped], origins[mapped], params)
-    return _HeldOut(xyz, origins, ids, hit_keys, held_keys, mapped, fmap)
+    return HeldOut(xyz, origins, ids, hit_keys, held_keys, mapped, n_points, float(resolution))
 
 
 def surface_terms(facades: Sequence[FacadeModel], answers: PointQuery, resolution: float
@@ -168,13 +195,13 @@ def surface_terms(facades: Sequence[FacadeModel], answers: PointQuery, resolutio
     return noise, facade_half_depth(answers.facade, normals, resolution)
 
 
-def _ask(h: _HeldOut, keys: np.ndarray, resolution: float, band_front: float
+def _ask(h: HeldOut, facades: Sequence[FacadeModel], keys: np.ndarray, band_back: float, band_front: float
          ) -> tuple[PointQuery, np.ndarray, np.ndarray]:
-    """The held-out map's answers at the voxels of ``keys``: ``(query, noise, half)``
-    (:func:`surface_terms`)."""
-    centres = (unpack_keys(keys) + 0.5) * resolution
-    q = query_points(h.fmap.facades, centres, resolution, h.fmap.params.extraction.band_back, band_front)
-    return (q, *surface_terms(h.fmap.facades, q, resolution))
+    """The held-out map's answers (its ``facades``, the raster reading) at the voxels of
+    ``keys``: ``(query, noise, half)`` (:func:`surface_terms`)."""
+    centres = (unpack_keys(keys) + 0.5) * h.resolution
+    q = query_points(facades, centres, h.resolution, band_back, band_front)
+    return (q, *surface_terms(facades, q, h.resolution))
 
 
 def _crossed(xyz: np.ndarray, origins: np.ndarray, resolution: float, max_rays: int, max_negatives: int,
@@ -186,50 +213,33 @@ def _crossed(xyz: np.ndarray, origins: np.ndarray, resolution: float, max_rays: 
     return pack_keys(voxel_index(labels.centres[free], resolution)), labels.weight[free]
 
 
-def calibrate_occupancy(xyz: np.ndarray, sensor_origins: np.ndarray, params: MapParams | None = None,
-                        building_id: np.ndarray | None = None, resolution: float = 0.1,
-                        band_front: float | None = None, holdout: float = 0.2, max_points: int = 200_000,
-                        region: float = 10.0, max_rays: int = 50_000, max_negatives: int = 200_000,
-                        reach: float = 5.0, seed: int = 0, progress: Callable[[str], None] | None = None) -> PLSC:
-    """Learn the occupancy's PLSC parameters from mapped points and their rays (module docstring).
+def fit_occupancy(h: HeldOut, facades: Sequence[FacadeModel], params: MapParams, settings: Settings = Settings(),
+                  seed: int = 0, progress: Callable[[str], None] | None = None) -> PLSC:
+    """Learn the occupancy's PLSC parameters (module docstring, steps 2 and 4) from a hold-out
+    and the façades of the map of its mapped points.
 
     Args:
-        xyz: (N, 3) mapped building points, metres, map frame.
-        sensor_origins: (N, 3) the sensor origin of each point, metres, map frame.
-        params: the map's parameters (default: the defaults).
-        building_id: (N,) building labels, or None to cluster.
-        resolution: voxel side of the labels, metres.
-        band_front: how far in front of a façade plane a voxel still takes its surface,
-            metres (default: ``extraction.band_front``).
-        holdout: share of the hit voxels held out of the map, in (0, 1).
-        max_points: at most this many points are sampled.
-        region: side of the sampling cubes, metres.
-        max_rays: rays traced for the free voxels.
-        max_negatives: free voxels kept (weighted).
-        reach: metres of each ray traced, back from its point.
-        seed: seed of every draw.
+        h: the sample and its hold-out (:func:`hold_out`).
+        facades: the façade models of the map of ``h.xyz[h.mapped]``.
+        params: that map's parameters (its bands).
+        settings: the labels' settings.
+        seed: seed of the rays' draw.
         progress: called with a line of text when done.
 
     Returns:
         The fitted parameters; :data:`~uncertain_facade_map.pipeline.step8_occupancy.FIXED`
         when the sample holds too few labelled voxels near a façade.
-
-    Raises:
-        InputError: bad shapes, non-finite values or settings out of range.
     """
-    xyz, origins = _checked(xyz, sensor_origins, holdout, resolution, region, reach)
-    params = params or MapParams()
-    band_front = params.extraction.band_front if band_front is None else float(band_front)
-    h = _hold_out(xyz, origins, building_id, params, resolution, holdout, max_points, region, seed)  # steps 1, 3
-    if h is None:
-        return FIXED
+    ex = params.extraction
+    band_front = ex.band_front if settings.band_front is None else float(settings.band_front)
     # 2. The sample's own labels: the held-out hit voxels and the voxels its rays crossed.
-    free, free_weight = _crossed(h.xyz, h.origins, resolution, max_rays, max_negatives, reach, seed)
+    free, free_weight = _crossed(h.xyz, h.origins, h.resolution, settings.max_rays, settings.max_negatives,
+                                 settings.reach, seed)
     # 4. Ask the held-out map about them (each held-out hit voxel stands for 1 / holdout of all).
     keys = np.r_[h.held_keys, free]
     positive = np.r_[np.ones(len(h.held_keys), bool), np.zeros(len(free), bool)]
     weight = np.r_[np.full(len(h.held_keys), len(h.hit_keys) / len(h.held_keys)), free_weight]
-    q, noise, half = _ask(h, keys, resolution, band_front)
+    q, noise, half = _ask(h, facades, keys, ex.band_back, band_front)
     fitted = fit_plsc(positive, weight, q.signed_distance, q.variance, noise, half)
     if progress is not None:
         progress(f'occupancy calibration: scale {fitted.scale:.3g}, spread {fitted.spread:.3g} m from '
@@ -238,14 +248,11 @@ def calibrate_occupancy(xyz: np.ndarray, sensor_origins: np.ndarray, params: Map
     return fitted
 
 
-def calibrate_free_space(xyz: np.ndarray, sensor_origins: np.ndarray, plsc: PLSC, params: MapParams | None = None,
-                         building_id: np.ndarray | None = None, resolution: float = 0.1,
-                         band_front: float | None = None, holdout: float = 0.2, max_points: int = 200_000,
-                         region: float = 10.0, max_rays: int = 50_000, max_negatives: int = 200_000,
-                         reach: float = 5.0, seed: int = 0) -> float:
+def fit_free_space(h: HeldOut, facades: Sequence[FacadeModel], plsc: PLSC, params: MapParams,
+                   settings: Settings = Settings(), seed: int = 0) -> float:
     """Learn the free-space extension's weight (:func:`~uncertain_facade_map.pipeline.step8_occupancy.carve`;
     beyond the paper) from the mapped points alone, with the same sample and hold-out as
-    :func:`calibrate_occupancy` (same arguments; ``plsc``: the occupancy it carves).
+    :func:`fit_occupancy` (same arguments; ``plsc``: the occupancy it carves).
 
     The labels come from the held-out points only, the evidence from the others: the
     held-out hit voxels are occupied and the voxels the held-out points' rays crossed
@@ -258,24 +265,24 @@ def calibrate_free_space(xyz: np.ndarray, sensor_origins: np.ndarray, plsc: PLSC
     Returns:
         The weight in log-odds per ray (0 when nothing can be learnt).
     """
-    xyz, origins = _checked(xyz, sensor_origins, holdout, resolution, region, reach)
-    params = params or MapParams()
-    band_front = params.extraction.band_front if band_front is None else float(band_front)
-    h = _hold_out(xyz, origins, building_id, params, resolution, holdout, max_points, region, seed)
-    if h is None or h.mapped.all():
+    if h.mapped.all():
         return 0.0
+    ex = params.extraction
+    band_front = ex.band_front if settings.band_front is None else float(settings.band_front)
+    resolution = h.resolution
     held = ~h.mapped
-    free, free_weight = _crossed(h.xyz[held], h.origins[held], resolution, max_rays, max_negatives, reach, seed)
+    free, free_weight = _crossed(h.xyz[held], h.origins[held], resolution, settings.max_rays, settings.max_negatives,
+                                 settings.reach, seed)
     keep = ~np.isin(free, h.hit_keys)
     free, free_weight = free[keep], free_weight[keep]
     keys = np.r_[h.held_keys, free]
     positive = np.r_[np.ones(len(h.held_keys), bool), np.zeros(len(free), bool)]
     weight = np.r_[np.ones(len(h.held_keys)), free_weight]
-    q, noise, half = _ask(h, keys, resolution, band_front)
+    q, noise, half = _ask(h, facades, keys, ex.band_back, band_front)
     near = np.isfinite(q.signed_distance) & (np.abs(q.signed_distance) <= FIT_BAND)
     p = plsc.surface(q.signed_distance, q.variance, noise, half)
-    step = ray_step(len(xyz))  # as the whole map takes them
-    crossings = ray_crossings(h.xyz[h.mapped][::step], h.origins[h.mapped][::step], resolution, keys, reach)
+    step = ray_step(h.n_points)  # as the whole map takes them
+    crossings = ray_crossings(h.xyz[h.mapped][::step], h.origins[h.mapped][::step], resolution, keys, settings.reach)
     return fit_carving(positive[near], weight[near], p[near], crossings[near])
 
 

@@ -67,6 +67,16 @@ from ..pipeline.step7_queries import PointQuery, query_map
 from ..pipeline.step8_occupancy import FIXED, PLSC
 from ..threads import one_blas_thread
 from ..voxels import wrapped_keys
+from .calibration import (
+    HeldOut,
+    Settings,
+    fit_free_space,
+    fit_occupancy,
+    hold_out,
+    ray_step,
+    registration_variance,
+    scan_disagreement,
+)
 
 #: Offsets of a clustering cell's 3x3 neighbourhood in cell keys (see FacadeMap._cell_keys).
 _CELL_NEIGHBOURS = np.array([du * (1 << 32) + dv for du in (-1, 0, 1) for dv in (-1, 0, 1)], dtype=np.int64)
@@ -190,8 +200,8 @@ class FacadeMap:
 
     def calibrate_occupancy(self, resolution: float = 0.1, progress: Callable[[str], None] | None = None) -> PLSC:
         """Learn the occupancy's PLSC parameters from the stored points and their rays
-        (:func:`~uncertain_facade_map.mapping.calibration.calibrate_occupancy`; seeded by
-        ``params.seed``) and keep them in :attr:`occupancy_`.
+        (:mod:`~uncertain_facade_map.mapping.calibration`: a map of a sample of them, some
+        voxels held out; seeded by ``params.seed``) and keep them in :attr:`occupancy_`.
 
         Args:
             resolution: voxel side of the labels, metres (the parameters serve every
@@ -201,16 +211,31 @@ class FacadeMap:
         Raises:
             InputError: a building without sensor origins (no rays to learn free space from).
         """
-        from .calibration import calibrate_occupancy
-
         if not self.points:
             return self.occupancy_
-        xyz, origins, ids = self._stored_rays()
-        with one_blas_thread():
-            self.occupancy_ = calibrate_occupancy(xyz, origins, self.params, ids, resolution, seed=self.params.seed,
-                                                  progress=progress)
-        self.occupancy_stored_ = len(xyz)
+        held = self._held_out(resolution)
+        if held is not None:
+            with one_blas_thread():
+                self.occupancy_ = fit_occupancy(held[0], held[1].facades, self.params, seed=self.params.seed,
+                                                progress=progress)
+        else:
+            self.occupancy_ = FIXED
+        self.occupancy_stored_ = self.n_stored
         return self.occupancy_
+
+    def _held_out(self, resolution: float) -> tuple[HeldOut, FacadeMap] | None:
+        """The calibration's sample of the stored points and the map of its mapped part
+        (:func:`held_out_map`), kept until the stored points or the resolution change: the
+        occupancy and the free-space weight learn from the same one."""
+        xyz, origins, ids = self._stored_rays()
+        state = ((), tuple(self.points.items()))
+        cache = self.__dict__.get('_held_out_cache')
+        if cache is None or cache[1] != resolution or not _same_state(cache[0], state):
+            with one_blas_thread():
+                held = held_out_map(xyz, origins, ids, self.params, resolution, seed=self.params.seed)
+            cache = (state, resolution, held)
+            self.__dict__['_held_out_cache'] = cache
+        return cache[2]
 
     def _stored_rays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(N, 3) stored points, (N, 3) their sensor origins and (N,) building labels.
@@ -235,20 +260,20 @@ class FacadeMap:
     def calibrate_free_space(self, resolution: float = 0.1) -> float:
         """The free-space extension's weight (beyond the paper), learnt from the stored
         points and their rays with :attr:`occupancy_`
-        (:func:`~uncertain_facade_map.mapping.calibration.calibrate_free_space`)."""
-        from .calibration import calibrate_free_space
-
-        xyz, origins, ids = self._stored_rays()
-        if not len(xyz):
+        (:func:`~uncertain_facade_map.mapping.calibration.fit_free_space`, on the sample
+        :meth:`calibrate_occupancy` learnt from)."""
+        if not self.points:
             return 0.0
-        return calibrate_free_space(xyz, origins, self.occupancy_, self.params, ids, resolution, seed=self.params.seed)
+        held = self._held_out(resolution)
+        if held is None:
+            return 0.0
+        return fit_free_space(held[0], held[1].facades, self.occupancy_, self.params, seed=self.params.seed)
 
     def ray_crossings(self, keys: np.ndarray, resolution: float) -> np.ndarray:
         """(K,) number of stored rays (every ``calibration.ray_step``-th) through each voxel
         of (K,) packed ``keys`` (:func:`~uncertain_facade_map.voxels.ray_crossings`), 0 for
         a voxel holding a stored point."""
         from ..voxels import pack_keys, ray_crossings, voxel_index
-        from .calibration import ray_step
 
         xyz, origins, _ = self._stored_rays()
         step = ray_step(len(xyz))
@@ -265,6 +290,7 @@ class FacadeMap:
         if n < max(min_points, (1.0 + growth) * self.occupancy_stored_) or not self._has_rays:
             return False
         self.calibrate_occupancy()
+        self.__dict__.pop('_held_out_cache', None)  # live mapping learns no free-space weight: the sample's map goes
         return True
 
     @property
@@ -371,8 +397,6 @@ class FacadeMap:
         up = self.params.update
         if up.registration_points <= 0:
             return
-        from .calibration import registration_variance, scan_disagreement
-
         earlier = np.vstack(list(self.points.values())) if self.points else np.empty((0, 3))
         labels = np.zeros(len(xyz), np.int64) if scan is None else scan
         rng = np.random.default_rng([self.params.seed, self.n_points, len(xyz)])
@@ -792,3 +816,47 @@ def build_map(xyz: np.ndarray, building_id: np.ndarray | None = None, sensor_ori
     fmap = FacadeMap(params or MapParams(), np.zeros(3) if map_origin is None else np.asarray(map_origin, float))
     fmap.add_points(xyz, building_id, sensor_origins, progress, scan=scan)
     return fmap
+
+
+def held_out_map(xyz: np.ndarray, sensor_origins: np.ndarray, building_id: np.ndarray | None, params: MapParams,
+                 resolution: float, settings: Settings | None = None, seed: int = 0
+                 ) -> tuple[HeldOut, FacadeMap] | None:
+    """The calibration's sample of (N, 3) mapped points (metres, map frame) with their (N, 3)
+    sensor origins and (N,) building labels or None, a share of its hit voxels held out
+    (:func:`~uncertain_facade_map.mapping.calibration.hold_out`), and the map of the rest;
+    None: too few points to map."""
+    held = hold_out(xyz, sensor_origins, building_id, params, resolution, settings or Settings(), seed)
+    if held is None:
+        return None
+    m = held.mapped
+    return held, build_map(held.xyz[m], None if held.ids is None else held.ids[m], held.origins[m], params)
+
+
+def calibrate_occupancy(xyz: np.ndarray, sensor_origins: np.ndarray, params: MapParams | None = None,
+                        building_id: np.ndarray | None = None, resolution: float = 0.1, seed: int = 0,
+                        progress: Callable[[str], None] | None = None, **settings) -> PLSC:
+    """Learn the occupancy's PLSC parameters from (N, 3) mapped points and their (N, 3) sensor
+    origins (metres, map frame) alone (:mod:`~uncertain_facade_map.mapping.calibration`).
+
+    Args:
+        xyz: (N, 3) mapped building points.
+        sensor_origins: (N, 3) the sensor origin of each point.
+        params: the map's parameters (default: the defaults).
+        building_id: (N,) building labels, or None to cluster.
+        resolution: voxel side of the labels, metres.
+        seed: seed of every draw.
+        progress: called with a line of text when done.
+        settings: :class:`~uncertain_facade_map.mapping.calibration.Settings` (holdout,
+            max_points, region, max_rays, max_negatives, reach, band_front).
+
+    Returns:
+        The fitted parameters; :data:`~uncertain_facade_map.pipeline.step8_occupancy.FIXED`
+        when the sample holds too few points or labelled voxels near a façade.
+
+    Raises:
+        InputError: bad shapes, non-finite values or settings out of range.
+    """
+    params = params or MapParams()
+    settings = Settings(**settings)
+    held = held_out_map(xyz, sensor_origins, building_id, params, resolution, settings, seed)
+    return FIXED if held is None else fit_occupancy(held[0], held[1].facades, params, settings, seed, progress)

@@ -41,7 +41,6 @@ from ...errors import InputError
 from ...mapping.calibration import surface_terms
 from ...mapping.facade_map import FacadeMap, build_map
 from ...params import MapParams, QueryConfig
-from ...pipeline.step7_local_surface import for_query
 from ...pipeline.step7_queries import query_points
 from ...pipeline.step8_occupancy import FIXED, READINGS, carve
 from ...voxels import pack_keys, voxel_index
@@ -111,9 +110,7 @@ class FacadeGPMethod(OccupancyMethod):
         if self.resolution not in _SHARED['plsc']:
             _SHARED['plsc'][self.resolution] = fmap.calibrate_occupancy(self.resolution)
         fmap.occupancy_ = _SHARED['plsc'][self.resolution]
-        if self.query.surface not in _SHARED:
-            _SHARED[self.query.surface] = for_query(fmap.facades, fmap.points, self.query)
-        self.local_ = _SHARED[self.query.surface]
+        self.local_ = fmap.local_surface(self.query)  # the map keeps it for the other readings
         self.map_ = fmap
         self._query = None
         return self
