@@ -53,13 +53,14 @@ from ..params import MapParams, QueryConfig
 from ..pipeline.step1_facades import (
     STOREY_OFFSET,
     _final_frame,
-    _grid_components,
     _plane_box,
     _point_normals,
     assign_to_facades,
+    building_cells,
     check_building_ids,
     extract_facades,
     side_by_side,
+    split_buildings,
 )
 from ..pipeline.step6_surface import _extent, fit_facade, update_facade
 from ..pipeline.step7_local_surface import LocalSurface, for_query
@@ -77,10 +78,6 @@ from .calibration import (
     registration_variance,
     scan_disagreement,
 )
-
-#: Offsets of a clustering cell's 3x3 neighbourhood in cell keys (see FacadeMap._cell_keys).
-_CELL_NEIGHBOURS = np.array([du * (1 << 32) + dv for du in (-1, 0, 1) for dv in (-1, 0, 1)], dtype=np.int64)
-
 
 #: Points of the other buildings at most that turn the normals of a wall without sensor origins.
 _CONTEXT_POINTS = 20_000
@@ -408,51 +405,22 @@ class FacadeMap:
             self.registration_var_ = registration_variance(self.registration_sums_, up.registration_max_std)
 
     def _labels(self, xyz: np.ndarray, building_id: np.ndarray | None) -> np.ndarray:
-        """Building label of each new point: its id, else the clustered building it touches."""
-        n = len(xyz)
-        if building_id is None:
-            labels = np.full(n, -1, dtype=np.int64)
-        else:
-            labels = np.where(building_id < 0, -1, building_id)
-        free = np.flatnonzero(labels < 0)
-        if not len(free):
-            return labels
-        cells = self._cell_keys(xyz[free])
-        comp = _grid_components(np.stack([cells >> 32, cells & 0xFFFFFFFF], axis=1))
-        near = (cells[:, None] + _CELL_NEIGHBOURS[None, :]).ravel()
-        comp_near = np.repeat(comp, 9)
-        # A cluster joins the mapped building whose cells it touches most.
-        mapping: dict[int, tuple[int, int]] = {}
-        for b, keys in self._cells.items():
-            hit = np.isin(near, keys)
-            for c, count in zip(*np.unique(comp_near[hit], return_counts=True)):
-                if count > mapping.get(int(c), (0, -1))[0]:
-                    mapping[int(c)] = (int(count), b)
-        out = np.empty(len(free), dtype=np.int64)
-        next_label = max([int(labels.max()), *self.points.keys(), -1]) + 1
-        for c in np.unique(comp):
-            if int(c) in mapping:
-                out[comp == c] = mapping[int(c)][1]
-            else:
-                out[comp == c] = next_label
-                next_label += 1
-        labels[free] = out
-        return labels
-
-    def _cell_keys(self, xyz: np.ndarray) -> np.ndarray:
-        """(N,) int64 keys of the clustering grid cells of (N, 3) points (offset to be >= 0)."""
-        c = np.floor(xyz[:, :2] / self.params.extraction.building_cell).astype(np.int64) + (1 << 30)
-        return c[:, 0] * (1 << 32) + c[:, 1]
+        """Building label of each new point: its id, else the clustered building it touches
+        (:func:`~uncertain_facade_map.pipeline.step1_facades.split_buildings` with the
+        mapped buildings' cells)."""
+        return split_buildings(xyz, building_id, self.params.extraction.building_cell, self._cells)
 
     @property
     def _cells(self) -> dict[int, np.ndarray]:
-        """Per building, the sorted keys of its occupied clustering cells (cached)."""
+        """Per building, the sorted keys of its occupied clustering cells
+        (:func:`~uncertain_facade_map.pipeline.step1_facades.building_cells`; cached)."""
         cache = self.__dict__.setdefault('_cell_cache', {})
+        cell = self.params.extraction.building_cell
         for b, pts in self.points.items():
             keys, n = cache.get(b, (np.empty(0, np.int64), 0))
             if n != len(pts):
                 # Points are only appended: the cells of the new ones join the cached cells.
-                cache[b] = (np.union1d(keys, self._cell_keys(pts[n:])), len(pts))
+                cache[b] = (np.union1d(keys, building_cells(pts[n:], cell)), len(pts))
         return {b: keys for b, (keys, _) in cache.items() if b in self.points}
 
     def _voxel_keys(self, xyz: np.ndarray) -> np.ndarray:

@@ -373,18 +373,34 @@ def check_building_ids(building_id: np.ndarray, n: int) -> np.ndarray:
     return ids.astype(np.int64)
 
 
-def split_buildings(xyz: np.ndarray, building_id: np.ndarray | None, cell: float) -> np.ndarray:
+#: Offsets of a clustering cell's 3x3 neighbourhood in :func:`building_cells` keys.
+_CELL_NEIGHBOURS = np.array([du * (1 << 32) + dv for du in (-1, 0, 1) for dv in (-1, 0, 1)], dtype=np.int64)
+
+
+def building_cells(xyz: np.ndarray, cell: float) -> np.ndarray:
+    """(N,) int64 keys of the (x, y) grid cells of ``cell`` metres holding (N, 3) points
+    (metres, map frame), offset to be >= 0: the cells :func:`split_buildings` clusters."""
+    c = np.floor(xyz[:, :2] / float(cell)).astype(np.int64) + (1 << 30)
+    return c[:, 0] * (1 << 32) + c[:, 1]
+
+
+def split_buildings(xyz: np.ndarray, building_id: np.ndarray | None, cell: float,
+                    mapped: dict[int, np.ndarray] | None = None) -> np.ndarray:
     """Building label of every point.
 
     Points with a building id (>= 0) keep it; the others are clustered by 8-connected
     components of the occupied cells of an (x, y) grid of ``cell`` metres
-    (``scipy.ndimage.label``) and numbered from ``max(building_id) + 1`` on, so that the
-    labels never collide with the given ids.
+    (``scipy.ndimage.label``). A cluster that touches (shares or borders) cells of
+    ``mapped`` buildings joins the one whose cells it touches most (the map's incremental
+    clustering); the others are numbered from ``max(building_id, mapped labels) + 1`` on,
+    in order of first point, so that the labels never collide with the given ids.
 
     Args:
         xyz: (N, 3) points, metres, map frame.
         building_id: (N,) integer ids, -1 (any negative) for none; or None for no ids.
         cell: grid cell size, metres (> 0).
+        mapped: per label of an already mapped building, the sorted :func:`building_cells`
+            keys of its points; None: none.
 
     Returns:
         (N,) int64 labels, all >= 0.
@@ -402,10 +418,23 @@ def split_buildings(xyz: np.ndarray, building_id: np.ndarray | None, cell: float
         labels = check_building_ids(building_id, n)
         labels[labels < 0] = -1
     free = np.flatnonzero(labels < 0)
-    if len(free):
-        cells = np.floor(xyz[free, :2] / float(cell)).astype(np.int64)
-        first = int(labels.max()) + 1 if (labels >= 0).any() else 0
-        labels[free] = first + _grid_components(cells)
+    if not len(free):
+        return labels
+    keys = building_cells(xyz[free], cell)
+    comp = _grid_components(np.stack([keys >> 32, keys & 0xFFFFFFFF], axis=1))
+    target = np.full(int(comp.max()) + 1, -1, dtype=np.int64)
+    if mapped:
+        near = (keys[:, None] + _CELL_NEIGHBOURS[None, :]).ravel()
+        comp_near = np.repeat(comp, len(_CELL_NEIGHBOURS))
+        best: dict[int, int] = {}
+        for b, cells in mapped.items():
+            for c, count in zip(*np.unique(comp_near[np.isin(near, cells)], return_counts=True)):
+                if count > best.get(int(c), 0):
+                    best[int(c)] = int(count)
+                    target[c] = b
+    new = target < 0
+    target[new] = max([int(labels.max()), *(mapped or {}), -1]) + 1 + np.arange(int(new.sum()))
+    labels[free] = target[comp]
     return labels
 
 
