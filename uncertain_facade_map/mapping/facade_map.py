@@ -739,7 +739,7 @@ class FacadeMap:
 
 
 def query_settings(config: QueryConfig | None, resolution: float | None, event: str | None
-                    ) -> tuple[QueryConfig, float]:
+                   ) -> tuple[QueryConfig, float]:
     """The query settings with ``event`` (if given) in them, and the resolution (default:
     the settings')."""
     config = QueryConfig() if config is None else config
