@@ -1,0 +1,54 @@
+"""The compiled per-point reading (issue 27) against the KD-tree and numpy reference, seeded."""
+
+import numpy as np
+
+from uncertain_facade_map.pipeline.local_kernels import PointGrid
+from uncertain_facade_map.pipeline.step7_local_surface import LocalSurface
+
+
+def walls(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Two walls at a corner with a 0.3 m recess and a few stray points far from them."""
+    a = np.c_[rng.uniform(0, 8, 3000), rng.normal(0, 0.01, 3000), rng.uniform(0, 5, 3000)]
+    a[a[:, 0] > 4, 1] -= 0.3
+    b = np.c_[rng.normal(8, 0.01, 2000), rng.uniform(0, 6, 2000), rng.uniform(0, 5, 2000)]
+    stray = rng.uniform([-20, -20, 0], [30, 30, 10], (5, 3))
+    return np.r_[a, b, stray], np.r_[np.zeros(3000, np.int32), np.ones(2000, np.int32), np.full(5, -1, np.int32)]
+
+
+def test_kernels_read_as_the_kd_tree_does():
+    """Same neighbours, planes, leverage, signs and façades as the reference, to 1e-9 m,
+    for points near the walls, off them, far from everything, and leave-one-out."""
+    rng = np.random.default_rng(5)
+    pts, fid = walls(rng)
+    local = LocalSurface(pts, fid, np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0]]), neighbours=12)
+    q = np.r_[pts[rng.choice(len(pts), 2000)] + rng.normal(0, 0.3, (2000, 3)),
+              rng.uniform([-30, -30, -5], [40, 40, 15], (200, 3))]
+    for skip in (None, np.arange(0, len(pts), 7)):
+        x = q if skip is None else pts[skip]
+        got = local._raw(x, skip)
+        want = local._raw_kd(x, skip)
+        assert np.array_equal(got[0], want[0])
+        for a, b in zip(got[1:], want[1:]):
+            assert np.allclose(a, b, rtol=1e-9, atol=1e-9, equal_nan=True)
+    # With a radius: points without a stored point within it are not read.
+    got = local._raw(q, radius=0.5)
+    near = got[6] < 0.5
+    want = local._raw_kd(q[near])
+    assert np.array_equal(np.sort(np.flatnonzero(near)), np.flatnonzero(local._raw_kd(q)[6] < 0.5))
+    for a, b in zip(got[1:6], want[1:6]):
+        assert np.allclose(a[near], b, rtol=1e-9, atol=1e-9)
+
+
+def test_grid_subset_and_tiny_maps():
+    rng = np.random.default_rng(2)
+    pts, fid = walls(rng)
+    grid = PointGrid(pts, 0.2)
+    assert np.array_equal(np.sort(grid.order), np.arange(len(pts)))
+    assert np.array_equal(grid.points, pts[grid.order])
+    keep = rng.random(len(pts)) < 0.7
+    sub = grid.subset(keep)
+    assert np.array_equal(sub.points, pts[keep][sub.order])
+    # Fewer stored points than K + 2: the numpy reading answers, as before.
+    tiny = LocalSurface(pts[:8], fid[:8], np.array([[0.0, 1.0, 0.0]]), neighbours=12)
+    r = tiny.read(pts[:3] + 0.01)
+    assert np.all(np.isfinite(r.signed_distance))

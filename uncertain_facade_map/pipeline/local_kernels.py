@@ -1,0 +1,399 @@
+"""Compiled kernels of the per-point reading (:mod:`.step7_local_surface`, issue 27).
+
+The same reading as :func:`~.step7_local_surface.fit_local_planes` on the ``K + 1``
+nearest stored points, computed point by point in one compiled loop over both cores
+instead of numpy passes over (N, K + 1, 3) arrays and a KD-tree query:
+
+- the nearest stored points come from a hash grid of the stored points (cells of side
+  ``cell``; one open-addressing table of the occupied cells, the points sorted by cell),
+  searched ring by ring of cells around the query's cell until the ``K + 1``-th nearest
+  found lies within the searched cube (exact nearest neighbours, as the KD-tree's; points
+  whose search would need more than ``MAX_RING`` rings are left to the caller, flagged);
+- the weighted plane by a cyclic Jacobi eigen-decomposition of the 3 x 3 scatter.
+
+Frames and units as in :mod:`.step7_local_surface`: map frame, metres.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+#: Rings of cells searched at most around a query's cell in a first pass; beyond, the point
+#: is flagged (``status`` 2) and searched again up to ``FAR_RING`` rings.
+MAX_RING = 6
+#: Rings of the second pass; beyond, the caller reads the point with a KD-tree.
+FAR_RING = 40
+#: Offset making cell indices non-negative before they are packed into one int64 key
+#: (21 bits each: +-1,048,576 cells, 105 km at 0.1 m cells).
+_BIAS = 1 << 20
+_HASH = np.uint64(0x9E3779B97F4A7C15)
+#: Points per parallel task (scratch arrays are allocated once per task).
+_BATCH = 256
+
+
+@njit(cache=True, inline='always')
+def _slot(key: np.int64, shift: np.uint64) -> np.int64:
+    return np.int64((np.uint64(key) * _HASH) >> shift)
+
+
+@njit(cache=True)
+def _build_table(keys: np.ndarray, bits: int) -> np.ndarray:
+    """Open-addressing table (2**bits slots) of the sorted unique ``keys``: slot -> index into
+    ``keys`` (-1: empty)."""
+    size = 1 << bits
+    table = np.full(size, -1, np.int64)
+    shift = np.uint64(64 - bits)
+    mask = size - 1
+    for c in range(len(keys)):
+        s = _slot(keys[c], shift)
+        while table[s] >= 0:
+            s = (s + 1) & mask
+        table[s] = c
+    return table
+
+
+@njit(cache=True, inline='always')
+def _find(table: np.ndarray, keys: np.ndarray, key: np.int64, shift: np.uint64) -> np.int64:
+    mask = len(table) - 1
+    s = _slot(key, shift)
+    while True:
+        c = table[s]
+        if c < 0:
+            return -1
+        if keys[c] == key:
+            return c
+        s = (s + 1) & mask
+
+
+#: Columns per side of a tile (the columns' table is dense within a tile).
+TILE = 8
+
+
+class PointGrid:
+    """The stored points sorted by cell of side ``cell`` (x, then y, then z), found by column.
+
+    A column is the cells of one (x, y); within a tile of ``TILE`` x ``TILE`` columns, a
+    dense table gives each column's cells, so the search around a point reads a few
+    contiguous runs instead of one hash probe per cell.
+
+    Attributes:
+        cell: side of a cell, metres.
+        points: (M, 3) the points sorted by cell, metres.
+        order: (M,) index of each sorted point in the caller's array.
+        zlo: (C,) lowest z cell of each column; ``zoff``: (C,) its first entry in ``zstart``.
+        nz: (C,) z cells of each column, ``zhi - zlo + 1``.
+        zstart: first sorted point of each z cell of each column, and one past the last.
+        tile_keys: (T,) packed keys of the occupied tiles; ``tile_cols``: (T, TILE**2)
+            column index of each of a tile's columns (-1: none).
+        table: hash slot -> tile index (-1 empty); ``shift``: 64 - bits.
+    """
+
+    def __init__(self, points: np.ndarray, cell: float) -> None:
+        self.cell = float(cell)
+        ijk = np.floor(points / self.cell).astype(np.int64) + _BIAS
+        key = (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
+        self.order = np.argsort(key, kind='stable')
+        key = key[self.order]
+        ijk = ijk[self.order]
+        self.points = np.ascontiguousarray(points[self.order], dtype=np.float64)
+        col = key >> 21
+        first = np.flatnonzero(np.r_[True, col[1:] != col[:-1]]) if len(col) else np.empty(0, np.int64)
+        last = np.r_[first[1:], len(col)] - 1
+        self.zlo = ijk[first, 2].copy()
+        self.nz = ijk[last, 2] - self.zlo + 1
+        self.zoff = np.r_[0, np.cumsum(self.nz + 1)[:-1]].astype(np.int64)
+        rep = np.repeat(np.arange(len(first)), self.nz + 1)
+        z = np.arange(len(rep)) - np.repeat(self.zoff, self.nz + 1) + np.repeat(self.zlo, self.nz + 1)
+        self.zstart = np.searchsorted(key, (col[first][rep] << 21) | z).astype(np.int64)
+        cx, cy = ijk[first, 0], ijk[first, 1]
+        tkey = ((cx // TILE) << 21) | (cy // TILE)
+        self.tile_keys, tile_of = np.unique(tkey, return_inverse=True)
+        self.tile_cols = np.full((len(self.tile_keys), TILE * TILE), -1, np.int64)
+        self.tile_cols[tile_of.ravel(), (cx % TILE) * TILE + cy % TILE] = np.arange(len(first))
+        bits = max(4, int(np.ceil(np.log2(max(2 * len(self.tile_keys), 2)))))
+        self.table = _build_table(self.tile_keys, bits)
+        self.shift = np.uint64(64 - bits)
+
+    def subset(self, keep: np.ndarray) -> PointGrid:
+        """The grid of ``points[keep]`` ((M,) bool over the caller's points), same cells
+        (its points come already sorted: no new sort of the whole cloud)."""
+        kept = keep[self.order]
+        new_index = np.cumsum(keep) - 1
+        grid = PointGrid(self.points[kept], self.cell)
+        grid.order = new_index[self.order[kept]][grid.order]
+        return grid
+
+    def arrays(self) -> tuple:
+        """The arrays the kernels read, in their order."""
+        return (self.points, self.zlo, self.nz, self.zoff, self.zstart, self.tile_keys, self.tile_cols, self.table,
+                self.shift, self.cell)
+
+
+@njit(cache=True)
+def _jacobi3(a: np.ndarray, lam: np.ndarray, vec: np.ndarray) -> None:
+    """Eigen-decomposition of the symmetric 3 x 3 ``a`` (overwritten): ``lam`` ascending,
+    ``vec[:, i]`` the unit eigenvector of ``lam[i]``."""
+    for i in range(3):
+        for j in range(3):
+            vec[i, j] = 1.0 if i == j else 0.0
+    for _ in range(16):
+        off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
+        scale = a[0, 0] * a[0, 0] + a[1, 1] * a[1, 1] + a[2, 2] * a[2, 2]
+        if off <= 1e-26 * scale:  # off-diagonal below 1e-13 of the diagonal: converged
+            break
+        for p in range(2):
+            for q in range(p + 1, 3):
+                apq = a[p, q]
+                if apq == 0.0:
+                    continue
+                theta = (a[q, q] - a[p, p]) / (2.0 * apq)
+                t = 1.0 / (abs(theta) + np.sqrt(theta * theta + 1.0))
+                if theta < 0.0:
+                    t = -t
+                c = 1.0 / np.sqrt(t * t + 1.0)
+                s = t * c
+                for k in range(3):
+                    akp, akq = a[k, p], a[k, q]
+                    a[k, p] = c * akp - s * akq
+                    a[k, q] = s * akp + c * akq
+                for k in range(3):
+                    apk, aqk = a[p, k], a[q, k]
+                    a[p, k] = c * apk - s * aqk
+                    a[q, k] = s * apk + c * aqk
+                for k in range(3):
+                    vkp, vkq = vec[k, p], vec[k, q]
+                    vec[k, p] = c * vkp - s * vkq
+                    vec[k, q] = s * vkp + c * vkq
+    for i in range(3):
+        lam[i] = a[i, i]
+    # Sort ascending (three elements: a small insertion sort of the columns).
+    for i in range(1, 3):
+        j = i
+        while j > 0 and lam[j - 1] > lam[j]:
+            lam[j - 1], lam[j] = lam[j], lam[j - 1]
+            for k in range(3):
+                vec[k, j - 1], vec[k, j] = vec[k, j], vec[k, j - 1]
+            j -= 1
+
+
+@njit(cache=True)
+def _knn(x0: float, x1: float, x2: float, pts: np.ndarray, zlo: np.ndarray, nz: np.ndarray, zoff: np.ndarray,
+         zstart: np.ndarray, tile_keys: np.ndarray, tile_cols: np.ndarray, table: np.ndarray, shift: np.uint64,
+         cell: float, kk: int, skip: np.int64, radius: float, max_ring: int, bd: np.ndarray, bi: np.ndarray) -> int:
+    """The ``kk`` nearest sorted points to (x0, x1, x2), but ``skip``, into ``bd`` (squared
+    distances, ascending) and ``bi`` (sorted indices), searched ring by ring of cells.
+    Returns 0: found; 1: no point within ``radius`` (only checked when ``radius`` is
+    finite); 2: the search would need more than ``max_ring`` rings."""
+    for j in range(kk):
+        bd[j] = np.inf
+        bi[j] = -1
+    g0, g1, g2 = x0 / cell, x1 / cell, x2 / cell
+    c0, c1, c2 = int(np.floor(g0)), int(np.floor(g1)), int(np.floor(g2))
+    f0, f1, f2 = g0 - c0, g1 - c1, g2 - c2
+    c0 += _BIAS
+    c1 += _BIAS
+    c2 += _BIAS
+    margin = min(f0, 1.0 - f0, f1, 1.0 - f1, f2, 1.0 - f2) * cell
+    s0 = 1 if f0 >= 0.5 else -1
+    s1 = 1 if f1 >= 0.5 else -1
+    last_tile = np.int64(-1)
+    last_index = np.int64(-1)
+    for m in range(max_ring + 1):
+        for i0 in range(2 * m + 1):
+            # Offsets in the order 0, +-1, -+1, +-2, ...: the nearer side first, so that the
+            # K + 1-th distance shrinks early and prunes the cells behind.
+            d0 = ((i0 + 1) // 2) * (s0 if i0 % 2 == 1 else -s0)
+            e0 = 0.0 if d0 == 0 else ((d0 - f0) if d0 > 0 else (f0 - d0 - 1.0)) * cell
+            if e0 * e0 >= bd[kk - 1]:
+                continue
+            cx = c0 + d0
+            for i1 in range(2 * m + 1):
+                d1 = ((i1 + 1) // 2) * (s1 if i1 % 2 == 1 else -s1)
+                e1 = 0.0 if d1 == 0 else ((d1 - f1) if d1 > 0 else (f1 - d1 - 1.0)) * cell
+                e01 = e0 * e0 + e1 * e1
+                if e01 >= bd[kk - 1]:
+                    continue
+                cy = c1 + d1
+                tk = (np.int64(cx // TILE) << 21) | np.int64(cy // TILE)
+                if tk != last_tile:
+                    last_tile = tk
+                    last_index = _find(table, tile_keys, tk, shift)
+                if last_index < 0:
+                    continue
+                col = tile_cols[last_index, (cx % TILE) * TILE + cy % TILE]
+                if col < 0:
+                    continue
+                z0, n = zlo[col], nz[col]
+                edge = abs(d0) == m or abs(d1) == m
+                d2 = -m
+                while d2 <= m:
+                    if not edge and d2 != -m and d2 != m:
+                        d2 = m  # the ring's cells only: jump over the cube searched before
+                    z = c2 + d2 - z0
+                    if z >= n:
+                        break
+                    if z >= 0:
+                        e2 = 0.0 if d2 == 0 else ((d2 - f2) if d2 > 0 else (f2 - d2 - 1.0)) * cell
+                        if e01 + e2 * e2 < bd[kk - 1]:
+                            o = zoff[col] + z
+                            for p in range(zstart[o], zstart[o + 1]):
+                                if p == skip:
+                                    continue
+                                q0, q1, q2 = pts[p, 0] - x0, pts[p, 1] - x1, pts[p, 2] - x2
+                                dd = q0 * q0 + q1 * q1 + q2 * q2
+                                if dd < bd[kk - 1]:
+                                    j = kk - 1
+                                    while j > 0 and bd[j - 1] > dd:
+                                        bd[j] = bd[j - 1]
+                                        bi[j] = bi[j - 1]
+                                        j -= 1
+                                    bd[j] = dd
+                                    bi[j] = p
+                    d2 += 1
+        covered = margin + m * cell  # every point nearer than this has been seen
+        if bd[kk - 1] <= covered * covered:
+            return 0
+        if covered >= radius and not bd[0] < radius * radius:
+            return 1
+    return 2
+
+
+@njit(cache=True, parallel=True)
+def local_planes(xyz: np.ndarray, skip: np.ndarray, label: np.ndarray, pts: np.ndarray, zlo: np.ndarray,
+                 nz: np.ndarray, zoff: np.ndarray, zstart: np.ndarray, tile_keys: np.ndarray, tile_cols: np.ndarray,
+                 table: np.ndarray, shift: np.uint64, cell: float, k: int, near: int, max_ring: int,
+                 normals: np.ndarray, radius: float, min_var: float,
+                 fid: np.ndarray, s_out: np.ndarray, scatter_out: np.ndarray, var_out: np.ndarray,
+                 normal_out: np.ndarray, rho_out: np.ndarray, nearest_out: np.ndarray, status: np.ndarray) -> None:
+    """The reading of :meth:`~.step7_local_surface.LocalSurface._raw` at (N, 3) ``xyz``.
+
+    Args:
+        xyz: (N, 3) query points, metres.
+        skip: (N,) sorted index of a stored point left out of each point's neighbours
+            (leave-one-out), -1 for none.
+        label: (M,) façade of each sorted stored point (-1: none).
+        pts ... cell: the :class:`PointGrid` of the stored points (``PointGrid.arrays()``).
+        k: K (the plane's neighbours; K + 1 are searched, the last for the taper).
+        near: ``rho`` is the distance to the ``near + 1``-th nearest stored point.
+        max_ring: rings of cells searched at most (``MAX_RING``, ``FAR_RING``).
+        normals: (F, 3) façade normals (F may be 0).
+        radius: points without a stored point nearer than this are not read (``status``
+            1); inf: all are.
+        min_var: floor of variances, m^2.
+        fid, s_out, scatter_out, var_out, normal_out, rho_out: (N,) / (N, 3) outputs as
+            ``_raw``'s (uncalibrated), written where ``status`` is 0.
+        nearest_out: (N,) distance to the nearest stored point, metres (where ``status`` is 0).
+        status: (N,) int8 output: 0 read, 1 no stored point within ``radius``, 2 not
+            searched far enough (``max_ring``).
+    """
+    n = len(xyz)
+    nchunks = (n + _BATCH - 1) // _BATCH
+    for b in prange(nchunks):
+        _local_planes_range(b * _BATCH, min(n, (b + 1) * _BATCH), xyz, skip, label, pts, zlo, nz, zoff, zstart,
+                            tile_keys, tile_cols, table, shift, cell, k, near, max_ring, normals, radius, min_var, fid, s_out, scatter_out, var_out, normal_out,
+                            rho_out, nearest_out, status)
+
+
+@njit(cache=True)
+def _local_planes_range(lo: int, hi: int, xyz: np.ndarray, skip: np.ndarray, label: np.ndarray, pts: np.ndarray,
+                        zlo: np.ndarray, nz: np.ndarray, zoff: np.ndarray, zstart: np.ndarray, tile_keys: np.ndarray,
+                        tile_cols: np.ndarray, table: np.ndarray, shift: np.uint64, cell: float, k: int, near: int,
+                        max_ring: int, normals: np.ndarray, radius: float, min_var: float, fid: np.ndarray,
+                        s_out: np.ndarray, scatter_out: np.ndarray, var_out: np.ndarray, normal_out: np.ndarray,
+                        rho_out: np.ndarray, nearest_out: np.ndarray, status: np.ndarray) -> None:
+    """:func:`local_planes` of the points ``lo:hi`` (scratch arrays allocated once)."""
+    kk = k + 1
+    nf = len(normals)
+    bd = np.empty(kk)
+    bi = np.empty(kk, np.int64)
+    w = np.empty(k)
+    r = np.empty(k)
+    cov = np.empty((3, 3))
+    lam = np.empty(3)
+    vec = np.empty((3, 3))
+    c = np.empty(3)
+    for i in range(lo, hi):
+        st = _knn(xyz[i, 0], xyz[i, 1], xyz[i, 2], pts, zlo, nz, zoff, zstart, tile_keys, tile_cols, table, shift,
+                  cell, kk, skip[i], radius, max_ring, bd, bi)
+        status[i] = st
+        if st != 0:
+            continue
+        if bi[kk - 1] < 0:  # fewer stored points than K + 1: the caller's numpy path reads these
+            status[i] = 2
+            continue
+        taper = max(np.sqrt(bd[kk - 1]), 1e-9)
+        for j in range(k):
+            t = 1.0 - bd[j] / (taper * taper)
+            t = min(max(t, 0.0), 1.0)
+            w[j] = t * t
+        w[0] = max(w[0], 1e-6)
+        sw = 0.0
+        sigma2 = 0.0
+        for rew in range(2):
+            sw = 0.0
+            c[0] = c[1] = c[2] = 0.0
+            for j in range(k):
+                p = bi[j]
+                sw += w[j]
+                for a in range(3):
+                    c[a] += w[j] * pts[p, a]
+            for a in range(3):
+                c[a] /= sw
+            for a in range(3):
+                for b in range(3):
+                    cov[a, b] = 0.0
+            for j in range(k):
+                p = bi[j]
+                e0, e1, e2 = pts[p, 0] - c[0], pts[p, 1] - c[1], pts[p, 2] - c[2]
+                wj = w[j]
+                cov[0, 0] += wj * e0 * e0
+                cov[0, 1] += wj * e0 * e1
+                cov[0, 2] += wj * e0 * e2
+                cov[1, 1] += wj * e1 * e1
+                cov[1, 2] += wj * e1 * e2
+                cov[2, 2] += wj * e2 * e2
+            cov[1, 0], cov[2, 0], cov[2, 1] = cov[0, 1], cov[0, 2], cov[1, 2]
+            for a in range(3):
+                for b in range(3):
+                    cov[a, b] /= sw
+            _jacobi3(cov, lam, vec)
+            sigma2 = 0.0
+            for j in range(k):
+                p = bi[j]
+                r[j] = ((pts[p, 0] - c[0]) * vec[0, 0] + (pts[p, 1] - c[1]) * vec[1, 0]
+                        + (pts[p, 2] - c[2]) * vec[2, 0])
+                sigma2 += w[j] * r[j] * r[j]
+            sigma2 /= sw
+            if rew == 0:
+                for j in range(k):
+                    w[j] = w[j] / (1.0 + r[j] * r[j] / (4.0 * sigma2 + min_var))
+        sww = 0.0
+        for j in range(k):
+            sww += w[j] * w[j]
+        n_eff = sw * sw / sww
+        scatter = max(sigma2 * n_eff / max(n_eff - 3.0, 1.0), min_var)
+        o0, o1, o2 = xyz[i, 0] - c[0], xyz[i, 1] - c[1], xyz[i, 2] - c[2]
+        s = o0 * vec[0, 0] + o1 * vec[1, 0] + o2 * vec[2, 0]
+        u1 = o0 * vec[0, 1] + o1 * vec[1, 1] + o2 * vec[2, 1]
+        u2 = o0 * vec[0, 2] + o1 * vec[1, 2] + o2 * vec[2, 2]
+        lev = u1 * u1 / max(lam[1], min_var) + u2 * u2 / max(lam[2], min_var)
+        # The façade of the nearest neighbour that belongs to one (-1: none does).
+        f = -1
+        for j in range(kk):
+            if label[bi[j]] >= 0:
+                f = label[bi[j]]
+                break
+        sign = 1.0
+        if nf > 0:
+            fn = max(f, 0)
+            if vec[0, 0] * normals[fn, 0] + vec[1, 0] * normals[fn, 1] + vec[2, 0] * normals[fn, 2] < 0.0:
+                sign = -1.0
+        fid[i] = f
+        s_out[i] = sign * s
+        scatter_out[i] = scatter
+        var_out[i] = scatter * (1.0 + lev) / n_eff
+        for a in range(3):
+            normal_out[i, a] = sign * vec[a, 0]
+        rho_out[i] = np.sqrt(bd[near]) if f >= 0 else np.inf
+        nearest_out[i] = np.sqrt(bd[0])
