@@ -188,6 +188,7 @@ class LocalSurface:
     calibration_: float = 1.0
     _tree: cKDTree | None = field(default=None, init=False, repr=False)
     _grid: PointGrid | None = field(default=None, init=False, repr=False)
+    _grid_labels: tuple[PointGrid, np.ndarray] | None = field(default=None, init=False, repr=False)  # facade by grid order
 
     def __post_init__(self) -> None:
         if self.neighbours < 3:
@@ -321,7 +322,9 @@ class LocalSurface:
         nearest[:] = np.inf
         normal = np.full((n, 3), np.nan)
         status = np.zeros(n, np.int8)
-        labels = self.facade[g.order].astype(np.int32)
+        if self._grid_labels is None or self._grid_labels[0] is not g:
+            self._grid_labels = (g, self.facade[g.order].astype(np.int32))
+        labels = self._grid_labels[1]
         normals = np.ascontiguousarray(self.normals, dtype=np.float64).reshape(-1, 3)
         # Points read in the grid's order (by tile of columns, then height): neighbouring
         # points read the same cells while they are in the cache (2-3 x faster than random order).

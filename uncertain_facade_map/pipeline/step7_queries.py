@@ -9,6 +9,11 @@ front of the plane) and raster extent contain it, the nearest plane winning; it 
 façade id, mean depth, variance, noise variance, signed distance to the mean surface along
 the façade normal (positive outside the building) and the occupancy probability of the
 voxel centred there (:mod:`~uncertain_facade_map.pipeline.step8_occupancy`).
+
+:func:`query_points` runs the assignment and the raster's reading compiled
+(:mod:`~uncertain_facade_map.pipeline.raster_kernels`, the same answers to the last bit);
+:func:`assign_facades`, :func:`surface_at` and :func:`nearer_step_faces` are their numpy
+reference (and serve the callers that read one raster).
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ from scipy import ndimage
 from ..datatypes import SOURCE_GLOBAL, FacadeModel, SurfaceRaster
 from ..errors import InputError
 from ..params import QueryConfig
+from .raster_kernels import PackedRasters, assign_all, packed, raster_answer_all
 from .step7_local_surface import LocalReading, LocalSurface, for_query, raster_agreement
 from .step8_occupancy import FIXED, PLSC, UNKNOWN, half_depth, occupancy_model
 
@@ -320,9 +326,11 @@ def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: fl
     mean, var, noise, dist = (np.full(n, np.nan) for _ in range(4))
     normal = np.zeros((n, 3))
     normals = np.array([f.frame.normal for f in facades]).reshape(-1, 3)
+    rasters = packed(facades, STEP_REACH)
+    boxes = rasters.boxes(band_back, band_front)
     for start in range(0, n, CHUNK):
         part = slice(start, min(start + CHUNK, n))
-        which, uvd = assign_facades(facades, xyz[part], band_back, band_front)
+        which, uvd = _assign(rasters, boxes, xyz[part], band_back, band_front)
         reading = local.read(xyz[part]) if local is not None else None
         if reading is not None:
             # Points the raster's bands miss but dense stored points hold: their nearest
@@ -338,7 +346,7 @@ def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: fl
                 u0, u1, v0, v1 = raster_bounds(facades[i].surface)
                 off = (uvd[sel, 0] < u0) | (uvd[sel, 0] > u1) | (uvd[sel, 1] < v0) | (uvd[sel, 1] > v1)
                 weight[sel[off]] = 1.0
-        answer = _raster_answer(facades, which, uvd)
+        answer = _raster_answer_compiled(rasters, which, uvd)
         if reading is not None:
             answer = _blend(answer, reading, weight)
         facade[part] = which
@@ -354,6 +362,29 @@ def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: fl
     else:
         p = occupancy.surface(dist, var, noise0, half_depth(normal, resolution), outside=UNKNOWN)
     return PointQuery(facade, mean, var, noise, dist, p)
+
+
+def _assign(rasters: PackedRasters, boxes: tuple[np.ndarray, np.ndarray], xyz: np.ndarray, band_back: float,
+            band_front: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`assign_facades` by the compiled kernel (:func:`~.raster_kernels.assign_all`)."""
+    n = len(xyz)
+    which, uvd = np.full(n, -1, np.int32), np.full((n, 3), np.nan)
+    assign_all(np.ascontiguousarray(xyz, dtype=np.float64), rasters.origin, rasters.axes, rasters.corner, rasters.cell,
+               rasters.shape, rasters.offset, rasters.facet, boxes[0], boxes[1], float(band_back), float(band_front),
+               NO_FACET_PENALTY, which, uvd)
+    return which, uvd
+
+
+def _raster_answer_compiled(rasters: PackedRasters, which: np.ndarray, uvd: np.ndarray
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_raster_answer` by the compiled kernel (:func:`~.raster_kernels.raster_answer_all`)."""
+    n = len(which)
+    mean, var, noise, dist = (np.empty(n) for _ in range(4))
+    raster_answer_all(np.ascontiguousarray(which, dtype=np.int32), np.ascontiguousarray(uvd, dtype=np.float64),
+                      rasters.corner, rasters.cell, rasters.shape, rasters.offset, rasters.mean, rasters.var,
+                      rasters.facet, rasters.observed, rasters.lo, rasters.hi, rasters.noise, rasters.reach,
+                      mean, var, noise, dist)
+    return mean, var, noise, dist, uvd[:, 2]
 
 
 def _raster_answer(facades: Sequence[FacadeModel], which: np.ndarray, uvd: np.ndarray
