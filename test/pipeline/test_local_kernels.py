@@ -52,3 +52,19 @@ def test_grid_subset_and_tiny_maps():
     tiny = LocalSurface(pts[:8], fid[:8], np.array([[0.0, 1.0, 0.0]]), neighbours=12)
     r = tiny.read(pts[:3] + 0.01)
     assert np.all(np.isfinite(r.signed_distance))
+
+
+def test_far_coordinates_and_far_queries():
+    """A map in UTM-like coordinates (hundreds of km from the origin), queries beside it and
+    absurdly far away: the same reading as the KD-tree's."""
+    rng = np.random.default_rng(4)
+    pts, fid = walls(rng)
+    pts = pts + np.array([512_345.0, 5_412_345.0, 250.0])
+    local = LocalSurface(pts, fid, np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0]]), neighbours=12)
+    q = np.r_[pts[:500] + rng.normal(0, 0.2, (500, 3)), [[0.0, 0.0, 0.0], [1e12, -1e12, 3.0]]]
+    got, want = local._raw(q), local._raw_kd(q)
+    assert np.array_equal(got[0], want[0])
+    for a, b in zip(got[1:], want[1:]):
+        assert np.allclose(a, b, rtol=1e-9, atol=1e-7, equal_nan=True)
+    r = local.read(q)
+    assert np.all(r.weight[-2:] == 0) and np.all(r.facade[-2:] == -1)

@@ -24,9 +24,8 @@ from numba import njit, prange
 MAX_RING = 6
 #: Rings of the second pass; beyond, the caller reads the point with a KD-tree.
 FAR_RING = 40
-#: Offset making cell indices non-negative before they are packed into one int64 key
-#: (21 bits each: +-1,048,576 cells, 105 km at 0.1 m cells).
-_BIAS = 1 << 20
+#: Cells per axis (from the grid's lower corner) that a packed int64 key holds (21 bits each).
+_LIMIT = 1 << 21
 _HASH = np.uint64(0x9E3779B97F4A7C15)
 #: Points per parallel task (scratch arrays are allocated once per task).
 _BATCH = 256
@@ -89,9 +88,14 @@ class PointGrid:
         table: hash slot -> tile index (-1 empty); ``shift``: 64 - bits.
     """
 
-    def __init__(self, points: np.ndarray, cell: float) -> None:
-        self.cell = float(cell)
-        ijk = np.floor(points / self.cell).astype(np.int64) + _BIAS
+    def __init__(self, points: np.ndarray, cell: float, corner: np.ndarray | None = None) -> None:
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        self.corner = (points.min(axis=0) if len(points) else np.zeros(3)) if corner is None else corner
+        extent = float(np.max(points.max(axis=0) - self.corner)) if len(points) else 0.0
+        # Cells indexed from the lower corner on 21 bits per axis: cells large enough to hold
+        # the extent (2 km at 1 mm cells, 525 km at 0.25 m).
+        self.cell = max(float(cell), 2.0 * extent / _LIMIT)
+        ijk = np.floor((points - self.corner) / self.cell).astype(np.int64)
         key = (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
         self.order = np.argsort(key, kind='stable')
         key = key[self.order]
@@ -120,14 +124,14 @@ class PointGrid:
         (its points come already sorted: no new sort of the whole cloud)."""
         kept = keep[self.order]
         new_index = np.cumsum(keep) - 1
-        grid = PointGrid(self.points[kept], self.cell)
+        grid = PointGrid(self.points[kept], self.cell, self.corner)
         grid.order = new_index[self.order[kept]][grid.order]
         return grid
 
     def arrays(self) -> tuple:
         """The arrays the kernels read, in their order."""
-        return (self.points, self.zlo, self.nz, self.zoff, self.zstart, self.tile_keys, self.tile_cols, self.table,
-                self.shift, self.cell)
+        return (self.points, self.corner, self.zlo, self.nz, self.zoff, self.zstart, self.tile_keys, self.tile_cols,
+                self.table, self.shift, self.cell)
 
 
 @njit(cache=True)
@@ -178,7 +182,7 @@ def _jacobi3(a: np.ndarray, lam: np.ndarray, vec: np.ndarray) -> None:
 
 
 @njit(cache=True)
-def _knn(x0: float, x1: float, x2: float, pts: np.ndarray, zlo: np.ndarray, nz: np.ndarray, zoff: np.ndarray,
+def _knn(x0: float, x1: float, x2: float, pts: np.ndarray, corner: np.ndarray, zlo: np.ndarray, nz: np.ndarray, zoff: np.ndarray,
          zstart: np.ndarray, tile_keys: np.ndarray, tile_cols: np.ndarray, table: np.ndarray, shift: np.uint64,
          cell: float, kk: int, skip: np.int64, radius: float, max_ring: int, bd: np.ndarray, bi: np.ndarray) -> int:
     """The ``kk`` nearest sorted points to (x0, x1, x2), but ``skip``, into ``bd`` (squared
@@ -188,12 +192,11 @@ def _knn(x0: float, x1: float, x2: float, pts: np.ndarray, zlo: np.ndarray, nz: 
     for j in range(kk):
         bd[j] = np.inf
         bi[j] = -1
-    g0, g1, g2 = x0 / cell, x1 / cell, x2 / cell
+    g0, g1, g2 = (x0 - corner[0]) / cell, (x1 - corner[1]) / cell, (x2 - corner[2]) / cell
+    if not (abs(g0) < 4.0 * _LIMIT and abs(g1) < 4.0 * _LIMIT and abs(g2) < 4.0 * _LIMIT):
+        return 2  # far outside the grid (beyond its int64 cells): the caller's KD-tree
     c0, c1, c2 = int(np.floor(g0)), int(np.floor(g1)), int(np.floor(g2))
     f0, f1, f2 = g0 - c0, g1 - c1, g2 - c2
-    c0 += _BIAS
-    c1 += _BIAS
-    c2 += _BIAS
     margin = min(f0, 1.0 - f0, f1, 1.0 - f1, f2, 1.0 - f2) * cell
     s0 = 1 if f0 >= 0.5 else -1
     s1 = 1 if f1 >= 0.5 else -1
@@ -215,6 +218,8 @@ def _knn(x0: float, x1: float, x2: float, pts: np.ndarray, zlo: np.ndarray, nz: 
                 if e01 >= bd[kk - 1]:
                     continue
                 cy = c1 + d1
+                if cx < 0 or cy < 0 or cx >= _LIMIT or cy >= _LIMIT:
+                    continue  # outside the grid: no points
                 tk = (np.int64(cx // TILE) << 21) | np.int64(cy // TILE)
                 if tk != last_tile:
                     last_tile = tk
@@ -260,10 +265,10 @@ def _knn(x0: float, x1: float, x2: float, pts: np.ndarray, zlo: np.ndarray, nz: 
 
 
 @njit(cache=True, parallel=True)
-def local_planes(xyz: np.ndarray, skip: np.ndarray, label: np.ndarray, pts: np.ndarray, zlo: np.ndarray,
-                 nz: np.ndarray, zoff: np.ndarray, zstart: np.ndarray, tile_keys: np.ndarray, tile_cols: np.ndarray,
-                 table: np.ndarray, shift: np.uint64, cell: float, k: int, near: int, max_ring: int,
-                 normals: np.ndarray, radius: float, min_var: float,
+def local_planes(xyz: np.ndarray, skip: np.ndarray, label: np.ndarray, pts: np.ndarray, corner: np.ndarray,
+                 zlo: np.ndarray, nz: np.ndarray, zoff: np.ndarray, zstart: np.ndarray, tile_keys: np.ndarray,
+                 tile_cols: np.ndarray, table: np.ndarray, shift: np.uint64, cell: float, k: int, near: int,
+                 max_ring: int, normals: np.ndarray, radius: float, min_var: float,
                  fid: np.ndarray, s_out: np.ndarray, scatter_out: np.ndarray, var_out: np.ndarray,
                  normal_out: np.ndarray, rho_out: np.ndarray, nearest_out: np.ndarray, status: np.ndarray) -> None:
     """The reading of :meth:`~.step7_local_surface.LocalSurface._raw` at (N, 3) ``xyz``.
@@ -290,14 +295,14 @@ def local_planes(xyz: np.ndarray, skip: np.ndarray, label: np.ndarray, pts: np.n
     n = len(xyz)
     nchunks = (n + _BATCH - 1) // _BATCH
     for b in prange(nchunks):
-        _local_planes_range(b * _BATCH, min(n, (b + 1) * _BATCH), xyz, skip, label, pts, zlo, nz, zoff, zstart,
+        _local_planes_range(b * _BATCH, min(n, (b + 1) * _BATCH), xyz, skip, label, pts, corner, zlo, nz, zoff, zstart,
                             tile_keys, tile_cols, table, shift, cell, k, near, max_ring, normals, radius, min_var, fid, s_out, scatter_out, var_out, normal_out,
                             rho_out, nearest_out, status)
 
 
 @njit(cache=True)
 def _local_planes_range(lo: int, hi: int, xyz: np.ndarray, skip: np.ndarray, label: np.ndarray, pts: np.ndarray,
-                        zlo: np.ndarray, nz: np.ndarray, zoff: np.ndarray, zstart: np.ndarray, tile_keys: np.ndarray,
+                        corner: np.ndarray, zlo: np.ndarray, nz: np.ndarray, zoff: np.ndarray, zstart: np.ndarray, tile_keys: np.ndarray,
                         tile_cols: np.ndarray, table: np.ndarray, shift: np.uint64, cell: float, k: int, near: int,
                         max_ring: int, normals: np.ndarray, radius: float, min_var: float, fid: np.ndarray,
                         s_out: np.ndarray, scatter_out: np.ndarray, var_out: np.ndarray, normal_out: np.ndarray,
@@ -314,7 +319,7 @@ def _local_planes_range(lo: int, hi: int, xyz: np.ndarray, skip: np.ndarray, lab
     vec = np.empty((3, 3))
     c = np.empty(3)
     for i in range(lo, hi):
-        st = _knn(xyz[i, 0], xyz[i, 1], xyz[i, 2], pts, zlo, nz, zoff, zstart, tile_keys, tile_cols, table, shift,
+        st = _knn(xyz[i, 0], xyz[i, 1], xyz[i, 2], pts, corner, zlo, nz, zoff, zstart, tile_keys, tile_cols, table, shift,
                   cell, kk, skip[i], radius, max_ring, bd, bi)
         status[i] = st
         if st != 0:

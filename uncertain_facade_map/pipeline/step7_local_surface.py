@@ -328,8 +328,8 @@ class LocalSurface:
         normals = np.ascontiguousarray(self.normals, dtype=np.float64).reshape(-1, 3)
         # Points read in the grid's order (by tile of columns, then height): neighbouring
         # points read the same cells while they are in the cache (2-3 x faster than random order).
-        ijk = np.floor(xyz / (g.cell * np.array([TILE, TILE, 1.0]))).astype(np.int64) + (1 << 20)
-        order = np.argsort((ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2])
+        ijk = np.clip(np.floor((xyz - g.corner) / (g.cell * np.array([TILE, TILE, 1.0]))), -1, 1 << 20).astype(np.int64)
+        order = np.argsort(((ijk[:, 0] + 1) << 42) | ((ijk[:, 1] + 1) << 21) | (ijk[:, 2] + 1))
         everything = (fid, s, scatter, plane_var, normal, rho, nearest, status)
         for rings in (MAX_RING, FAR_RING):  # the few points far from K + 1 stored points: again, further
             outs = [a[order] for a in everything]
