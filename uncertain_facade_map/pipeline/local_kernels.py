@@ -19,16 +19,16 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-#: Rings of cells searched at most around a query's cell in a first pass; beyond, the point
-#: is flagged (``status`` 2) and searched again up to ``FAR_RING`` rings.
+#: Rings of cells searched at most around a query's cell; beyond, the point is flagged
+#: (``status`` 2) for the caller to search again (coarser cells, then a KD-tree).
 MAX_RING = 6
-#: Rings of the second pass; beyond, the caller reads the point with a KD-tree.
-FAR_RING = 40
 #: Cells per axis (from the grid's lower corner) that a packed int64 key holds (21 bits each).
 _LIMIT = 1 << 21
 _HASH = np.uint64(0x9E3779B97F4A7C15)
 #: Points per parallel task (scratch arrays are allocated once per task).
 _BATCH = 256
+#: Below this many points a call runs on one core (waking the second costs more).
+SERIAL_BELOW = 2048
 
 
 @njit(cache=True, inline='always')
@@ -281,7 +281,7 @@ def local_planes(xyz: np.ndarray, skip: np.ndarray, label: np.ndarray, pts: np.n
         pts ... cell: the :class:`PointGrid` of the stored points (``PointGrid.arrays()``).
         k: K (the plane's neighbours; K + 1 are searched, the last for the taper).
         near: ``rho`` is the distance to the ``near + 1``-th nearest stored point.
-        max_ring: rings of cells searched at most (``MAX_RING``, ``FAR_RING``).
+        max_ring: rings of cells searched at most (``MAX_RING``).
         normals: (F, 3) façade normals (F may be 0).
         radius: points without a stored point nearer than this are not read (``status``
             1); inf: all are.
@@ -402,3 +402,7 @@ def _local_planes_range(lo: int, hi: int, xyz: np.ndarray, skip: np.ndarray, lab
             normal_out[i, a] = sign * vec[a, 0]
         rho_out[i] = np.sqrt(bd[near]) if f >= 0 else np.inf
         nearest_out[i] = np.sqrt(bd[0])
+
+
+#: :func:`local_planes` on one core (``prange`` runs as ``range``): small calls.
+local_planes_serial = njit(cache=True)(local_planes.py_func)

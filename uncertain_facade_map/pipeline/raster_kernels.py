@@ -216,3 +216,10 @@ def raster_answer_all(which, uvd, corner, cell, shape, offset, mean, var, facet,
             if best < start:
                 dist_out[i] = (-1.0 if distance < 0 else 1.0) * best * cl
                 var_out[i] = best_var
+
+
+#: The kernels on one core (``prange`` runs as ``range``): small calls, where waking the
+#: second core costs more than it saves.
+SERIAL_BELOW = 2048
+assign_all_serial = njit(cache=True)(assign_all.py_func)
+raster_answer_all_serial = njit(cache=True)(raster_answer_all.py_func)

@@ -56,7 +56,7 @@ from scipy.spatial import cKDTree
 from ..datatypes import FacadeModel
 from ..errors import InputError
 from ..params import QueryConfig
-from .local_kernels import FAR_RING, MAX_RING, TILE, PointGrid, local_planes
+from .local_kernels import MAX_RING, SERIAL_BELOW, TILE, PointGrid, local_planes, local_planes_serial
 
 #: The blend weight depends on the distance to this many-th nearest stored point (1: the
 #: nearest, which tells a hole from sparse data better than the 12th: measured on the
@@ -84,6 +84,10 @@ MIN_VAR = 1e-8
 GRID_CELL = 2.0
 #: Stored points (a seeded draw) whose spacing sets the grid's cells.
 GRID_SAMPLE = 20_000
+#: Cells of the second, coarser grid, in cells of the first: with ``MAX_RING`` rings, the
+#: neighbours of a point are searched up to about 6 x 8 x 0.25 = 12 m away on the street map
+#: (beyond, the KD-tree reads it).
+COARSE = 8.0
 
 
 @dataclass(frozen=True)
@@ -188,7 +192,8 @@ class LocalSurface:
     calibration_: float = 1.0
     _tree: cKDTree | None = field(default=None, init=False, repr=False)
     _grid: PointGrid | None = field(default=None, init=False, repr=False)
-    _grid_labels: tuple[PointGrid, np.ndarray] | None = field(default=None, init=False, repr=False)  # facade by grid order
+    _coarse: PointGrid | None = field(default=None, init=False, repr=False)
+    _orders: dict = field(default_factory=dict, init=False, repr=False)  # per grid: (grid, labels, inverse)
 
     def __post_init__(self) -> None:
         if self.neighbours < 3:
@@ -281,6 +286,24 @@ class LocalSurface:
             self._grid = PointGrid(self.points, max(GRID_CELL * spacing, 1e-3))
         return self._grid
 
+    @property
+    def coarse_grid(self) -> PointGrid:
+        """The stored points on cells ``COARSE`` times the grid's (built on first use): the
+        second search of the few points whose ``K + 1`` nearest lie beyond ``MAX_RING`` cells."""
+        if self._coarse is None:
+            self._coarse = PointGrid(self.points, COARSE * self.grid.cell)
+        return self._coarse
+
+    def _in_grid_order(self, grid: PointGrid) -> tuple[np.ndarray, np.ndarray]:
+        """(M,) façade of each stored point in ``grid``'s order, and (M,) the position in that
+        order of each stored point (cached per grid)."""
+        hit = self._orders.get(id(grid))
+        if hit is None or hit[0] is not grid:
+            inverse = np.empty(len(grid.order), np.int64)
+            inverse[grid.order] = np.arange(len(grid.order))
+            hit = self._orders[id(grid)] = (grid, self.facade[grid.order].astype(np.int32), inverse)
+        return hit[1], hit[2]
+
     def _neighbours(self, xyz: np.ndarray, skip: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(N, K + 1) distances and indices of each point's nearest stored points, without
         the stored point ``skip[i]`` itself (leave-one-out; it may have duplicates)."""
@@ -311,30 +334,25 @@ class LocalSurface:
         if len(self.points) < self.neighbours + 2:
             return self._raw_kd(xyz, skip)
         g = self.grid
-        if skip is None:
-            sk = np.full(n, -1, np.int64)
-        else:
-            inverse = np.empty(len(g.order), np.int64)
-            inverse[g.order] = np.arange(len(g.order))
-            sk = inverse[skip]
         fid = np.full(n, -1, np.int32)
         s, scatter, plane_var, rho, nearest = (np.full(n, np.nan) for _ in range(5))
         nearest[:] = np.inf
         normal = np.full((n, 3), np.nan)
         status = np.zeros(n, np.int8)
-        if self._grid_labels is None or self._grid_labels[0] is not g:
-            self._grid_labels = (g, self.facade[g.order].astype(np.int32))
-        labels = self._grid_labels[1]
         normals = np.ascontiguousarray(self.normals, dtype=np.float64).reshape(-1, 3)
         # Points read in the grid's order (by tile of columns, then height): neighbouring
         # points read the same cells while they are in the cache (2-3 x faster than random order).
         ijk = np.clip(np.floor((xyz - g.corner) / (g.cell * np.array([TILE, TILE, 1.0]))), -1, 1 << 20).astype(np.int64)
         order = np.argsort(((ijk[:, 0] + 1) << 42) | ((ijk[:, 1] + 1) << 21) | (ijk[:, 2] + 1))
         everything = (fid, s, scatter, plane_var, normal, rho, nearest, status)
-        for rings in (MAX_RING, FAR_RING):  # the few points far from K + 1 stored points: again, further
+        for coarse in (False, True):  # the few points far from K + 1 stored points: again, on coarser cells
+            grid = self.coarse_grid if coarse else g
+            labels, inverse = self._in_grid_order(grid)
+            sk = np.full(len(order), -1, np.int64) if skip is None else inverse[skip[order]]
             outs = [a[order] for a in everything]
-            local_planes(np.ascontiguousarray(xyz[order], dtype=np.float64), sk[order], labels, *g.arrays(),
-                         self.neighbours, min(NEAR, self.neighbours) - 1, rings, normals, float(radius), MIN_VAR,
+            kernel = local_planes if len(order) >= SERIAL_BELOW else local_planes_serial
+            kernel(np.ascontiguousarray(xyz[order], dtype=np.float64), sk, labels, *grid.arrays(),
+                         self.neighbours, min(NEAR, self.neighbours) - 1, MAX_RING, normals, float(radius), MIN_VAR,
                          *outs)
             for a, b in zip(everything, outs):
                 a[order] = b

@@ -28,7 +28,15 @@ from scipy import ndimage
 from ..datatypes import SOURCE_GLOBAL, FacadeModel, SurfaceRaster
 from ..errors import InputError
 from ..params import QueryConfig
-from .raster_kernels import PackedRasters, assign_all, packed, raster_answer_all
+from .raster_kernels import (
+    SERIAL_BELOW,
+    PackedRasters,
+    assign_all,
+    assign_all_serial,
+    packed,
+    raster_answer_all,
+    raster_answer_all_serial,
+)
 from .step7_local_surface import LocalReading, LocalSurface, for_query, raster_agreement
 from .step8_occupancy import FIXED, PLSC, UNKNOWN, half_depth, occupancy_model
 
@@ -369,9 +377,10 @@ def _assign(rasters: PackedRasters, boxes: tuple[np.ndarray, np.ndarray], xyz: n
     """:func:`assign_facades` by the compiled kernel (:func:`~.raster_kernels.assign_all`)."""
     n = len(xyz)
     which, uvd = np.full(n, -1, np.int32), np.full((n, 3), np.nan)
-    assign_all(np.ascontiguousarray(xyz, dtype=np.float64), rasters.origin, rasters.axes, rasters.corner, rasters.cell,
-               rasters.shape, rasters.offset, rasters.facet, boxes[0], boxes[1], float(band_back), float(band_front),
-               NO_FACET_PENALTY, which, uvd)
+    kernel = assign_all if n >= SERIAL_BELOW else assign_all_serial
+    kernel(np.ascontiguousarray(xyz, dtype=np.float64), rasters.origin, rasters.axes, rasters.corner, rasters.cell,
+           rasters.shape, rasters.offset, rasters.facet, boxes[0], boxes[1], float(band_back), float(band_front),
+           NO_FACET_PENALTY, which, uvd)
     return which, uvd
 
 
@@ -380,10 +389,10 @@ def _raster_answer_compiled(rasters: PackedRasters, which: np.ndarray, uvd: np.n
     """:func:`_raster_answer` by the compiled kernel (:func:`~.raster_kernels.raster_answer_all`)."""
     n = len(which)
     mean, var, noise, dist = (np.empty(n) for _ in range(4))
-    raster_answer_all(np.ascontiguousarray(which, dtype=np.int32), np.ascontiguousarray(uvd, dtype=np.float64),
-                      rasters.corner, rasters.cell, rasters.shape, rasters.offset, rasters.mean, rasters.var,
-                      rasters.facet, rasters.observed, rasters.lo, rasters.hi, rasters.noise, rasters.reach,
-                      mean, var, noise, dist)
+    kernel = raster_answer_all if n >= SERIAL_BELOW else raster_answer_all_serial
+    kernel(np.ascontiguousarray(which, dtype=np.int32), np.ascontiguousarray(uvd, dtype=np.float64),
+           rasters.corner, rasters.cell, rasters.shape, rasters.offset, rasters.mean, rasters.var, rasters.facet,
+           rasters.observed, rasters.lo, rasters.hi, rasters.noise, rasters.reach, mean, var, noise, dist)
     return mean, var, noise, dist, uvd[:, 2]
 
 
