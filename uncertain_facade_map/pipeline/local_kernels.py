@@ -4,11 +4,13 @@ The same reading as :func:`~.step7_local_surface.fit_local_planes` on the ``K + 
 nearest stored points, computed point by point in one compiled loop over both cores
 instead of numpy passes over (N, K + 1, 3) arrays and a KD-tree query:
 
-- the nearest stored points come from a hash grid of the stored points (cells of side
-  ``cell``; one open-addressing table of the occupied cells, the points sorted by cell),
-  searched ring by ring of cells around the query's cell until the ``K + 1``-th nearest
-  found lies within the searched cube (exact nearest neighbours, as the KD-tree's; points
-  whose search would need more than ``MAX_RING`` rings are left to the caller, flagged);
+- the nearest stored points come from a grid of the stored points (:class:`PointGrid`:
+  cells of side ``cell``, the points sorted by cell, each column (x, y) of cells found
+  through a dense table per tile of ``TILE`` x ``TILE`` columns and one open-addressing
+  hash probe per tile), searched ring by ring of cells around the query's cell until the
+  ``K + 1``-th nearest found lies within the searched cube (exact nearest neighbours, as
+  the KD-tree's; points whose search would need more than ``MAX_RING`` rings are left to
+  the caller, flagged);
 - the weighted plane by a cyclic Jacobi eigen-decomposition of the 3 x 3 scatter.
 
 Frames and units as in :mod:`.step7_local_surface`: map frame, metres.
