@@ -33,12 +33,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import multiprocessing as mp
 import platform
 import resource
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 
 def _simulate(work: Path, scene_name: str) -> dict:
@@ -234,24 +236,35 @@ def stages_of(text: str | None, real: bool) -> list[str]:
     return [s for s in STAGES if s in wanted]
 
 
+def _finite(value: Any) -> Any:
+    """``value`` with every NaN or infinite float replaced by None (strict JSON)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite(v) for v in value]
+    return value
+
+
 def _print_stream(r: dict, as_json: bool, live: bool) -> None:
     from . import bench_stream as bs
 
     if 'real' in r:
         if as_json:
             for one in r['real']:
-                print(json.dumps({'stage': f'stream real {one["file"]}', **one}))
+                print(json.dumps(_finite({'stage': f'stream real {one["file"]}', **one})))
         else:
             print('\n'.join(bs.format_real(r['real'])), flush=True)
         return
     result = r['stream']
     if as_json:
         for run in result['runs']:
-            print(json.dumps({'stage': f'stream {result["name"]} {run["rate"]:g}x', 'items': run.get('building_points_in'),
-                              'unit': 'building points', **run}))
+            print(json.dumps(_finite({'stage': f'stream {result["name"]} {run["rate"]:g}x',
+                                      'items': run.get('building_points_in'), 'unit': 'building points', **run})))
         summary = {k: v for k, v in result.items() if k != 'runs'}
-        print(json.dumps({'stage': f'stream {result["name"]}', 'sustained_rate': result['sustained'],
-                          'peak_mb': r['peak_mb'], **summary}))
+        print(json.dumps(_finite({'stage': f'stream {result["name"]}', 'sustained_rate': result['sustained'],
+                                  'peak_mb': r['peak_mb'], **summary})))
         return
     lines = bs.format_drive(result)
     skip = 2 + len(result['runs']) if live else 0  # the header and rows were printed as measured

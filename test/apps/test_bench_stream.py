@@ -8,6 +8,7 @@ the mapping process runs at ``node.mapping_nice``."""
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -134,3 +135,15 @@ def test_stages_option_selects_stages_groups_and_what_they_read():
     assert stages_of(None, False)[:4] == ['simulate', 'build', 'query', 'query_raster']
     with pytest.raises(SystemExit, match='unknown stage'):
         stages_of('nope', False)
+
+
+def test_json_lines_are_strict_json_one_per_rate_and_one_per_drive(measured, capsys):
+    from uncertain_facade_map_apps.bench import _print_stream
+
+    _print_stream({'stage': 'stream small', 'stream': measured, 'peak_mb': 100.0}, as_json=True, live=False)
+    lines = capsys.readouterr().out.splitlines()
+    records = [json.loads(line, parse_constant=lambda c: pytest.fail(f'{c} in a JSON line')) for line in lines]
+    assert [r['stage'] for r in records] == ['stream small 2x', 'stream small 8x', 'stream small']
+    assert records[0]['items'] == measured['building_points'] and records[0]['unit'] == 'building points'
+    assert records[-1]['sustained_rate'] == measured['sustained']
+    assert records[-1]['batch']['seconds'] > 0
