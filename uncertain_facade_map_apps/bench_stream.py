@@ -6,7 +6,8 @@ replay), reduced to its **building points** (class 1, as the node is fed classif
 clouds: :func:`~uncertain_facade_map.io.scans.select_scan_points`, done before the timed part,
 as the node's selection runs in its own callbacks) and handed to a
 :class:`~uncertain_facade_map.mapping.worker.MapWorker` built as the facade_mapper node builds
-it, from the default parameters (``node.queue_size`` clouds at most, oldest dropped when full;
+it, from the default parameters (``node.queue_size`` clouds and ``node.queue_points`` points at
+most, the oldest waiting cloud dropped when full;
 ``node.mapping_process``: the map updated in a child process at ``node.mapping_nice``;
 ``node.idle_flush``; ``update.batch_points`` held back per update, ``add_points(defer=True)``;
 the points are in the map frame already, so no pose is looked up). A feeder thread (the
@@ -19,8 +20,9 @@ queryable, i.e. in the worker's snapshot); the latency from a cloud's arrival
 (:meth:`MapWorker.put`) to its points being queryable (the worker's own ``latencies``, here
 kept for every cloud instead of the node's window of the last 200); peak memory (VmHWM of this
 process, reset at the start of each rate, plus VmHWM of the mapping process). A rate is given up
-(and marked so) once clouds were dropped and the newest cloud in the map is more than
-``give_up`` seconds older than now while clouds still wait: the mapper is hopelessly behind.
+(and marked so) once the newest cloud in the map arrived more than ``give_up`` seconds ago while
+clouds still wait: the mapper is hopelessly behind (dropping or not: the queue holds up to
+``node.queue_points`` points, the whole street drive).
 
 Accuracy, so that speed never hides a loss of quality: the streamed map of each rate that
 finished and the map built in one batch from all the drive's building points, both against the
@@ -273,8 +275,8 @@ def stream_drive(drive: Drive, rate: float, config: Any = None, give_up: float =
         drive: the drive.
         rate: rate factor (> 0).
         config: a :class:`~uncertain_facade_map.params.Config`; None: the defaults (the node's).
-        give_up: once clouds were dropped, stop when the newest cloud in the map is older than
-            this (s) while clouds still wait.
+        give_up: stop when the newest cloud in the map arrived more than this (s) ago while
+            clouds still wait (dropped or not).
         settle_timeout: seconds after the last cloud to wait at most for the map to settle
             (every cloud queryable, nothing held back); then the rate is given up too.
         keep_map: fetch the settled map from the mapping process (for the accuracy).
@@ -299,7 +301,7 @@ def stream_drive(drive: Drive, rate: float, config: Any = None, give_up: float =
 
     fmap = FacadeMap(map_params(cfg), drive.map_origin)
     worker = MapWorker(fmap, node.queue_size, on_change=on_change, idle_flush=node.idle_flush,
-                       process=node.mapping_process, nice=node.mapping_nice)
+                       process=node.mapping_process, nice=node.mapping_nice, queue_points=node.queue_points)
     worker.latencies = deque()  # every cloud's latency, not the node's window of the latest 200
     stopped = ''
     try:
@@ -309,9 +311,8 @@ def stream_drive(drive: Drive, rate: float, config: Any = None, give_up: float =
         schedule = first + drive.offsets / rate
 
         def behind(now: float) -> bool:
-            """Clouds were dropped and the map lags the feed by more than ``give_up`` seconds."""
-            acc = worker.accounts()
-            if not acc['clouds_dropped'] or not acc['clouds_waiting']:
+            """Clouds wait and the newest cloud in the map arrived more than ``give_up`` s ago."""
+            if not worker.accounts()['clouds_waiting']:
                 return False
             newest = published[-1][2] if published and published[-1][1] else first
             return now - newest > give_up
@@ -322,7 +323,7 @@ def stream_drive(drive: Drive, rate: float, config: Any = None, give_up: float =
                 time.sleep(wait)
             worker.put(Cloud(cloud.xyz, cloud.building_id, cloud.sensor_origins, cloud.stamp_ns))
             if behind(time.monotonic()):
-                stopped = f'given up while feeding: dropped clouds and the map over {give_up:g} s behind'
+                stopped = f'given up while feeding: the map over {give_up:g} s behind'
                 break
         fed = time.monotonic()
         while not stopped:
@@ -332,7 +333,7 @@ def stream_drive(drive: Drive, rate: float, config: Any = None, give_up: float =
                 break
             now = time.monotonic()
             if behind(now):
-                stopped = f'given up: dropped clouds and the map over {give_up:g} s behind'
+                stopped = f'given up: the map over {give_up:g} s behind'
             elif now - fed > settle_timeout:
                 stopped = f'given up: not settled {settle_timeout:g} s after the last cloud'
             else:
@@ -479,9 +480,11 @@ def format_drive(result: dict) -> list[str]:
     first = result['runs'][0]
     if best is None:
         lines.append(f'sustained: none of the rates tried; at {first["rate"]:g}x {first["clouds_dropped"]:,} of '
-                     f'{first["clouds_in"]:,} clouds dropped')
+                     f'{first["clouds_in"]:,} clouds dropped' + (f', {first["stopped"]}' if first['stopped'] else ''))
     else:
-        lines.append(f'sustained: {best:g}x with no dropped cloud ({best * rate_1x:,.0f} building points/s of input)')
+        p95 = next(r['latency_p95_s'] for r in result['runs'] if r['rate'] == best)
+        lines.append(f'sustained: {best:g}x with no dropped cloud ({best * rate_1x:,.0f} building points/s of input; '
+                     f'latency p95 {p95:.2f} s)')
     b = result['batch']
     if b is None:
         lines.append('accuracy: no streamed map finished (and no batch map built to compare with)')
