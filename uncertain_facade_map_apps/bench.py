@@ -264,6 +264,7 @@ def _print_stream(r: dict, as_json: bool, live: bool) -> None:
                                       'items': run.get('building_points_in'), 'unit': 'building points', **run})))
         summary = {k: v for k, v in result.items() if k != 'runs'}
         print(json.dumps(_finite({'stage': f'stream {result["name"]}', 'sustained_rate': result['sustained'],
+                                  'sustained_rate_p95_1s': bs.sustained(result['runs'], bs.TARGET_P95),
                                   'peak_mb': r['peak_mb'], **summary})))
         return
     lines = bs.format_drive(result)

@@ -76,6 +76,7 @@ def test_table_has_a_line_per_rate_the_sustained_rate_and_accuracy(measured):
     text = '\n'.join(bs.format_drive(measured))
     assert text.count('\n   2x ') == 1 and text.count('\n   8x ') == 1
     assert f'sustained: {measured["sustained"]:g}x with no dropped cloud' in text
+    assert 'sustained with latency p95 <= 1 s: none of the rates tried' in text  # the idle flush waits 2 s
     assert 'batch map of all' in text and 'streamed 2x:' in text
 
 
@@ -104,6 +105,8 @@ def test_sustained_is_the_highest_rate_without_a_drop():
     assert bs.sustained([run(1), run(2), run(4, 3), {'rate': 8, 'skipped': 'x'}]) == 2
     assert bs.sustained([run(1, 1), run(2, 5)]) is None
     assert bs.sustained([run(1), run(2, 0, 'given up')]) == 1
+    timed = [dict(run(1), latency_p95_s=0.5), dict(run(2), latency_p95_s=3.0)]
+    assert bs.sustained(timed) == 2 and bs.sustained(timed, 1.0) == 1 and bs.sustained(timed, 0.1) is None
 
 
 def test_azimuth_clouds_partition_a_sweep_in_turning_order():
@@ -146,5 +149,5 @@ def test_json_lines_are_strict_json_one_per_rate_and_one_per_drive(measured, cap
     records = [json.loads(line, parse_constant=lambda c: pytest.fail(f'{c} in a JSON line')) for line in lines]
     assert [r['stage'] for r in records] == ['stream small 2x', 'stream small 8x', 'stream small']
     assert records[0]['items'] == measured['building_points'] and records[0]['unit'] == 'building points'
-    assert records[-1]['sustained_rate'] == measured['sustained']
+    assert records[-1]['sustained_rate'] == measured['sustained'] and records[-1]['sustained_rate_p95_1s'] is None
     assert records[-1]['batch']['seconds'] > 0
