@@ -14,7 +14,8 @@ its peak memory (max RSS) is its own:
   car lidar sweeps; the real ones of ``../shared/data/real`` too when present);
 - ``stream_street``, ``stream_av2``, ``stream_hdl64`` (``--stages stream``: all three): a drive
   fed to the mapper as the node is fed, cloud by cloud at its recorded times divided by a rate
-  factor (1x, 2x, 4x, 8x, 16x, each with a fresh map and mapping process): the street drive
+  factor (1x, 2x, 4x, 8x, 16x, each with a fresh map and mapping process; the rates above one
+  that dropped a cloud or was given up are skipped): the street drive
   (the ``simulate`` stage's, in 0.1 s clouds) and 10 s of the street seen by the simulator's
   real-rate sensors (the 2 x 32-beam ``av2`` robot preset, the 64-beam ``hdl64`` car preset).
   Building points only (class 1), counted as such. Per rate: clouds in, mapped, dropped;
