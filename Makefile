@@ -1,7 +1,8 @@
 # One-command set-up: every target below creates the virtual environment on first use.
 #   make demo    the main job: simulate the street drive, map it with the node, query, save, draw
 #   make test    run every test
-#   make bench   print throughput and peak memory of the hot paths
+#   make bench   print throughput and peak memory of the hot paths, and the streaming benchmark
+#                (BENCH_ARGS='--real' adds the shared real sweeps; '--stages stream' only the streaming)
 #   make soak    the node's soak and fault suite (not in make test), report in output/soak
 #   make evaluate  the occupancy evaluation against the baselines, report in output/evaluation/$(SCENE)
 #   make benchmark-real  the surface benchmark on the real samples in ../shared/data/real (if present)
@@ -93,7 +94,7 @@ test: $(READY)
 	$(PY) -m pytest
 
 bench: $(READY)
-	$(PY) -m uncertain_facade_map_apps.bench
+	$(PY) -m uncertain_facade_map_apps.bench $(BENCH_ARGS)
 
 # The soak and fault suite of the node (issue 13): 10 minutes of 100 000-point clouds at 10 Hz,
 # 20 SIGKILLs during save_map, the fuzz cases; report.json, report.txt and soak.png in

@@ -188,3 +188,39 @@ def test_closing_a_helper_during_a_call_ends_the_call_with_a_clear_error():
     assert 'was closed' in out.get('error', '') and time.monotonic() - started < 8
     with pytest.raises(MappingProcessError, match='closed'):
         helper.call(divmod, 1, 1)
+
+
+
+def _nap(seconds, _fmap):
+    """A command for the mapping process that takes ``seconds``."""
+    time.sleep(seconds)
+
+
+def test_stop_during_a_long_item_kills_the_process_without_reading_its_pipe():
+    """stop(timeout) while an item outlasts the timeout: the worker's thread still waits for the
+    child's answer on the pipe, so the child is killed at once, not asked to stop (asking read
+    the same pipe: the answer arriving meanwhile was garbled, UnpicklingError from stop, seen
+    when the streaming bench gave up a rate)."""
+    worker = MapWorker(FacadeMap(), idle_flush=0, process=True)
+    worker.committed()  # the child is up
+    pid = worker.process_id
+    failed = []
+
+    def call():
+        try:
+            worker.call(functools.partial(_nap, 2.5))
+        except Exception as exc:  # noqa: BLE001 - what the caller sees
+            failed.append(exc)
+
+    caller = threading.Thread(target=call)
+    caller.start()
+    time.sleep(0.3)
+    started = time.monotonic()
+    worker.stop(1.0)  # asking the child would wait for the nap's answer (2.5 s) and read it
+    assert time.monotonic() - started < 2.0
+    caller.join(10)
+    assert len(failed) == 1 and isinstance(failed[0], MappingProcessError)
+    with pytest.raises(ProcessLookupError):
+        for _ in range(50):
+            os.kill(pid, 0)
+            time.sleep(0.1)

@@ -161,7 +161,7 @@ class LocalEngine:
         (save it, do not map into it)."""
         return self._done, self._committed
 
-    def close(self, timeout: float = 0.0) -> None:
+    def close(self, timeout: float = 0.0, wait: bool = True) -> None:
         """Nothing to release."""
 
     def _item(self, work: Callable[[], Any]) -> Any:
@@ -322,16 +322,21 @@ class ProcessEngine:
                 self._process.join(1.0)
                 raise MappingProcessError(self._ended('handing out the committed map')) from exc
 
-    def close(self, timeout: float = 10.0) -> None:
-        """Stop the child (after its current item), killing it after ``timeout`` seconds."""
-        if self._process.is_alive():
+    def close(self, timeout: float = 10.0, wait: bool = True) -> None:
+        """Stop the child (after its current item), killing it after ``timeout`` seconds.
+
+        ``wait=False`` when another thread is still in a request (waiting for the child's
+        answer on the same pipe): the child is killed at once, unasked, as a second reader of
+        the pipe would take that answer or garble it (that thread's request then fails with
+        :class:`MappingProcessError`)."""
+        if self._process.is_alive() and wait:
             try:
                 self._send(('stop',))
                 if self._conn.poll(timeout):
                     self._conn.recv()
             except (MappingProcessError, EOFError, OSError):
                 pass  # it ended meanwhile
-        self._process.join(timeout)
+            self._process.join(timeout)
         if self._process.is_alive():
             self._process.kill()
             self._process.join(timeout)

@@ -325,12 +325,13 @@ class MapWorker:
 
     def stop(self, timeout: float | None = 10.0) -> None:
         """Stop after the current item; queued items are discarded (a mapping process is
-        stopped too, killed if it does not end within ``timeout``)."""
+        stopped too, killed if it does not end within ``timeout``: if the current item is
+        still running then, the mapping process is killed at once and the item fails)."""
         with self._cond:
             self._stop = True
             self._cond.notify_all()
         self._thread.join(timeout)
-        self._engine.close(10.0 if timeout is None else timeout)
+        self._engine.close(10.0 if timeout is None else timeout, wait=not self._thread.is_alive())
 
     @property
     def process_id(self) -> int | None:
