@@ -85,7 +85,7 @@ def test_a_save_gets_the_committed_map_while_the_process_maps():
     worker.put(Cloud(wall(400, seed=1), np.zeros(400, np.int64)))
     assert worker.wait_idle(60)
     version = worker.snapshot.version
-    big = np.vstack([wall(20_000, seed=s, u0=5.0 * s) for s in range(2, 6)])
+    big = np.vstack([wall(20_000, seed=s, u0=5.0 * s) for s in range(2, 26)])  # 480,000 points: an update of ~2 s
     worker.put(Cloud(big, np.zeros(len(big), np.int64)))
     time.sleep(0.5)
     assert worker.accounts()['clouds_waiting'] == 1  # being mapped

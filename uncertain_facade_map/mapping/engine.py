@@ -146,10 +146,11 @@ class LocalEngine:
             return result.result, True
         return self._item(call)
 
-    def flush(self) -> tuple[int, list[int]]:
-        """Map the points held back and fit whole the façades updated block by block;
-        returns (points that were held back, façades fitted whole)."""
-        return self._item(lambda: (self._fmap.n_pending, self._fmap.flush()))
+    def flush(self, consolidate: bool = True) -> tuple[int, list[int]]:
+        """Map the points held back and (``consolidate``) fit whole the façades updated
+        block by block (:meth:`FacadeMap.flush`); returns (points that were held back,
+        façades fitted whole)."""
+        return self._item(lambda: (self._fmap.n_pending, self._fmap.flush(consolidate)))
 
     @property
     def done(self) -> int:
@@ -238,7 +239,7 @@ def _child_main(conn: Any, service: Any, nice: int = 0) -> None:
             elif kind == 'run':
                 result = engine.run(request[1])
             elif kind == 'flush':
-                result = engine.flush()
+                result = engine.flush(*request[1:])
             else:
                 raise ValueError(f'unknown request {kind!r}')
             error = None
@@ -301,9 +302,9 @@ class ProcessEngine:
         result, replaced = self._request('run', fn)
         return result, replaced
 
-    def flush(self) -> tuple[int, list[int]]:
+    def flush(self, consolidate: bool = True) -> tuple[int, list[int]]:
         """See :meth:`LocalEngine.flush`."""
-        pending, refitted = self._request('flush')
+        pending, refitted = self._request('flush', consolidate)
         return pending, refitted
 
     @property

@@ -318,9 +318,9 @@ class FacadeMap:
         was only updated block by block since its last whole fit, so that the map is as
         good as one built in one go from the same points.
 
-        Then the occupancy's PLSC parameters are learnt again if the stored points have
-        doubled (:meth:`calibrate_when_grown`): live mapping learns them here, when the input
-        pauses (the worker's idle flush), not in its updates.
+        Then (``consolidate``) the occupancy's PLSC parameters are learnt again if the stored
+        points have doubled (:meth:`calibrate_when_grown`): live mapping learns them here, when
+        the input pauses (the worker's idle flush), not in its updates.
 
         Returns:
             The ids of the façades fitted whole.
@@ -332,7 +332,8 @@ class FacadeMap:
                 if f.fitted_points != len(f.point_index):
                     self._refit_whole(f.building, f.facade_id, f.point_index, f.plane_extent)
                     done.append(f.facade_id)
-            self.calibrate_when_grown()
+            if consolidate:
+                self.calibrate_when_grown()
         return done
 
     def _checked(self, xyz: np.ndarray, building_id: np.ndarray | None, sensor_origins: np.ndarray | None

@@ -154,8 +154,9 @@ class MapWorker:
         on_error: called in the worker thread with (cloud, exception) when a cloud cannot
             be mapped; the cloud is skipped and the map is left exactly as it was.
         idle_flush: once no cloud has arrived for this many seconds (the drive paused or
-            ended) and none waits, the points held back are mapped and the façades updated
-            block by block are fitted whole (:meth:`FacadeMap.flush`); <= 0: never.
+            ended) and none waits, the points held back are mapped; after as long again, the
+            façades updated block by block are fitted whole and the occupancy calibrated
+            (:meth:`FacadeMap.flush`); <= 0: never.
         on_flush: called in the worker thread with (points held back, façades fitted
             whole) after an idle flush.
         on_flush_error: called in the worker thread with the exception when an idle flush
@@ -438,7 +439,10 @@ class MapWorker:
         try:
             if command.fn is None:  # the idle flush
                 started = time.perf_counter()
-                pending, refitted = self._engine.flush()
+                # In two steps, each after idle_flush seconds without clouds: the points held
+                # back first (queryable at once: their latency), then the whole refits and the
+                # occupancy's calibration, which new clouds would otherwise wait behind.
+                pending, refitted = self._engine.flush(consolidate=not self._engine.view.pending)
                 self.last_update_seconds = time.perf_counter() - started
                 self.last_update_cpu_seconds = self._engine.view.cpu_seconds
                 self.counters['flushes'] += 1
