@@ -281,8 +281,9 @@ def test_every_scan_is_mapped_and_reported(client, mapped, scans):
     assert int(values['clouds_received']) == len(scans)
     assert int(values['clouds_mapped']) == len(scans)
     assert int(values['clouds_dropped']) == 0 and int(values['clouds_failed']) == 0
-    # One flush, after the stream: none in between (which would make another map).
-    assert int(values['flushes']) == 1
+    # One idle flush after the stream, in its two steps (the held-back points, then the whole
+    # refits): none in between (which would make another map).
+    assert int(values['flushes']) <= 2
     assert int(values['facades']) >= 3 and int(values['buildings']) >= 2
     assert float(values['last_update_seconds']) > 0 and float(values['last_update_cpu_seconds']) > 0
     assert 0 < int(values['map_points_stored']) <= int(values['map_points'])

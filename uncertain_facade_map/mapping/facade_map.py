@@ -328,13 +328,35 @@ class FacadeMap:
         with one_blas_thread():
             self._map_pending()
             done = []
-            for f in list(self.facades) if consolidate else []:
-                if f.fitted_points != len(f.point_index):
-                    self._refit_whole(f.building, f.facade_id, f.point_index, f.plane_extent)
-                    done.append(f.facade_id)
+            if consolidate:
+                done = self._consolidate()
             if consolidate:
                 self.calibrate_when_grown()
         return done
+
+    def _consolidate(self) -> list[int]:
+        """Allocate every building's points to its façades again, by the extraction's rule
+        (:func:`assign_to_facades` over all the building's façades at once), and fit whole
+        every façade whose points changed or that was updated block by block.
+
+        Incremental allocation gives a new point to the façades that exist when it arrives:
+        near a corner, the points of a side wall found later stay in the main façade's band;
+        the extraction of one batch would have given them to the side wall. Returns the ids
+        of the façades fitted whole."""
+        ex = self.params.extraction
+        done = []
+        for b in sorted({f.building for f in self.facades}):
+            mine = [f.facade_id for f in self.facades if f.building == b]
+            which, _ = assign_to_facades(self.points[b], [self.facades[i] for i in mine], ex)
+            owner = np.where(which >= 0, np.asarray(mine)[np.maximum(which, 0)], -1)
+            for fid in mine:
+                f = self.facades[fid]
+                index = np.flatnonzero(owner == fid)
+                same = len(index) == len(f.point_index) and np.array_equal(index, f.point_index)
+                if len(index) >= 10 and (not same or f.fitted_points != len(index)):
+                    self._refit_whole(b, fid, index, f.plane_extent)
+                    done.append(fid)
+        return sorted(done)
 
     def _checked(self, xyz: np.ndarray, building_id: np.ndarray | None, sensor_origins: np.ndarray | None
                  ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
