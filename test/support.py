@@ -75,7 +75,9 @@ def assert_same_maps(path_a, path_b):
     for meta in (meta_a, meta_b):
         for f in meta['facades']:
             f['stats'].pop('seconds', None)
-    assert meta_a == meta_b
+    differ = sorted(k for k in meta_a.keys() | meta_b.keys() if meta_a.get(k) != meta_b.get(k))
+    assert meta_a == meta_b, f'meta differs in {differ}: ' + '; '.join(
+        f'{k}: {str(meta_a.get(k))[:300]} != {str(meta_b.get(k))[:300]}' for k in differ if k != 'facades')
 
 
 def _outside(value: float, kind: type, up: bool) -> float:

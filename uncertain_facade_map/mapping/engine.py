@@ -55,7 +55,8 @@ class MapView:
         points: number of building points mapped (stored and thinned).
         params: the map's modelling parameters.
         pending: points held back for the next batch update.
-        needs_flush: points are held back or a façade was updated block by block only.
+        needs_flush: points are held back, a façade was updated block by block only, or the
+            occupancy is due to be calibrated (:attr:`FacadeMap.needs_consolidation`).
         stored: number of building points stored (the rest were thinned).
         cpu_seconds: CPU time of the last item in the process that did it (all its threads;
             in the node's own process, :class:`LocalEngine`, the node's other threads count
@@ -92,7 +93,7 @@ def view_of(fmap: FacadeMap, cpu_seconds: float = 0.0) -> MapView:
     origin = np.asarray(fmap.map_origin, dtype=np.float64).copy()
     origin.setflags(write=False)  # the façade models' arrays are read-only already
     return MapView(tuple(fmap.facades), origin, len(fmap.points), fmap.n_points, fmap.params, fmap.n_pending,
-                   bool(fmap.pending) or any(f.fitted_points != len(f.point_index) for f in fmap.facades),
+                   bool(fmap.pending) or fmap.needs_consolidation,
                    fmap.n_stored, cpu_seconds, array_bytes(fmap), fmap.occupancy_, dict(fmap.points),
                    fmap.registration_var_)
 

@@ -283,12 +283,21 @@ class FacadeMap:
         ``growth`` times those of the last calibration (at :meth:`flush`: the cost, a map of
         at most 200,000 points, calibration's ``max_points``, is spent at each doubling),
         with at least ``min_points`` stored and sensor origins for all; True when it did."""
-        n = self.n_stored
-        if n < max(min_points, (1.0 + growth) * self.occupancy_stored_) or not self._has_rays:
+        if not self._calibration_due(growth, min_points):
             return False
         self.calibrate_occupancy()
         self.__dict__.pop('_held_out_cache', None)  # live mapping learns no free-space weight: the sample's map goes
         return True
+
+    def _calibration_due(self, growth: float = 1.0, min_points: int = 20_000) -> bool:
+        n = self.n_stored
+        return n >= max(min_points, (1.0 + growth) * self.occupancy_stored_) and self._has_rays
+
+    @property
+    def needs_consolidation(self) -> bool:
+        """Whether :meth:`flush` has work besides the points held back: a façade updated
+        block by block since its last whole fit, or the occupancy due to be calibrated."""
+        return any(f.fitted_points != len(f.point_index) for f in self.facades) or self._calibration_due()
 
     @property
     def n_pending(self) -> int:
