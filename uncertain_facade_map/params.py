@@ -578,8 +578,15 @@ class NodeConfig(Section):
                                   'published maps (node.mapping_process): queries and incoming clouds get the CPU '
                                   'first when both want it; 0: the same priority', allowed=_closed(0, 19))
     idle_flush: float = param(2.0, 'when no cloud has come for this long, the points held back '
-                                   '(update.batch_points) are mapped and the façades updated block by block are '
-                                   'fitted whole (0: never)', unit='s', allowed=_closed(0.0, 3600.0))
+                                   '(update.batch_points) are mapped; after as long again the façades updated '
+                                   'block by block are fitted whole (0: never)', unit='s',
+                              allowed=_closed(0.0, 3600.0))
+    local_refresh: float = param(5.0, 'while the map is being updated, queries read the stored points per point '
+                                      '(query.surface local) from a reading at most this old, rebuilt in the '
+                                      'background (its set-up costs about 1 s per million stored points, which '
+                                      'each update would otherwise spend again); the façade rasters are always '
+                                      "the newest; once the map settles, queries read the newest map's points "
+                                      '(0: always the newest)', unit='s', allowed=_closed(0.0, 3600.0))
     use_tf: bool = param(True, 'read the transforms on /tf and /tf_static (tf2_msgs/TFMessage; static ones with '
                                'transient-local QoS, as robots publish them)')
     odometry_topic: str = param('', 'a nav_msgs/Odometry topic whose poses (header.frame_id -> child_frame_id) join '

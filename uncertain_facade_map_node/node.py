@@ -214,6 +214,11 @@ class FacadeMapperNode(Node):
         self._published_bytes = 0  # of the latest published maps (serialized; the grid's cells)
         self._query_seconds: deque[float] = deque(maxlen=200)  # time in the node of the latest queries
         self._published_version = -1
+        # The latest reading of the stored points: (its snapshot, LocalSurface, monotonic time built,
+        # the worker's map replacements then).
+        self._local_held: tuple[MapSnapshot, LocalSurface | None, float, int] | None = None
+        self._local_building = False
+        self._local_lock = threading.Lock()
         self._saved_version = 0
         self._last_publish = 0.0
         self._publish_lock = threading.Lock()
@@ -651,9 +656,51 @@ class FacadeMapperNode(Node):
                                     f'{time.perf_counter() - started:.2f} s')
 
     def _local_surface(self, snap: MapSnapshot) -> LocalSurface | None:
-        """The snapshot's stored points read per point (``query.surface``), built at the first
-        query of each snapshot version and kept until the next."""
-        return snap.local_surface(self.config.query)
+        """The stored points read per point (``query.surface``) for a snapshot's answers.
+
+        A settled map's (nothing queued or held back) is its own, built at its first query.
+        While the map is being updated, each update makes a new snapshot, and building its
+        reading (about 1 s per million stored points) would take the CPU from the mapping at
+        every update: an earlier snapshot's reading serves while it is younger than
+        ``node.local_refresh``, and the newest snapshot's is built in the background."""
+        config = self.config.query
+        if config.surface != 'local':
+            return None
+        refresh = self.config.node.local_refresh
+        with self._local_lock:
+            held = self._local_held
+            fresh = held is not None and held[0] is snap
+            same_map = held is not None and held[3] == self.worker.replacements  # no load or reset since
+            if fresh or refresh <= 0 or not same_map or self.worker.settled:
+                pass
+            else:
+                if not self._local_building and time.monotonic() - held[2] >= refresh:
+                    self._local_building = True
+                    threading.Thread(target=self._build_local, args=(snap,), daemon=True,
+                                     name='local_surface').start()
+                return held[1]
+        if fresh:
+            return held[1]
+        replacements = self.worker.replacements
+        local = snap.local_surface(config)
+        with self._local_lock:
+            self._local_held = (snap, local, time.monotonic(), replacements)
+        return local
+
+    def _build_local(self, snap: MapSnapshot) -> None:
+        """Build a snapshot's reading of the stored points in the background (see
+        :meth:`_local_surface`)."""
+        try:
+            replacements = self.worker.replacements
+            local = snap.local_surface(self.config.query)
+            with self._local_lock:
+                if self._local_held is None or self._local_held[0].version < snap.version:
+                    self._local_held = (snap, local, time.monotonic(), replacements)
+        except Exception as exc:  # noqa: BLE001 - the next query builds it in its own thread
+            self.get_logger().warning(f'building the local reading failed: {exc}', throttle_duration_sec=10.0)
+        finally:
+            with self._local_lock:
+                self._local_building = False
 
     def _occupancy(self, snap: MapSnapshot) -> PLSC:
         """The occupancy's PLSC parameters for a snapshot's answers (``query.occupancy``)."""
@@ -790,7 +837,8 @@ class FacadeMapperNode(Node):
             if not np.isfinite(resolution) or resolution <= 0:
                 raise InputError(f'resolution must be a positive number of metres, got {request.resolution}')
             snap = self.worker.snapshot
-            answers = snap.query(xyz, self.config.query, resolution)  # its own bands (a loaded map keeps its own)
+            # Its own bands (a loaded map keeps its own); the local reading as _local_surface says.
+            answers = snap.query(xyz, self.config.query, resolution, local=self._local_surface(snap))
             mm.fill_query_response(response, answers, f'{len(xyz)} points, map version {snap.version}',
                                    msg_types=self.types)
             self._query_seconds.append(time.perf_counter() - started)

@@ -55,8 +55,8 @@ class MapView:
         points: number of building points mapped (stored and thinned).
         params: the map's modelling parameters.
         pending: points held back for the next batch update.
-        needs_flush: points are held back, a façade was updated block by block only, or the
-            occupancy is due to be calibrated (:attr:`FacadeMap.needs_consolidation`).
+        needs_flush: points are held back or a façade was updated block by block only
+            (:attr:`FacadeMap.needs_consolidation`).
         stored: number of building points stored (the rest were thinned).
         cpu_seconds: CPU time of the last item in the process that did it (all its threads;
             in the node's own process, :class:`LocalEngine`, the node's other threads count

@@ -295,9 +295,9 @@ class FacadeMap:
 
     @property
     def needs_consolidation(self) -> bool:
-        """Whether :meth:`flush` has work besides the points held back: a façade updated
-        block by block since its last whole fit, or the occupancy due to be calibrated."""
-        return any(f.fitted_points != len(f.point_index) for f in self.facades) or self._calibration_due()
+        """Whether a façade was updated block by block since its last whole fit (what
+        :meth:`flush` fits whole, besides mapping the points held back)."""
+        return any(f.fitted_points != len(f.point_index) for f in self.facades)
 
     @property
     def n_pending(self) -> int:

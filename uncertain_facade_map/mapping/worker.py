@@ -92,18 +92,23 @@ class MapSnapshot:
     _local: dict = field(default_factory=dict, repr=False, compare=False)
 
     def query(self, xyz: np.ndarray, config: QueryConfig | None = None, resolution: float | None = None,
-              event: str | None = None) -> PointQuery:
+              event: str | None = None, local: LocalSurface | None = None) -> PointQuery:
         """Answer the 3D point query for (N, 3) points (metres, map frame) from this snapshot,
         as :meth:`FacadeMap.query <uncertain_facade_map.mapping.facade_map.FacadeMap.query>`
         answers from the map (its own bands, learnt occupancy and registration variance).
+
+        ``local``: a reading of the stored points to use instead of this snapshot's own (an
+        earlier snapshot's, while the map is being updated: the node's ``node.local_refresh``).
 
         Raises:
             InputError: bad points, resolution or event.
         """
         config, resolution = query_settings(config, resolution, event)
         ex = self.params.extraction
+        if local is None or config.surface != 'local':
+            local = self.local_surface(config)
         return query_map(self.facades, self.stored_points, xyz, resolution, ex.band_back, ex.band_front,
-                         self.occupancy, config, self.local_surface(config), self.registration_var)
+                         self.occupancy, config, local, self.registration_var)
 
     def local_surface(self, config: QueryConfig | None = None) -> LocalSurface | None:
         """The stored points read per point as queries with ``config`` read them (None for
@@ -197,6 +202,8 @@ class MapWorker:
                          'points_in': 0, 'points_dropped': 0, 'points_mapped': 0, 'points_failed': 0,
                          'flushes': 0, 'flushes_failed': 0, 'commands_failed': 0}
         self.last_update_seconds = 0.0
+        #: Times the map was replaced (a command returned ReplaceMap: load, reset).
+        self.replacements = 0
         #: CPU seconds of the last update in the process that mapped (see ``MapView.cpu_seconds``).
         self.last_update_cpu_seconds = 0.0
         self.pending_points = self._engine.view.pending
@@ -439,10 +446,13 @@ class MapWorker:
         try:
             if command.fn is None:  # the idle flush
                 started = time.perf_counter()
-                # In two steps, each after idle_flush seconds without clouds: the points held
-                # back first (queryable at once: their latency), then the whole refits and the
-                # occupancy's calibration, which new clouds would otherwise wait behind.
-                pending, refitted = self._engine.flush(consolidate=not self._engine.view.pending)
+                # In two steps, each after idle_flush seconds without clouds, when there are
+                # both points held back and façades updated block by block: the points first
+                # (queryable at once: their latency), then the whole refits and the occupancy's
+                # calibration, which new clouds would otherwise wait behind.
+                view = self._engine.view
+                split = view.pending and any(f.fitted_points != len(f.point_index) for f in view.facades)
+                pending, refitted = self._engine.flush(consolidate=not split)
                 self.last_update_seconds = time.perf_counter() - started
                 self.last_update_cpu_seconds = self._engine.view.cpu_seconds
                 self.counters['flushes'] += 1
@@ -455,6 +465,7 @@ class MapWorker:
             if replaced:
                 self._stamp = 0
                 self._held = []
+                self.replacements += 1
             command.result = result
             if changes or replaced:
                 if not self._engine.view.pending:
