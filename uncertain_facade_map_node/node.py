@@ -245,8 +245,9 @@ class FacadeMapperNode(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
 
         # Best effort (sensor data) or reliable; either way the reader keeps as many clouds as the
-        # node's queue (up to 100: DDS holds them whole, whatever their size), so that a cloud placed or selected for a while (0.1-0.5 s) does not make
-        # DDS drop the ones behind it unseen (sensor data's own depth is 5).
+        # node's queue (up to 100: DDS holds them whole, whatever their size), so that a cloud
+        # placed or selected for a while (0.1-0.5 s) does not make DDS drop the ones behind it
+        # unseen (sensor data's own depth is 5).
         depth = min(max(10, cfg.node.queue_size), 100)
         qos = QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE) if cfg.node.qos == 'reliable' else \
             QoSProfile(depth=depth, reliability=qos_profile_sensor_data.reliability,
@@ -667,35 +668,35 @@ class FacadeMapperNode(Node):
         if config.surface != 'local':
             return None
         refresh = self.config.node.local_refresh
+        replacements = self.worker.replacements
         with self._local_lock:
             held = self._local_held
-            fresh = held is not None and held[0] is snap
-            same_map = held is not None and held[3] == self.worker.replacements  # no load or reset since
-            if fresh or refresh <= 0 or not same_map or self.worker.settled:
-                pass
-            else:
+            if held is not None and held[0] is snap:
+                return held[1]
+            # An earlier snapshot's of the same map (no load or reset since), while it maps.
+            if refresh > 0 and held is not None and held[3] == replacements and not self.worker.settled:
                 if not self._local_building and time.monotonic() - held[2] >= refresh:
                     self._local_building = True
                     threading.Thread(target=self._build_local, args=(snap,), daemon=True,
                                      name='local_surface').start()
                 return held[1]
-        if fresh:
-            return held[1]
-        replacements = self.worker.replacements
         local = snap.local_surface(config)
-        with self._local_lock:
-            self._local_held = (snap, local, time.monotonic(), replacements)
+        self._keep_local(snap, local, replacements)
         return local
+
+    def _keep_local(self, snap: MapSnapshot, local: LocalSurface | None, replacements: int) -> None:
+        """Hold a snapshot's reading unless a newer one of the same map is held already."""
+        with self._local_lock:
+            held = self._local_held
+            if held is None or held[3] != replacements or held[0].version <= snap.version:
+                self._local_held = (snap, local, time.monotonic(), replacements)
 
     def _build_local(self, snap: MapSnapshot) -> None:
         """Build a snapshot's reading of the stored points in the background (see
         :meth:`_local_surface`)."""
         try:
             replacements = self.worker.replacements
-            local = snap.local_surface(self.config.query)
-            with self._local_lock:
-                if self._local_held is None or self._local_held[0].version < snap.version:
-                    self._local_held = (snap, local, time.monotonic(), replacements)
+            self._keep_local(snap, snap.local_surface(self.config.query), replacements)
         except Exception as exc:  # noqa: BLE001 - the next query builds it in its own thread
             self.get_logger().warning(f'building the local reading failed: {exc}', throttle_duration_sec=10.0)
         finally:

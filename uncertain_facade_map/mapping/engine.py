@@ -55,7 +55,7 @@ class MapView:
         points: number of building points mapped (stored and thinned).
         params: the map's modelling parameters.
         pending: points held back for the next batch update.
-        needs_flush: points are held back or a façade was updated block by block only
+        block_updated: a façade was updated block by block since its last whole fit
             (:attr:`FacadeMap.needs_consolidation`).
         stored: number of building points stored (the rest were thinned).
         cpu_seconds: CPU time of the last item in the process that did it (all its threads;
@@ -79,7 +79,7 @@ class MapView:
     points: int
     params: MapParams
     pending: int
-    needs_flush: bool
+    block_updated: bool
     stored: int = 0
     cpu_seconds: float = 0.0
     map_bytes: int = 0
@@ -87,13 +87,18 @@ class MapView:
     stored_points: dict[int, np.ndarray] = field(default_factory=dict)
     registration_var: float = 0.0
 
+    @property
+    def needs_flush(self) -> bool:
+        """Points are held back or a façade was updated block by block only."""
+        return bool(self.pending) or self.block_updated
+
 
 def view_of(fmap: FacadeMap, cpu_seconds: float = 0.0) -> MapView:
     """The :class:`MapView` of a map as it stands (``cpu_seconds``: of the item that made it)."""
     origin = np.asarray(fmap.map_origin, dtype=np.float64).copy()
     origin.setflags(write=False)  # the façade models' arrays are read-only already
     return MapView(tuple(fmap.facades), origin, len(fmap.points), fmap.n_points, fmap.params, fmap.n_pending,
-                   bool(fmap.pending) or fmap.needs_consolidation,
+                   fmap.needs_consolidation,
                    fmap.n_stored, cpu_seconds, array_bytes(fmap), fmap.occupancy_, dict(fmap.points),
                    fmap.registration_var_)
 

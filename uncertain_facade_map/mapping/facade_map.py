@@ -339,9 +339,14 @@ class FacadeMap:
             done = []
             if consolidate:
                 done = self._consolidate()
-            if consolidate:
                 self.calibrate_when_grown()
         return done
+
+    def _allocate(self, xyz: np.ndarray, facade_ids: list[int]) -> np.ndarray:
+        """(N,) id of the façade among ``facade_ids`` that takes each of the points (N, 3)
+        (metres, map frame) by the extraction's rule (:func:`assign_to_facades`), -1 for none."""
+        which, _ = assign_to_facades(xyz, [self.facades[i] for i in facade_ids], self.params.extraction)
+        return np.where(which >= 0, np.asarray(facade_ids)[np.maximum(which, 0)], -1)
 
     def _consolidate(self) -> list[int]:
         """Allocate every building's points to its façades again, by the extraction's rule
@@ -352,12 +357,10 @@ class FacadeMap:
         near a corner, the points of a side wall found later stay in the main façade's band;
         the extraction of one batch would have given them to the side wall. Returns the ids
         of the façades fitted whole."""
-        ex = self.params.extraction
         done = []
         for b in sorted({f.building for f in self.facades}):
             mine = [f.facade_id for f in self.facades if f.building == b]
-            which, _ = assign_to_facades(self.points[b], [self.facades[i] for i in mine], ex)
-            owner = np.where(which >= 0, np.asarray(mine)[np.maximum(which, 0)], -1)
+            owner = self._allocate(self.points[b], mine)
             for fid in mine:
                 f = self.facades[fid]
                 index = np.flatnonzero(owner == fid)
@@ -594,8 +597,7 @@ class FacadeMap:
         owner = self.facade_of_points(b)
         mine = [f.facade_id for f in self.facades if f.building == b]
         if mine and first < n:
-            which, _ = assign_to_facades(pts[first:], [self.facades[i] for i in mine], ex)
-            owner[first:] = np.where(which >= 0, np.asarray(mine)[np.maximum(which, 0)], -1)
+            owner[first:] = self._allocate(pts[first:], mine)
         grown: dict[int, tuple[float, float, float, float]] = {}
         pool = np.flatnonzero(owner < 0)
         checked = self.pool_checked.get(b, 0)

@@ -451,7 +451,7 @@ class MapWorker:
                 # (queryable at once: their latency), then the whole refits and the occupancy's
                 # calibration, which new clouds would otherwise wait behind.
                 view = self._engine.view
-                split = view.pending and any(f.fitted_points != len(f.point_index) for f in view.facades)
+                split = bool(view.pending) and view.block_updated
                 pending, refitted = self._engine.flush(consolidate=not split)
                 self.last_update_seconds = time.perf_counter() - started
                 self.last_update_cpu_seconds = self._engine.view.cpu_seconds

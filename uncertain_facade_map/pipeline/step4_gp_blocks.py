@@ -29,6 +29,8 @@ neighbours at the scale being learnt.
 
 from __future__ import annotations
 
+import functools
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -415,17 +417,11 @@ class BlockData:
         return BlockData(self.uv[keep], self.y[keep], self.facet[keep], self.sigma_p, self.lengthscale2, self.origin)
 
 
-_POOL: list = []
-
-
-def _pool():
+@functools.cache
+def _pool() -> ThreadPoolExecutor:
     """The threads solving blocks, started once per process (a thread start costs
     milliseconds on a busy machine, and a façade update calls the kernel twice)."""
-    if not _POOL:
-        from concurrent.futures import ThreadPoolExecutor
-
-        _POOL.append(ThreadPoolExecutor(max_workers=THREADS, thread_name_prefix='gp_blocks'))
-    return _POOL[0]
+    return ThreadPoolExecutor(max_workers=THREADS, thread_name_prefix='gp_blocks')
 
 
 def _run_blocks(data: BlockData, blocks: np.ndarray, tests: np.ndarray, test_start: np.ndarray, uv: np.ndarray,
