@@ -60,6 +60,8 @@ from . import se3
 
 #: Below this (metres) the annealing scale is zero.
 _TAU_MIN = 0.01
+#: The annealing scale shrinks this much a round.
+_ANNEAL = 8.0
 __all__ = ['PoseEstimate', 'localise', 'patch_counts', 'robust_weights', 'subsample', 'point_jacobian']
 
 
@@ -314,8 +316,8 @@ def localise(scan: np.ndarray, prior_pose: np.ndarray, prior_covariance: np.ndar
         else:
             sigma2 = var + sensor2
         sigma = np.sqrt(sigma2)
-        # annealing: the kernel's scale is at least tau metres, tau shrinking 4x a round (module docstring)
-        tau = params.anneal_start / 4.0**_round
+        # annealing: the kernel's scale is at least tau metres, tau shrinking 8x a round (module docstring)
+        tau = params.anneal_start / _ANNEAL**_round
         tau = tau if tau >= _TAU_MIN else 0.0
         scale = params.kernel_scale * np.sqrt(1.0 + tau**2 / sigma2)
         start_pose = pose
