@@ -33,7 +33,9 @@ the new pose. It ends when a round moves the pose less than the tolerances, or l
 ``max_queries`` rounds. Annealing: in round j the kernel's scale is at least
 ``anneal_start / 8^j`` metres (zero once below 1 cm), so the first rounds, whose start may
 be half a search step off, weigh every answer, and the last ones leave outliers out; a round
-with annealing left cannot end the solve.
+with annealing left cannot end the solve. A round whose move turns back on the previous
+one's (negative inner product under the Hessian: answers flipping across a depth step) moves
+half as far, so such flips die out instead of using up the rounds.
 
 Start. The map answers only within its façade bands (``extraction.band_back`` behind a
 wall, ``band_front`` in front), so a prior 3 m off may leave a street's walls unanswered.
@@ -325,6 +327,7 @@ def localise(scan: np.ndarray, prior_pose: np.ndarray, prior_covariance: np.ndar
     iterations, converged = 0, False
     hessian = cost = None
     used = 0
+    previous = None
     for _round in range(params.max_queries):
         p0 = se3.transform_points(pose, points)
         facade, r0, var, noise, normal = ask(p0, constant_variance)
@@ -344,6 +347,12 @@ def localise(scan: np.ndarray, prior_pose: np.ndarray, prior_covariance: np.ndar
         hessian, cost, pose, n_iter, used = _solve_round(body, p0, r0, normal, sigma, scale, pose, prior,
                                                          prior_factor, centre, params)
         iterations += n_iter
+        step = _centred_log(pose, start_pose, start_pose[:3, 3])
+        if previous is not None and float(step @ hessian @ previous) < 0:
+            # the answers flip between two rounds (a depth step crossed back and forth): half the step
+            step = 0.5 * step
+            pose = _centred_exp(step, start_pose, start_pose[:3, 3])
+        previous = step
         moved = _centred_log(pose, start_pose, pose[:3, 3])
         small = np.linalg.norm(moved[:3]) < tol_t and np.linalg.norm(moved[3:]) < tol_r
         if tau == 0.0 and (small or float(moved @ hessian @ moved) < params.mahalanobis_tolerance**2):
