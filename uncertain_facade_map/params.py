@@ -16,7 +16,8 @@ else derives from that one declaration:
 
 Sections, in the order of the parameter file: the modelling stages (``extraction``,
 ``layers``, ``gp``, ``outliers``, ``update``) make :class:`MapParams`, the rest
-(``input``, ``selection``, ``query``, ``model``, ``node``, ``publish``, ``service``, ``persistence``)
+(``input``, ``selection``, ``query``, ``model``, ``node``, ``publish``, ``service``, ``persistence``,
+``localise``)
 complete :class:`Config`, the whole file.
 """
 
@@ -32,7 +33,7 @@ from typing import Any, Callable, ClassVar, Iterator, Literal, get_args, get_ori
 from .errors import InputError
 
 __all__ = [
-    'Config', 'ExtractionParams', 'GPParams', 'InputConfig', 'Interval', 'LayerParams', 'MapParams', 'ModelConfig',
+    'Config', 'ExtractionParams', 'GPParams', 'InputConfig', 'Interval', 'LayerParams', 'LocaliseParams', 'MapParams', 'ModelConfig',
     'NodeConfig', 'Options', 'OutlierParams', 'Param', 'PersistenceConfig', 'PublishConfig', 'QueryConfig',
     'Relation', 'Section', 'SelectionConfig', 'ServiceConfig', 'UpdateParams', 'config_from_parameters', 'map_params',
     'map_params_from_record', 'map_params_record', 'parameters', 'NODE_NAME', 'LOCALIZER_NAME', 'LOCALIZER_SECTIONS',
@@ -672,6 +673,75 @@ class PersistenceConfig(Section):
 
 
 @dataclass(frozen=True)
+class LocaliseParams(Section):
+    """The localiser against the map (:mod:`~.localisation`, ``uncertain-facade-map localise``): a MAP estimate of
+    the sensor's 6-DoF pose from a scan, a prior pose and the map's answers (issue 28)."""
+
+    section: ClassVar[str] = 'localise'
+
+    sensor_noise: float = param(0.03, "standard deviation of the scan's own points along the surface normal "
+                                      '(range noise, motion, timing); added to the variance of every answer',
+                                unit='m', allowed=_closed(1e-4, 10.0))
+    kernel: str = param('geman', 'robust kernel of the point-to-surface residuals, in units of their sigma: geman '
+                                 '(Geman-McClure, weight 1/(1 + (u/k)^2)^2: points far off the surface, parked cars, '
+                                 'trees, weigh nothing, their pull falls as 1/u^3), cauchy (weight 1/(1 + (u/k)^2); '
+                                 'their pull falls only as 1/u, enough for many of them to bias the pose by a '
+                                 'centimetre), huber, or none (least squares)',
+                         allowed=Options(('geman', 'cauchy', 'huber', 'none')))
+    kernel_scale: float = param(3.0, "the kernel's scale k in sigmas (huber is quadratic up to it)",
+                                allowed=_closed(0.1, 1000.0))
+    anneal_start: float = param(0.5, "the first round's kernel scale is at least this (k sigma_i grown to "
+                                     'k sqrt(sigma_i^2 + tau^2), tau this), shrinking 8x a round and ending below '
+                                     '1 cm: the first rounds, still up to half a search step off, weigh every '
+                                     'answer; the last ones leave outliers out; converged only then (0: off)',
+                                unit='m', allowed=_closed(0.0, 100.0))
+    voxel: float = param(0.2, 'the scan is thinned to one point per cubic voxel of this side (a seeded draw), so '
+                              'that dense near ranges do not outweigh the far walls; 0: no thinning', unit='m',
+                         allowed=_closed(0.0, 100.0))
+    max_points: int = param(1500, '... then to at most this many points, a seeded draw', allowed=_closed(10, 100_000_000))
+    batch_points: int = param(20000, 'points per call of the map query at most (ask in batches)',
+                              allowed=_closed(1, 100_000_000))
+    max_queries: int = param(6, 'rounds at most: each queries the map at the current pose, then solves on the '
+                                'linearised surfaces', allowed=_closed(1, 1000))
+    max_iterations: int = param(30, 'Levenberg-Marquardt iterations per round at most', allowed=_closed(1, 100_000))
+    translation_tolerance: float = param(0.002, 'converged when a round moves the pose less than this ...', unit='m',
+                                         allowed=_closed(0.0, 100.0))
+    rotation_tolerance: float = param(0.01, '... and turns it less than this', unit='degrees',
+                                      allowed=_closed(0.0, 180.0))
+    mahalanobis_tolerance: float = param(0.2, '... or moves it less than this many of its own standard deviations (the '
+                                              "Mahalanobis length of the move under the round's Hessian): directions "
+                                              'the map hardly sees (height, along a straight street) may wander more '
+                                              'than the tolerances above while staying well inside their uncertainty',
+                                         allowed=_closed(0.0, 100.0))
+    search_radius: float = param(3.0, 'before the first round, horizontal offsets of the prior up to this far (and '
+                                      'its yaw turned by search_yaw) are scored with a few points each and the best '
+                                      'starts the solve: the map answers only within its façade bands (about 1 m '
+                                      'behind and 2 m in front of a wall), so a prior 3 m off may see no wall at '
+                                      'all; 0: start from the prior', unit='m', allowed=_closed(0.0, 1000.0))
+    search_step: float = param(1.0, 'grid step of the horizontal offsets', unit='m', allowed=_closed(0.01, 1000.0))
+    search_yaw: float = param(5.0, '... and yaws of the prior turned by up to this much either way (0: the prior yaw '
+                                   'only; a turn moves a wall 30 m away by 0.5 m per degree)', unit='degrees',
+                              allowed=_closed(0.0, 180.0))
+    search_yaw_step: float = param(2.5, 'step of those yaws', unit='degrees', allowed=_closed(0.01, 180.0))
+    search_points: int = param(100, 'scan points scored per offset', allowed=_closed(10, 1_000_000))
+    correlation_length: float = param(2.0, "the map's surface errors are alike within this distance (one error of the "
+                                           'mean surface seen by many points): the surface variance of each point '
+                                           '(not the noise about the surface) is multiplied by the number of used '
+                                           'points of its façade within a cube of this side, so a patch counts once, '
+                                           'not once per point; 2 m: the wall surface\'s node spacing '
+                                           '(layers.relief_spacing), over which its errors are alike; 0: points '
+                                           'independent (the plain Gauss-Newton covariance, overconfident)',
+                                      unit='m', allowed=_closed(0.0, 1000.0))
+    prior_position_std: tuple[float, float, float] = param(
+        (2.0, 2.0, 2.0), 'the command line\'s default standard deviation of the prior position (x, y, z), a GNSS '
+                         'fix in a street canyon', unit='m', allowed=Interval(0.0, 1e6, 'neither'))
+    prior_rotation_std: tuple[float, float, float] = param(
+        (3.0, 3.0, 3.0), "the command line's default standard deviation of the prior rotation about the map's X, Y, "
+                         'Z axes (roll, pitch, yaw)', unit='degrees', allowed=Interval(0.0, 180.0, 'neither'))
+    seed: int = param(0, 'seed of the thinning and the draws of the search', allowed=_closed(0, 2**31 - 1))
+
+
+@dataclass(frozen=True)
 class LocalizerConfig(Section):
     """The facade_localizer node: where its scans, priors and map come from."""
 
@@ -709,11 +779,12 @@ class Config:
     publish: PublishConfig = field(default_factory=PublishConfig)
     service: ServiceConfig = field(default_factory=ServiceConfig)
     persistence: PersistenceConfig = field(default_factory=PersistenceConfig)
+    localise: LocaliseParams = field(default_factory=LocaliseParams)
     localizer: LocalizerConfig = field(default_factory=LocalizerConfig)
 
 
 #: The sections the localiser node reads (its parameter file's); the mapper reads the others.
-LOCALIZER_SECTIONS = ('localizer',)
+LOCALIZER_SECTIONS = ('localise', 'localizer')
 
 
 def node_sections(node_name: str = NODE_NAME) -> tuple[str, ...]:

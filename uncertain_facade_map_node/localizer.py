@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import sys
 import threading
-import time
 from typing import Any
 
 import numpy as np
@@ -43,8 +42,8 @@ import msg_adapters as ma
 from msg_adapters import localisation as ml
 from msg_adapters import transforms as mt
 from uncertain_facade_map.errors import FacadeMapError, InputError
-from uncertain_facade_map.localisation import PoseEstimate, localise
-from uncertain_facade_map.localisation.se3 import propagate
+from uncertain_facade_map.localisation import PoseEstimate, covariance_from_std, localise
+from uncertain_facade_map.localisation.se3 import inverse, se3_exp, se3_log
 from uncertain_facade_map.params import LOCALIZER_NAME, LOCALIZER_SECTIONS, Config
 from uncertain_facade_map.srv import QueryPoints
 from uncertain_facade_map_node.node import declare_config
@@ -67,7 +66,7 @@ class FacadeLocalizerNode(Node):
         self._lock = threading.Lock()
         self._prior: ml.PosePrior | None = None
         self._last: tuple[int, np.ndarray, np.ndarray] | None = None  # (stamp ns, pose, covariance)
-        self._velocity: np.ndarray | None = None  # (6,) twist of the last motion, per second, map frame
+        self._velocity: np.ndarray | None = None  # (6,) twist of the last motion per second, sensor frame
         self._pending: Any = None  # the newest scan waiting
         self._wake = threading.Event()
         self.last_estimate: PoseEstimate | None = None
@@ -138,8 +137,7 @@ class FacadeLocalizerNode(Node):
         cfg, loc = self.config.localizer, self.config.localise
         with self._lock:
             prior, last, velocity = self._prior, self._last, self._velocity
-        default = np.diag(np.r_[np.full(3, loc.prior_std_position) ** 2,
-                                np.full(3, np.deg2rad(loc.prior_std_rotation)) ** 2])
+        default = covariance_from_std([*loc.prior_position_std, *np.deg2rad(loc.prior_rotation_std)])
         fresh = prior is not None and abs(prior.stamp_ns - stamp_ns) <= cfg.prior_max_age * 1e9 and \
             (last is None or prior.stamp_ns > last[0])
         if fresh:
@@ -147,7 +145,8 @@ class FacadeLocalizerNode(Node):
         if last is None:
             return None
         dt = max(0.0, (stamp_ns - last[0]) * 1e-9)
-        pose = propagate(last[1], velocity if velocity is not None else np.zeros(6), dt)
+        # Constant velocity in the sensor's own frame (a vehicle keeps its speed and turn rate).
+        pose = last[1] if velocity is None else last[1] @ se3_exp(velocity * dt)
         growth = np.r_[np.full(3, cfg.motion_std_position) ** 2, np.full(3, np.deg2rad(cfg.motion_std_rotation)) ** 2]
         return pose, last[2] + np.diag(growth) * max(dt, 1e-3)
 
@@ -168,9 +167,8 @@ class FacadeLocalizerNode(Node):
         self.last_estimate = estimate
         with self._lock:
             if self._last is not None and stamp > self._last[0]:
-                from uncertain_facade_map.localisation.se3 import log
-
-                self._velocity = log(estimate.pose @ np.linalg.inv(self._last[1])) / ((stamp - self._last[0]) * 1e-9)
+                step = inverse(self._last[1]) @ estimate.pose  # the motion in the last pose's frame
+                self._velocity = se3_log(step) / ((stamp - self._last[0]) * 1e-9)
             self._last = (stamp, estimate.pose, estimate.covariance)
             self.counters['scans_localised'] += 1
         frame = self.config.localizer.map_frame
