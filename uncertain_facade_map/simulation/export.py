@@ -223,3 +223,64 @@ def robot_recording(cloud: Cloud, scene: Scene, drive: Campaign, sensor: SensorC
     stamps = np.arange(first, last + step, step, dtype=np.int64)
     t, q = vehicle_poses(scene, drive, sensor, stamps)
     return RobotRecording(scans, (stamps, t, q), (mount_t, mount_q))
+
+
+def sensor_poses(scene: Scene, drive: Campaign, sensor: SensorConfig, t_mid: float) -> tuple[np.ndarray, np.ndarray]:
+    """The lidar's pose at ``t_mid`` (seconds since the UNIX epoch) as the campaign recorded it
+    and as it truly was: two (4, 4) ``lidar -> map`` matrices.
+
+    The recorded pose carries the campaign's registration offset (:func:`vehicle_poses`): the
+    campaign's points lie where it put them, so moving them back by it gives what the lidar
+    measured. The true pose is the drive's path pose without that offset, times the mount of
+    scanner 0: what a localiser should find against a map of the true world.
+    """
+    from .campaign import poses
+
+    mount = np.eye(4)
+    mount[:3, 3] = np.asarray(sensor.mount[0], dtype=np.float64)
+
+    def vehicle(position: np.ndarray, yaw: float) -> np.ndarray:
+        out = np.eye(4)
+        c, s = np.cos(yaw), np.sin(yaw)
+        out[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+        out[:3, 3] = position
+        return out @ mount
+
+    position, quat = vehicle_poses(scene, drive, sensor, np.array([int(round(t_mid * 1e9))], dtype=np.int64))
+    recorded = vehicle(position[0], 2.0 * np.arctan2(quat[0, 2], quat[0, 3]))
+    xy, yaw = poses(scene, drive, sensor, np.array([t_mid - drive.start_time]))
+    return recorded, vehicle(np.array([xy[0, 0], xy[0, 1], 0.0]), float(yaw[0]))
+
+
+def sensor_scan(scene: Scene, index: int, sensor: SensorConfig, start: float, seconds: float,
+                max_points: int | None = None, rng: np.random.Generator | None = None
+                ) -> tuple[np.ndarray, np.ndarray, float]:
+    """A scan of campaign ``index`` in the lidar frame, with its true pose: what a localiser is given.
+
+    The campaign is simulated over ``[start, start + seconds]`` seconds of its drive only;
+    all its returns (ground, cars, trees and walls alike) are moved into the lidar frame at
+    the window's middle by the recorded pose (:func:`sensor_poses`), as a de-skewed sweep.
+
+    Args:
+        start: seconds after the drive's start.
+        seconds: length of the window.
+        max_points: keep at most this many points (a seeded draw); None: all.
+        rng: the draw (default: seeded 0).
+
+    Returns:
+        ``(xyz, truth, t_mid)``: (N, 3) float64 points, metres, lidar frame; the (4, 4) true
+        ``lidar -> map`` pose; the window's middle, seconds since the UNIX epoch.
+    """
+    from .campaign import campaign, simulate_campaign
+
+    drive = campaign(scene, index)
+    window = simulate_campaign(scene, index, sensor, window=(float(start), float(start + seconds)))
+    t_mid = drive.start_time + start + seconds / 2
+    recorded, truth = sensor_poses(scene, drive, sensor, t_mid)
+    p = window.points
+    xyz = np.stack([p['x'], p['y'], p['z']], axis=1).astype(np.float64)
+    xyz = (xyz - recorded[:3, 3]) @ recorded[:3, :3]  # into the lidar frame: R^T (x - t)
+    if max_points is not None and len(xyz) > max_points:
+        rng = np.random.default_rng(0) if rng is None else rng
+        xyz = xyz[np.sort(rng.choice(len(xyz), max_points, replace=False))]
+    return xyz, truth, t_mid
