@@ -6,7 +6,9 @@
 4. act as a localisation node: wait for the map to settle, then query it with points
    along the façades through the ``query_points`` service;
 5. save the map through ``save_map`` and draw its figures (:mod:`uncertain_facade_map_apps.plots`);
-6. print a short summary with the paths.
+6. localise scans of another drive against it with the ``facade_localizer`` node
+   (:mod:`uncertain_facade_map_apps.demo_localise`) and draw the trajectory and its errors;
+7. print a short summary with the paths.
 
 Everything lands in one folder (default ``output/demo``).
 """
@@ -97,6 +99,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--out', default='output/demo', help='output folder (default output/demo)')
     parser.add_argument('--scene', default='street', choices=('street', 'small', 'zurich'))
     parser.add_argument('--rate', type=float, default=1.0, help='replay speed factor (default 1: as recorded)')
+    parser.add_argument('--localise', type=int, default=12, metavar='N',
+                        help='scans of another drive localised against the map at the end (default 12; 0: none)')
     args = parser.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -108,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from uncertain_facade_map_apps.cli import main as cli
 
-    print(f'[1/5] simulating the {args.scene} drive into {out}', flush=True)
+    print(f'[1/6] simulating the {args.scene} drive into {out}', flush=True)
     if cli(['simulate', '--scene', args.scene, '--out', str(out), '--formats', 'mcap,npz', '--force',
             '--quiet']) != 0:
         return 2
@@ -116,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
     for stale in (out / 'map.npz',):
         stale.unlink(missing_ok=True)
 
-    print('[2/5] starting facade_mapper', flush=True)
+    print('[2/6] starting facade_mapper', flush=True)
     params = _config_file(out)
     log = open(out / 'facade_mapper.log', 'wb')
     node = subprocess.Popen([sys.executable, '-m', 'uncertain_facade_map_node.node', '--ros-args', '--params-file',
@@ -124,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     loc = None
     try:
         loc = _Localisation()
-        print(f'[3/5] replaying {bag.name} to it (publish mode, rate {args.rate:g})', flush=True)
+        print(f'[3/6] replaying {bag.name} to it (publish mode, rate {args.rate:g})', flush=True)
         quiet = [] if sys.stderr.isatty() else ['--quiet']
         if cli(['replay', str(bag), '--mode', 'publish', '--rate', str(args.rate), '--config', str(params)]
                + quiet) != 0:
@@ -140,15 +144,23 @@ def main(argv: list[str] | None = None) -> int:
             time.sleep(0.5)
         diag = dict(loc.values)
         settle_seconds = time.monotonic() - t_replayed
-        print('[4/5] querying the map as a localisation node', flush=True)
+        print('[4/6] querying the map as a localisation node', flush=True)
         answers, query_seconds, n_query = _query(loc, out)
-        print('[5/5] saving the map and drawing it', flush=True)
+        print('[5/6] saving the map and drawing it', flush=True)
         from uncertain_facade_map.srv import SaveMap
 
         saved = loc.call(SaveMap, 'save_map', SaveMap.Request(path=str(out / 'map.npz')))
         if not saved.success:
             raise RuntimeError(saved.message)
         figures = _figures(out)
+        localised = []
+        if args.localise > 0:
+            from uncertain_facade_map.io.map_file import load_map
+            from uncertain_facade_map_apps.demo_localise import localise_drive, plot_localisation
+
+            print(f'[6/6] localising {args.localise} scans of another drive with facade_localizer', flush=True)
+            localised = localise_drive(args.scene, out, env, args.localise)
+            figures.append(plot_localisation(localised, load_map(out / 'map.npz'), out / 'figures' / 'localisation.png'))
     finally:
         if loc is not None:
             loc.close()
@@ -169,6 +181,10 @@ def main(argv: list[str] | None = None) -> int:
           f'{np.median(std) * 100:.1f} cm (5-95 %: {np.quantile(std, 0.05) * 100:.1f}-'
           f'{np.quantile(std, 0.95) * 100:.1f} cm) -> {out / "queries.npz"}')
     print(f'  map      {out / "map.npz"}')
+    if localised:
+        from uncertain_facade_map_apps.demo_localise import summary
+
+        print(f'  localise {summary(localised)}')
     for path in figures:
         print(f'  figure   {path}')
     return 0
