@@ -363,7 +363,7 @@ def main(argv: list[str] | None = None) -> int:
     sd = np.sqrt(np.diag(cov))
     meta = {
         'command': 'python -m uncertain_facade_map_apps.localise_report ' + ' '.join(shlex.quote(a) for a in argv),
-        'date': datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%d %H:%M'),
+        'date': datetime.datetime.now(datetime.UTC).strftime('%Y-%m-%d %H:%M'),
         'commit': _commit(), 'wall_seconds': time.perf_counter() - started,
         'localiser_real': real_localiser, 'seed': args.seed,
         'perturbation': {'position': list(spec.position), 'heading_deg': list(spec.heading_deg),
@@ -371,7 +371,7 @@ def main(argv: list[str] | None = None) -> int:
         'prior_sigma': (f'x, y {sd[0]:.2f} m, z {sd[2]:.2f} m, roll/pitch {np.rad2deg(sd[3]):.2f} deg, '
                         f'yaw {np.rad2deg(sd[5]):.2f} deg'),
         'row_descriptions': descriptions, 'constant_variance': constant_used,
-        'options': {k: v for k, v in vars(args).items()},
+        'options': dict(vars(args)),
     }
     write_report(Path(args.out), scenarios, outcomes, _clean(meta))
     print((Path(args.out) / 'report.md').read_text())
