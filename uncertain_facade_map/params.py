@@ -16,7 +16,8 @@ else derives from that one declaration:
 
 Sections, in the order of the parameter file: the modelling stages (``extraction``,
 ``layers``, ``gp``, ``outliers``, ``update``) make :class:`MapParams`, the rest
-(``input``, ``selection``, ``query``, ``model``, ``node``, ``publish``, ``service``, ``persistence``)
+(``input``, ``selection``, ``query``, ``model``, ``node``, ``publish``, ``service``, ``persistence``,
+``localise``)
 complete :class:`Config`, the whole file.
 """
 
@@ -32,7 +33,7 @@ from typing import Any, Callable, ClassVar, Iterator, Literal, get_args, get_ori
 from .errors import InputError
 
 __all__ = [
-    'Config', 'ExtractionParams', 'GPParams', 'InputConfig', 'Interval', 'LayerParams', 'MapParams', 'ModelConfig',
+    'Config', 'ExtractionParams', 'GPParams', 'InputConfig', 'Interval', 'LayerParams', 'LocaliseParams', 'MapParams', 'ModelConfig',
     'NodeConfig', 'Options', 'OutlierParams', 'Param', 'PersistenceConfig', 'PublishConfig', 'QueryConfig',
     'Relation', 'Section', 'SelectionConfig', 'ServiceConfig', 'UpdateParams', 'config_from_parameters', 'map_params',
     'map_params_from_record', 'map_params_record', 'parameters', 'NODE_NAME',
@@ -669,6 +670,57 @@ class PersistenceConfig(Section):
 
 
 @dataclass(frozen=True)
+class LocaliseParams(Section):
+    """The localiser against the map (:mod:`~.localisation`, ``uncertain-facade-map localise``): a MAP estimate of
+    the sensor's 6-DoF pose from a scan, a prior pose and the map's answers (issue 28)."""
+
+    section: ClassVar[str] = 'localise'
+
+    sensor_noise: float = param(0.03, "standard deviation of the scan's own points along the surface normal "
+                                      '(range noise, motion, timing); added to the variance of every answer',
+                                unit='m', allowed=_closed(1e-4, 10.0))
+    kernel: str = param('cauchy', 'robust kernel of the point-to-surface residuals, in units of their sigma: cauchy '
+                                  '(points far off the surface, parked cars, trees, weigh almost nothing), huber, or '
+                                  'none (least squares)', allowed=Options(('cauchy', 'huber', 'none')))
+    kernel_scale: float = param(3.0, "the kernel's scale in sigmas (a residual of this many sigmas weighs 1/2 with "
+                                     'cauchy; huber is quadratic up to it)', allowed=_closed(0.1, 1000.0))
+    voxel: float = param(0.2, 'the scan is thinned to one point per cubic voxel of this side (a seeded draw), so '
+                              'that dense near ranges do not outweigh the far walls; 0: no thinning', unit='m',
+                         allowed=_closed(0.0, 100.0))
+    max_points: int = param(5000, '... then to at most this many points, a seeded draw', allowed=_closed(10, 100_000_000))
+    batch_points: int = param(20000, 'points per call of the map query at most (ask in batches)',
+                              allowed=_closed(1, 100_000_000))
+    max_queries: int = param(6, 'rounds at most: each queries the map at the current pose, then solves on the '
+                                'linearised surfaces', allowed=_closed(1, 1000))
+    max_iterations: int = param(30, 'Levenberg-Marquardt iterations per round at most', allowed=_closed(1, 100_000))
+    translation_tolerance: float = param(0.002, 'converged when a round moves the pose less than this ...', unit='m',
+                                         allowed=_closed(0.0, 100.0))
+    rotation_tolerance: float = param(0.01, '... and turns it less than this', unit='degrees',
+                                      allowed=_closed(0.0, 180.0))
+    search_radius: float = param(3.0, 'before the first round, horizontal offsets of the prior up to this far (and '
+                                      'its yaw turned by search_yaw) are scored with a few points each and the best '
+                                      'starts the solve: the map answers only within its façade bands (about 1 m '
+                                      'behind and 2 m in front of a wall), so a prior 3 m off may see no wall at '
+                                      'all; 0: start from the prior', unit='m', allowed=_closed(0.0, 1000.0))
+    search_step: float = param(1.0, 'grid step of the horizontal offsets', unit='m', allowed=_closed(0.01, 1000.0))
+    search_yaw: float = param(3.0, 'yaw offsets -search_yaw, 0, +search_yaw are scored (0: the prior yaw only)',
+                              unit='degrees', allowed=_closed(0.0, 180.0))
+    search_points: int = param(200, 'scan points scored per offset', allowed=_closed(10, 1_000_000))
+    correlation_length: float = param(0.0, "the map's errors are alike within this distance (one surface error "
+                                           'seen by many points): the map variance of each point is multiplied by '
+                                           'the number of used points of its façade within a cube of this side, so '
+                                           'a patch counts once, not once per point; 0: points independent (the '
+                                           'plain Gauss-Newton covariance)', unit='m', allowed=_closed(0.0, 1000.0))
+    prior_position_std: tuple[float, float, float] = param(
+        (2.0, 2.0, 2.0), 'the command line\'s default standard deviation of the prior position (x, y, z), a GNSS '
+                         'fix in a street canyon', unit='m', allowed=Interval(0.0, 1e6, 'neither'))
+    prior_rotation_std: tuple[float, float, float] = param(
+        (3.0, 3.0, 3.0), "the command line's default standard deviation of the prior rotation about the map's X, Y, "
+                         'Z axes (roll, pitch, yaw)', unit='degrees', allowed=Interval(0.0, 180.0, 'neither'))
+    seed: int = param(0, 'seed of the thinning and the draws of the search', allowed=_closed(0, 2**31 - 1))
+
+
+@dataclass(frozen=True)
 class Config:
     """All parameters of the parameter file, by section (the modelling stages, then the rest)."""
 
@@ -685,6 +737,7 @@ class Config:
     publish: PublishConfig = field(default_factory=PublishConfig)
     service: ServiceConfig = field(default_factory=ServiceConfig)
     persistence: PersistenceConfig = field(default_factory=PersistenceConfig)
+    localise: LocaliseParams = field(default_factory=LocaliseParams)
 
 
 def map_params(config: Config) -> MapParams:

@@ -1,0 +1,387 @@
+"""The localiser: a MAP estimate of a scan's 6-DoF pose against the uncertain map.
+
+Model. The scan's points ``s_i`` (sensor frame) sit at ``p_i = T s_i`` in the map frame.
+The map answers each with a signed distance ``r_i`` to its mean surface (positive outside,
+along the outward normal ``n_i``), the surface variance ``v_i`` and the point noise
+``eta_i``; the residual's variance is ``sigma_i^2 = v_i + eta_i + sensor_noise^2``. The
+cost is
+
+    F(T) = sum_i rho(r_i(T) / sigma_i) + 1/2 e(T)^T Sigma_p^-1 e(T)
+
+with ``rho`` a robust kernel (Cauchy or Huber, scale ``kernel_scale`` sigmas) and ``e`` the
+prior's error. Points the map does not answer (``facade == -1``) weigh nothing.
+
+Pose perturbations. ``delta = (t, w)`` (6,), ROS order: metres along the map's X, Y, Z,
+then radians about the map's X, Y, Z axes, applied on the left in the map's axes *at the
+sensor's position* ``c``: ``T = C exp(delta) C^-1 T_hat`` with ``C`` the translation by
+``c``. So ``t`` is the position error and ``w`` turns the sensor about itself, as a ROS
+``PoseWithCovariance`` is read; about the map origin instead (``exp(delta) @ T_hat``) a
+0.1 degree error would move a sensor 1 km from the origin by 1.7 m. The solve keeps ``c``
+at the prior's position; the returned covariance is moved to the estimate's position (the
+adjoint of the translation between the two).
+
+Jacobian. ``dp_i / d delta = [I, -[p_i - c]x]``, so ``dr_i / d delta = n_i^T [I, -[p_i - c]x]
+= [n_i, (p_i - c) x n_i]``.
+
+Rounds. A map query is the expensive part, so the map is queried once per round at the
+current pose (in batches of ``batch_points``); the round then runs Levenberg-Marquardt on
+the *linearised surfaces* ``r_i(T) ~ r_i0 + n_i . (p_i(T) - p_i0)`` (exact for planes; the
+rotation is exact) until the step is below the tolerances; the next round queries again at
+the new pose. It ends when a round moves the pose less than the tolerances (converged), or
+after ``max_queries`` rounds.
+
+Start. The map answers only within its façade bands (``extraction.band_back`` behind a
+wall, ``band_front`` in front), so a prior 3 m off may leave a street's walls unanswered.
+Before the first round a grid of horizontal offsets (and yaws) of the prior is scored with a
+few points each in one batched query, and the best starts the solve; the prior factor stays
+the prior, so directions the scan cannot see still come from the prior.
+
+Covariance. The inverse of the final Gauss-Newton Hessian ``Sigma_p^-1 + sum_i J_i^T w_i J_i
+/ sigma_i^2`` (Cholesky), with the robust weights ``w_i`` of the last iteration. The map's
+errors are spatially correlated (a wall's mean surface is off by the same amount over a
+patch), which points sharing that error cannot average away; ``correlation_length`` > 0
+multiplies each point's map variance ``v_i`` by the number of used points of its façade in
+its cube of that side (see :func:`patch_counts`), so a patch carries the information of one
+surface observation.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+from scipy.linalg import LinAlgError, cho_factor, cho_solve
+
+from ..errors import InputError
+from ..params import LocaliseParams
+from . import se3
+
+__all__ = ['PoseEstimate', 'localise', 'patch_counts', 'robust_weights', 'subsample', 'point_jacobian']
+
+
+@dataclass(frozen=True)
+class PoseEstimate:
+    """The localiser's answer.
+
+    Attributes:
+        pose: (4, 4) float64, sensor -> map: ``x_map = pose[:3, :3] @ x_sensor + pose[:3, 3]``.
+        covariance: (6, 6) of the solution, ROS order (x, y, z m; rotation about the map's X,
+            Y, Z axes, rad), a left perturbation in the map's axes at the sensor's position
+            (see the module docstring).
+        iterations: Levenberg-Marquardt iterations in all rounds.
+        queries: calls of ``query`` (each with at most ``params.batch_points`` points).
+        points_used: scan points with a weight > 0 in the last iteration.
+        converged: the last round moved the pose less than the tolerances.
+        cost: final robust cost (dimensionless; the prior term included).
+        seconds: wall time of :func:`localise`, queries included.
+    """
+
+    pose: np.ndarray
+    covariance: np.ndarray
+    iterations: int
+    queries: int
+    points_used: int
+    converged: bool
+    cost: float
+    seconds: float
+
+
+# ----------------------------------------------------------------------------------------
+# Pieces
+# ----------------------------------------------------------------------------------------
+def subsample(xyz: np.ndarray, voxel: float, max_points: int, seed: int) -> np.ndarray:
+    """Indices (M,) of a spatially even, seeded subset of points (N, 3): one random point per
+    cubic voxel of side ``voxel`` (0: every point), then at most ``max_points`` of those at
+    random. Sorted, so the subset keeps the scan's order."""
+    rng = np.random.default_rng(seed)
+    n = len(xyz)
+    if voxel > 0 and n:
+        cells = np.floor(xyz / voxel).astype(np.int64)
+        order = rng.permutation(n)  # the first point of a voxel in this order is a random one
+        _, first = np.unique(cells[order], axis=0, return_index=True)
+        keep = order[first]
+    else:
+        keep = np.arange(n)
+    if len(keep) > max_points:
+        keep = rng.choice(keep, max_points, replace=False)
+    return np.sort(keep)
+
+
+def point_jacobian(points: np.ndarray, normals: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """(M, 6) Jacobians of the point-to-surface residuals wrt ``delta = (t, w)``:
+    ``n_i^T [I, -[p_i - c]x] = [n_i, (p_i - c) x n_i]``.
+
+    Args:
+        points: (M, 3) points, map frame, metres.
+        normals: (M, 3) unit outward normals, map frame.
+        centre: (3,) the perturbation's centre ``c``, map frame.
+    """
+    return np.hstack([normals, np.cross(points - centre, normals)])
+
+
+def robust_weights(u: np.ndarray, kernel: str, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """IRLS weights (M,) in (0, 1] and costs ``rho(u)`` (M,) of residuals ``u`` in sigmas.
+
+    cauchy: ``rho = k^2/2 log(1 + (u/k)^2)``, ``w = 1 / (1 + (u/k)^2)``; huber: ``u^2/2``
+    up to ``k``, ``k |u| - k^2/2`` beyond, ``w = min(1, k/|u|)``; none: ``u^2/2``, 1.
+    """
+    if kernel == 'cauchy':
+        z = (u / scale) ** 2
+        return 1.0 / (1.0 + z), 0.5 * scale**2 * np.log1p(z)
+    if kernel == 'huber':
+        a = np.abs(u)
+        inside = a <= scale
+        return (np.where(inside, 1.0, scale / np.maximum(a, 1e-300)),
+                np.where(inside, 0.5 * u**2, scale * a - 0.5 * scale**2))
+    return np.ones_like(u), 0.5 * u**2
+
+
+def patch_counts(points: np.ndarray, facade: np.ndarray, length: float) -> np.ndarray:
+    """(M,) how many of the points share each point's façade and cube of side ``length``
+    (map frame, metres): the points that see one patch of the map surface, hence one
+    surface error. ``length`` 0: ones."""
+    if length <= 0 or not len(points):
+        return np.ones(len(points))
+    keys = np.column_stack([facade.astype(np.int64), np.floor(points / length).astype(np.int64)])
+    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    return counts[inverse.ravel()].astype(np.float64)
+
+
+def _centred_log(pose: np.ndarray, reference: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """``delta`` with ``pose = C exp(delta) C^-1 reference`` (C: translation by ``centre``)."""
+    rel = pose @ se3.inverse(reference)
+    # C^-1 rel C: same rotation, translation R c + t - c
+    moved = rel.copy()
+    moved[:3, 3] = rel[:3, :3] @ centre + rel[:3, 3] - centre
+    return se3.se3_log(moved)
+
+
+def _centred_exp(delta: np.ndarray, pose: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """``C exp(delta) C^-1 pose``."""
+    step = se3.se3_exp(delta)
+    step[:3, 3] += centre - step[:3, :3] @ centre
+    return se3.compose(step, pose)
+
+
+def _check_inputs(scan: Any, prior_pose: Any, prior_covariance: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    scan = np.asarray(scan, dtype=np.float64)
+    if scan.ndim != 2 or scan.shape[1] != 3:
+        raise InputError(f'scan: expected (N, 3) points, got shape {scan.shape}')
+    finite = np.isfinite(scan).all(axis=1)
+    scan = scan[finite]
+    if len(scan) < 6:
+        raise InputError(f'scan: {len(scan)} finite points; at least 6 are needed to localise')
+    prior = np.asarray(prior_pose, dtype=np.float64)
+    if prior.shape != (4, 4) or not np.isfinite(prior).all():
+        raise InputError(f'prior pose: expected a finite 4x4 matrix, got shape {prior.shape}')
+    rot = prior[:3, :3]
+    if (not np.allclose(rot.T @ rot, np.eye(3), atol=1e-5) or np.linalg.det(rot) < 0
+            or not np.allclose(prior[3], [0, 0, 0, 1])):
+        raise InputError('prior pose: the 4x4 matrix is not a rigid motion (rotation block not orthonormal with '
+                         'determinant 1, or last row not 0 0 0 1)')
+    cov = np.asarray(prior_covariance, dtype=np.float64)
+    if cov.shape != (6, 6) or not np.isfinite(cov).all() or not np.allclose(cov, cov.T, rtol=1e-8, atol=1e-12):
+        raise InputError(f'prior covariance: expected a finite symmetric 6x6 matrix, got shape {cov.shape}')
+    return scan, se3.compose(prior, np.eye(4)), cov
+
+
+class _Batched:
+    """``query`` called in batches of at most ``batch`` points, counting the calls."""
+
+    def __init__(self, query: Callable[[np.ndarray], Any], batch: int) -> None:
+        self.query, self.batch, self.calls = query, batch, 0
+
+    def __call__(self, xyz: np.ndarray, constant_variance: float | None) -> tuple[np.ndarray, ...]:
+        """(M,) facade, signed distance, variance + noise variance, (M, 3) normals; NaN-free where facade >= 0."""
+        parts = []
+        for start in range(0, len(xyz), self.batch):
+            self.calls += 1
+            ans = self.query(np.ascontiguousarray(xyz[start:start + self.batch]))
+            try:
+                parts.append((np.asarray(ans.facade), np.asarray(ans.signed_distance, dtype=np.float64),
+                              np.asarray(ans.variance, dtype=np.float64) + np.asarray(ans.noise_variance,
+                                                                                    dtype=np.float64),
+                              np.asarray(ans.normal, dtype=np.float64)))
+            except AttributeError as err:
+                raise InputError(f'query: the answer lacks {err.name or "a field"} (needs facade, signed_distance, '
+                                 'variance, noise_variance and normal)') from err
+        facade, sd, var, normal = (np.concatenate(x) for x in zip(*parts))
+        if facade.shape != (len(xyz),) or normal.shape != (len(xyz), 3):
+            raise InputError(f'query: answered {facade.shape} facades and {normal.shape} normals for {len(xyz)} points')
+        ok = (facade >= 0) & np.isfinite(sd) & np.isfinite(var) & np.isfinite(normal).all(axis=1)
+        if constant_variance is not None:
+            var = np.full(len(xyz), float(constant_variance))
+        facade = np.where(ok, facade, -1)
+        return facade, np.where(ok, sd, 0.0), np.where(ok, var, 1.0), np.where(ok[:, None], normal, 0.0)
+
+
+def _search_start(points: np.ndarray, prior: np.ndarray, centre: np.ndarray, ask: _Batched,
+                  params: LocaliseParams, constant_variance: float | None, rng: np.random.Generator) -> np.ndarray:
+    """The best-scoring of a grid of horizontal offsets and yaws of the prior (see the module docstring)."""
+    r, step = params.search_radius, params.search_step
+    k = int(np.floor(r / step))
+    grid = np.arange(-k, k + 1) * step
+    dx, dy = np.meshgrid(grid, grid, indexing='ij')
+    offsets = np.column_stack([dx.ravel(), dy.ravel()])
+    offsets = offsets[np.hypot(offsets[:, 0], offsets[:, 1]) <= r + 1e-9]
+    yaws = np.deg2rad([0.0] if params.search_yaw == 0 else [0.0, -params.search_yaw, params.search_yaw])
+    pick = points[rng.choice(len(points), min(params.search_points, len(points)), replace=False)]
+    candidates = [np.array([ox, oy, 0.0, 0.0, 0.0, yaw]) for yaw in yaws for ox, oy in offsets]
+    poses = [_centred_exp(d, prior, centre) for d in candidates]
+    xyz = np.concatenate([se3.transform_points(p, pick) for p in poses])
+    facade, sd, _, _ = ask(xyz, constant_variance)
+    width = max(step / 2.0, 0.05)
+    score = np.where(facade >= 0, np.exp(-0.5 * (sd / width) ** 2), 0.0).reshape(len(candidates), len(pick)).sum(1)
+    # ties (a street seen end-on) go to the candidate nearest the prior: first in this order
+    distance = np.array([np.hypot(d[0], d[1]) + abs(d[5]) * 10.0 for d in candidates])
+    best = int(np.lexsort((distance, -np.round(score, 6)))[0])
+    return poses[best]
+
+
+# ----------------------------------------------------------------------------------------
+# The solve
+# ----------------------------------------------------------------------------------------
+def localise(scan: np.ndarray, prior_pose: np.ndarray, prior_covariance: np.ndarray,
+             query: Callable[[np.ndarray], Any], params: LocaliseParams | None = None, *,
+             constant_variance: float | None = None) -> PoseEstimate:
+    """Localise a scan against the map: the MAP pose and its covariance (module docstring).
+
+    Args:
+        scan: (N, 3) points, metres, sensor frame (non-finite rows are dropped).
+        prior_pose: (4, 4) sensor -> map, the prior's mean.
+        prior_covariance: (6, 6) the prior's covariance, :attr:`PoseEstimate.covariance`'s
+            convention (at the prior's position).
+        query: ``query(xyz)`` for (M, 3) float64 map-frame points, M <= ``params.batch_points``,
+            returns an object with (M,) ``facade`` (-1: no answer), ``signed_distance`` (m),
+            ``variance`` (m^2), ``noise_variance`` (m^2) and (M, 3) ``normal`` (unit, outward,
+            map frame): a :class:`~uncertain_facade_map.pipeline.step7_queries.PointQuery`
+            (see :func:`~uncertain_facade_map.localisation.map_query` for a map).
+        params: the ``localise`` parameters (default: the defaults).
+        constant_variance: if given (m^2), every answered point's variance + noise variance
+            is this one value (the map taken as exact, a baseline).
+
+    Returns:
+        The :class:`PoseEstimate`.
+
+    Raises:
+        InputError: a malformed scan, prior pose (not a rigid motion) or prior covariance
+            (not symmetric positive definite), a bad ``constant_variance``, or answers
+            lacking a field.
+    """
+    started = time.perf_counter()
+    params = LocaliseParams() if params is None else params
+    if constant_variance is not None and not (np.isfinite(constant_variance) and constant_variance >= 0):
+        raise InputError(f'constant_variance: expected a finite value >= 0 m^2, got {constant_variance!r}')
+    scan, prior, prior_cov = _check_inputs(scan, prior_pose, prior_covariance)
+    try:
+        prior_factor = cho_factor(prior_cov, lower=True)
+    except LinAlgError as err:
+        raise InputError('prior covariance: not positive definite (every standard deviation must be > 0)') from err
+    rng = np.random.default_rng(params.seed)
+    points = scan[subsample(scan, params.voxel, params.max_points, params.seed)]
+    centre = prior[:3, 3].copy()
+    ask = _Batched(query, params.batch_points)
+    sensor2 = params.sensor_noise**2
+    pose = prior
+    if params.search_radius > 0:
+        pose = _search_start(points, prior, centre, ask, params, constant_variance, rng)
+
+    tol_t, tol_r = params.translation_tolerance, np.deg2rad(params.rotation_tolerance)
+    iterations, converged = 0, False
+    hessian = cost = None
+    used = 0
+    for _round in range(params.max_queries):
+        p0 = se3.transform_points(pose, points)
+        facade, r0, var, normal = ask(p0, constant_variance)
+        on = facade >= 0
+        p0, r0, var, normal, fac = p0[on], r0[on], var[on], normal[on], facade[on]
+        if params.correlation_length > 0 and constant_variance is None:
+            counts = patch_counts(p0 - r0[:, None] * normal, fac, params.correlation_length)  # on the surface
+            # the map part (variance + noise) is shared within a patch, the sensor's is not
+            sigma2 = var * counts + sensor2
+        else:
+            sigma2 = var + sensor2
+        sigma = np.sqrt(sigma2)
+        start_pose = pose
+        body = points[on]
+        hessian, cost, pose, n_iter, used = _solve_round(body, p0, r0, normal, sigma, pose, prior, prior_factor,
+                                                         centre, params)
+        iterations += n_iter
+        moved = _centred_log(pose, start_pose, pose[:3, 3])
+        if np.linalg.norm(moved[:3]) < tol_t and np.linalg.norm(moved[3:]) < tol_r:
+            converged = True
+            break
+    # covariance at the centre c, moved to the estimate's position c'
+    try:
+        h_factor = cho_factor(hessian, lower=True)
+    except LinAlgError as err:  # cannot happen with a positive definite prior; keep the cause
+        raise InputError('the final Hessian is not positive definite (a degenerate prior covariance?)') from err
+    cov_c = cho_solve(h_factor, np.eye(6))
+    adjoint = np.eye(6)
+    adjoint[:3, 3:] = se3.skew(centre - pose[:3, 3])
+    covariance = adjoint @ cov_c @ adjoint.T
+    covariance = 0.5 * (covariance + covariance.T)
+    return PoseEstimate(pose=pose, covariance=covariance, iterations=iterations, queries=ask.calls,
+                        points_used=int(used), converged=converged, cost=float(cost),
+                        seconds=time.perf_counter() - started)
+
+
+def _costs(points_now, p0, r0, normal, sigma, pose, prior, prior_factor, centre, params):
+    """Residuals in sigmas, weights, robust costs and the prior error at ``pose``."""
+    r = r0 + np.einsum('ij,ij->i', normal, points_now - p0)
+    u = r / sigma
+    w, rho = robust_weights(u, params.kernel, params.kernel_scale)
+    e = _centred_log(pose, prior, centre)
+    prior_cost = 0.5 * float(e @ cho_solve(prior_factor, e))
+    return r, w, float(rho.sum()) + prior_cost, e
+
+
+def _solve_round(body, p0, r0, normal, sigma, pose, prior, prior_factor, centre, params):
+    """Levenberg-Marquardt on the linearised surfaces of one round.
+
+    Returns:
+        The Gauss-Newton Hessian at the end, the cost, the pose, the iterations, the points
+        with a weight > 0.
+    """
+    lam = 1e-4
+    tol_t, tol_r = params.translation_tolerance * 0.1, np.deg2rad(params.rotation_tolerance) * 0.1
+    now = se3.transform_points(pose, body)
+    r, w, cost, e = _costs(now, p0, r0, normal, sigma, pose, prior, prior_factor, centre, params)
+    n_iter = 0
+    hessian = None
+    for _ in range(params.max_iterations):
+        n_iter += 1
+        jac = point_jacobian(now, normal, centre)
+        scaled = jac * np.sqrt(w / sigma**2)[:, None]
+        j_prior = se3.se3_left_jacobian_inverse(e)
+        info_j = cho_solve(prior_factor, j_prior)  # Sigma_p^-1 J_p
+        hessian = scaled.T @ scaled + j_prior.T @ info_j
+        grad = jac.T @ (w * r / sigma**2) + info_j.T @ e
+        diag = np.diag(hessian).copy()
+        accepted = False
+        for _try in range(10):
+            try:
+                step = -cho_solve(cho_factor(hessian + lam * np.diag(diag), lower=True), grad)
+            except LinAlgError:
+                lam *= 10.0
+                continue
+            trial = _centred_exp(step, pose, centre)
+            trial_now = se3.transform_points(trial, body)
+            t_r, t_w, t_cost, t_e = _costs(trial_now, p0, r0, normal, sigma, trial, prior, prior_factor, centre,
+                                           params)
+            if t_cost <= cost:
+                pose, now, r, w, cost, e = trial, trial_now, t_r, t_w, t_cost, t_e
+                lam = max(lam / 10.0, 1e-9)
+                accepted = True
+                break
+            lam *= 10.0
+        if not accepted or (np.linalg.norm(step[:3]) < tol_t and np.linalg.norm(step[3:]) < tol_r):
+            break
+    # the Hessian at the final pose, with its weights
+    jac = point_jacobian(now, normal, centre)
+    scaled = jac * np.sqrt(w / sigma**2)[:, None]
+    j_prior = se3.se3_left_jacobian_inverse(e)
+    hessian = scaled.T @ scaled + j_prior.T @ cho_solve(prior_factor, j_prior)
+    return hessian, cost, pose, n_iter, int((w > 0).sum())
