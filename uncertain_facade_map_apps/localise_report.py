@@ -232,7 +232,8 @@ def write_report(out: Path, scenarios: list[L.Scenario], outcomes: list[L.Outcom
         'scans': [{'scenario': o.scenario, 'row': o.row, 'label': o.label, 'error': o.error.tolist(),
                    'position': o.position, 'heading_deg': o.heading_deg,
                    'nees': o.nees if np.isfinite(o.nees) else None,
-                   'ms': o.seconds * 1e3 if np.isfinite(o.seconds) else None, 'converged': o.converged}
+                   'ms': o.seconds * 1e3 if np.isfinite(o.seconds) else None, 'converged': o.converged,
+                   'prior_error': o.prior_error.tolist()}
                   for o in outcomes],
     }
     (out / 'report.json').write_text(json.dumps(_clean(data), indent=1, default=_json_default, allow_nan=False))

@@ -98,6 +98,23 @@ def pose_error(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:
     return np.concatenate([dp, dphi])
 
 
+def centred_error(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """The localiser's error vector, (6,): ``delta`` with ``truth = C exp(delta) C^-1 estimate``,
+    ``C`` the translation to the estimate's position and ``exp`` that of SE(3) (translation
+    first, rotation about the map axes; the convention of ``PoseEstimate.covariance``). To
+    first order ``-pose_error(estimate, truth)``."""
+    rot = truth[:3, :3] @ estimate[:3, :3].T
+    phi = Rotation.from_matrix(rot).as_rotvec()
+    dt = truth[:3, 3] - estimate[:3, 3]
+    theta = float(np.linalg.norm(phi))
+    k = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
+    if theta < 1e-8:
+        v = np.eye(3) + 0.5 * k
+    else:
+        v = np.eye(3) + (1 - np.cos(theta)) / theta ** 2 * k + (theta - np.sin(theta)) / theta ** 3 * (k @ k)
+    return np.concatenate([np.linalg.solve(v, dt), phi])
+
+
 def nees(error: np.ndarray, covariance: np.ndarray | None) -> float:
     """Normalised estimation error squared ``e^T C^-1 e`` of a (6,) error under a (6, 6)
     covariance (by Cholesky); NaN for no covariance or one that is not positive definite."""
@@ -504,7 +521,8 @@ def localiser_row(localise: Callable[..., Any], constant: float | Callable[[Scen
 
 @dataclass(frozen=True)
 class Outcome:
-    """Per scan and row: the (6,) error, position and heading error, NEES, seconds."""
+    """Per scan and row: the (6,) error (:func:`pose_error`), position (m) and heading error
+    (degrees, signed, wrapped), NEES, seconds, the method's verdict, and the prior's (6,) error."""
 
     scenario: str
     row: str
@@ -515,6 +533,7 @@ class Outcome:
     nees: float
     seconds: float
     converged: bool | None
+    prior_error: np.ndarray
 
 
 def score(estimate: Estimate, case: ScanCase, scenario: str, row: str) -> Outcome:
@@ -522,7 +541,8 @@ def score(estimate: Estimate, case: ScanCase, scenario: str, row: str) -> Outcom
     err = pose_error(estimate.pose, case.truth)
     head = float(wrap_degrees(np.rad2deg(heading(estimate.pose) - heading(case.truth))))
     return Outcome(scenario, row, case.label, err, float(np.linalg.norm(err[:3])), head,
-                   nees(err, estimate.covariance), estimate.seconds, estimate.converged)
+                   nees(centred_error(estimate.pose, case.truth), estimate.covariance), estimate.seconds,
+                   estimate.converged, case.delta)
 
 
 def run(scenarios: Sequence[Scenario], rows: dict[str, Method],
