@@ -72,7 +72,7 @@ def find_localiser() -> tuple[Callable, bool]:
     return localise, True
 
 
-def gicp_row(stages: tuple[float, ...] = (3.0, 1.0), downsampling: float = 0.25, neighbours: int = 10,
+def gicp_row(stages: tuple[float, ...] = (3.0, 1.5, 0.5), downsampling: float = 0.25, neighbours: int = 10,
              iterations: int = 20, threads: int = 1) -> L.Method:
     """Row (c): small_gicp's GICP from the prior against the scenario's mapped points, one
     alignment per maximum correspondence distance in ``stages`` (each starting from the
@@ -285,7 +285,7 @@ def parser() -> argparse.ArgumentParser:
                    help='simulated scenes, comma-separated; NAME_occluded maps a drive past tall vans and dense '
                         'trees (default: %(default)s)')
     p.add_argument('--campaigns', type=_ints, default=(1, 2, 3, 4), help='drives localised (default: 1,2,3,4)')
-    p.add_argument('--scans-per-drive', type=int, default=2, help='scans per drive (default: %(default)s)')
+    p.add_argument('--scans-per-drive', type=int, default=3, help='scans per drive (default: %(default)s)')
     p.add_argument('--scan-seconds', type=float, default=1.0, help='seconds of returns per scan (default: %(default)s)')
     p.add_argument('--max-points', type=int, default=10_000, help='most points per scan (default: %(default)s)')
     p.add_argument('--seed', type=int, default=0, help='seed of the priors and subsets (default: %(default)s)')
@@ -296,8 +296,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--constant-variance', type=float, default=None,
                    help="row (b)'s variance, m^2 (default: per scenario, the median of the map's variance + noise "
                         'variance at its own points)')
-    p.add_argument('--gicp-stages', type=_floats, default=(3.0, 1.0),
-                   help='GICP maximum correspondence distances, coarse to fine, m (default: 3,1)')
+    p.add_argument('--gicp-stages', type=_floats, default=(3.0, 1.5, 0.5),
+                   help='GICP maximum correspondence distances, coarse to fine, m (default: 3,1.5,0.5)')
     p.add_argument('--gicp-threads', type=int, default=1, help='GICP threads (default: %(default)s)')
     p.add_argument('--stub', action='store_true', help='rows (a)/(b) run the stub even when the localiser exists')
     p.add_argument('--quick', action='store_true',
