@@ -34,13 +34,14 @@ def test_files_and_structure(report):
         assert md.count(f'| {row} |') == 2                    # the scenario and the pooled table
     assert set(data['summary']) == {'small'}
     assert list(data['summary']['small']) == list(app.ROW_NAMES.values())
-    assert len(data['scans']) == 2 * 4
+    assert len(data['scans']) == 2 * len(app.ROW_NAMES)
     for s in data['summary']['small'].values():
         assert s['n'] == 2
         assert set(s) >= {'position_median', 'position_p95', 'heading_median', 'heading_p95', 'good_share',
                           'nees_mean', 'nees_in_band', 'ms_median'}
     assert data['summary']['small'][app.ROW_NAMES['c']]['nees_mean'] is None     # GICP: no covariance
     assert '| (c) GICP raw points | 2 |' in md and 'n/a' in md
+    assert data['summary']['small'][app.ROW_NAMES['e']]['nees_mean'] is None
     assert data['meta']['localiser_real'] is (app.find_localiser()[1])
     assert 'small' in data['meta']['constant_variance']
 

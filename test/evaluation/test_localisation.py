@@ -155,3 +155,14 @@ def test_bad_arguments():
         L.simulated_scenario('nowhere')
     with pytest.raises(InputError):
         L.simulated_scenario('small', scans_per_drive=0)
+
+
+def test_horizontal_and_vertical_parts():
+    outs = [L.Outcome('s', 'r', 'x', np.array([0.3, 0.4, 1.2, 0, 0, 0]), 1.3, 0.5, 1.0, 0.0, None, np.zeros(6)),
+            L.Outcome('s', 'r', 'x', np.array([0.1, 0.0, -0.1, 0, 0, 0]), np.hypot(0.1, 0.1), 0.5, 1.0, 0.0, None,
+                      np.zeros(6))]
+    s = L.summarise(outs)
+    assert s['horizontal_median'] == pytest.approx(0.3)
+    assert s['vertical_median'] == pytest.approx(0.65)
+    assert s['good_share'] == pytest.approx(0.5)              # the first is 1.3 m off in 3-D
+    assert s['good_share_horizontal'] == pytest.approx(0.5)   # ... and 0.5 m horizontally

@@ -233,6 +233,8 @@ class Scenario:
         cases: the scans.
         notes: what the scenario is, one line each.
         seconds: time to simulate and map, s.
+        cloud_points: (K, 3) every return of the mapping drive (ground, cars, trees too),
+            one per 0.1 m voxel, metres, map frame (the second GICP row's target).
     """
 
     name: str
@@ -242,6 +244,14 @@ class Scenario:
     cases: list[ScanCase]
     notes: list[str] = field(default_factory=list)
     seconds: float = 0.0
+    cloud_points: np.ndarray | None = None
+
+
+def thin(xyz: np.ndarray, voxel: float = 0.1) -> np.ndarray:
+    """(K, 3) the first of (N, 3) points in every ``voxel`` (metres) cube, in input order."""
+    keys = np.floor(xyz / voxel).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    return xyz[np.sort(first)]
 
 
 def map_query(fmap: Any) -> Callable[[np.ndarray], Any]:
@@ -390,7 +400,8 @@ def simulated_scenario(name: str, campaigns: Sequence[int] = (1, 2, 3, 4), scans
              f'each, at most {max_points:,} points']
     if progress:
         progress(f'{name}: {len(cases)} scans ({time.perf_counter() - started:.1f} s)')
-    return Scenario(name, kind, fmap, building.xyz, cases, notes, time.perf_counter() - started)
+    return Scenario(name, kind, fmap, building.xyz, cases, notes, time.perf_counter() - started,
+                    thin(_points_xyz(cloud.points)))
 
 
 def _sensor_name(sensor: Any) -> str:
@@ -442,7 +453,8 @@ def real_scenario(map_ply: str, scan_ply: str, draws: int = 10, max_points: int 
              f'{len(fmap.facades)} façades); scan: {scan_ply} ({len(scan):,} points, {len(local):,} used), '
              f'{draws} priors; truth: the identity in the shared city frame (map origins differ by '
              f'{np.linalg.norm(np.asarray(scan.map_origin, float) - np.asarray(mapped.map_origin, float)):.3f} m)']
-    return Scenario('av2_sweep1_vs_0', 'real', fmap, building.xyz, cases, notes, time.perf_counter() - started)
+    return Scenario('av2_sweep1_vs_0', 'real', fmap, building.xyz, cases, notes, time.perf_counter() - started,
+                    thin(_points_xyz(mapped.points)))
 
 
 # ---------------------------------------------------------------------------------------
@@ -571,11 +583,15 @@ def run(scenarios: Sequence[Scenario], rows: dict[str, Method],
 
 def summarise(outcomes: Sequence[Outcome]) -> dict[str, float]:
     """Figures of one row on one scenario (or pooled): ``n``, ``position_median``,
-    ``position_p95`` (m), ``heading_median``, ``heading_p95`` (absolute, degrees),
-    ``good_share`` (within 0.2 m and 1 degree), ``nees_mean``, ``nees_in_band`` (share in
+    ``position_p95`` (3-D, m), ``horizontal_*`` and ``vertical_*`` (median, p95: the x-y and
+    z parts, m), ``heading_median``, ``heading_p95`` (absolute, degrees), ``good_share``
+    (within 0.2 m and 1 degree), ``good_share_horizontal`` (the same, horizontally), ``nees_mean``, ``nees_in_band`` (share in
     :data:`NEES_BAND`; NaN without covariances), ``nees_n`` (scans with a NEES),
     ``ms_median``, ``ms_p95``, ``converged_share`` (NaN when the row gives no verdict)."""
     pos = np.array([o.position for o in outcomes])
+    err = np.array([o.error for o in outcomes]).reshape(-1, 6)
+    horizontal = np.hypot(err[:, 0], err[:, 1])
+    vertical = np.abs(err[:, 2])
     head = np.abs(np.array([o.heading_deg for o in outcomes]))
     ne = np.array([o.nees for o in outcomes])
     ms = np.array([o.seconds for o in outcomes]) * 1e3
@@ -589,8 +605,12 @@ def summarise(outcomes: Sequence[Outcome]) -> dict[str, float]:
     return {
         'n': len(outcomes),
         'position_median': q(pos, 50), 'position_p95': q(pos, 95),
+        'horizontal_median': q(horizontal, 50), 'horizontal_p95': q(horizontal, 95),
+        'vertical_median': q(vertical, 50), 'vertical_p95': q(vertical, 95),
         'heading_median': q(head, 50), 'heading_p95': q(head, 95),
         'good_share': float(np.mean((pos <= GOOD_POSITION) & (head <= GOOD_HEADING_DEG))) if len(pos) else float('nan'),
+        'good_share_horizontal': (float(np.mean((horizontal <= GOOD_POSITION) & (head <= GOOD_HEADING_DEG)))
+                                  if len(pos) else float('nan')),
         'nees_mean': float(finite.mean()) if len(finite) else float('nan'),
         'nees_in_band': float(np.mean((finite >= NEES_BAND[0]) & (finite <= NEES_BAND[1]))) if len(finite) else float('nan'),
         'nees_n': len(finite),
