@@ -679,15 +679,23 @@ class LocaliseParams(Section):
     sensor_noise: float = param(0.03, "standard deviation of the scan's own points along the surface normal "
                                       '(range noise, motion, timing); added to the variance of every answer',
                                 unit='m', allowed=_closed(1e-4, 10.0))
-    kernel: str = param('cauchy', 'robust kernel of the point-to-surface residuals, in units of their sigma: cauchy '
-                                  '(points far off the surface, parked cars, trees, weigh almost nothing), huber, or '
-                                  'none (least squares)', allowed=Options(('cauchy', 'huber', 'none')))
-    kernel_scale: float = param(3.0, "the kernel's scale in sigmas (a residual of this many sigmas weighs 1/2 with "
-                                     'cauchy; huber is quadratic up to it)', allowed=_closed(0.1, 1000.0))
+    kernel: str = param('geman', 'robust kernel of the point-to-surface residuals, in units of their sigma: geman '
+                                 '(Geman-McClure, weight 1/(1 + (u/k)^2)^2: points far off the surface, parked cars, '
+                                 'trees, weigh nothing, their pull falls as 1/u^3), cauchy (weight 1/(1 + (u/k)^2); '
+                                 'their pull falls only as 1/u, enough for many of them to bias the pose by a '
+                                 'centimetre), huber, or none (least squares)',
+                         allowed=Options(('geman', 'cauchy', 'huber', 'none')))
+    kernel_scale: float = param(3.0, "the kernel's scale k in sigmas (huber is quadratic up to it)",
+                                allowed=_closed(0.1, 1000.0))
+    anneal_start: float = param(0.5, "the first round's kernel scale is at least this (k sigma_i grown to "
+                                     'k sqrt(sigma_i^2 + tau^2), tau this), shrinking 4x a round and ending below '
+                                     '1 cm: the first rounds, still up to half a search step off, weigh every '
+                                     'answer; the last ones leave outliers out; converged only then (0: off)',
+                                unit='m', allowed=_closed(0.0, 100.0))
     voxel: float = param(0.2, 'the scan is thinned to one point per cubic voxel of this side (a seeded draw), so '
                               'that dense near ranges do not outweigh the far walls; 0: no thinning', unit='m',
                          allowed=_closed(0.0, 100.0))
-    max_points: int = param(5000, '... then to at most this many points, a seeded draw', allowed=_closed(10, 100_000_000))
+    max_points: int = param(1500, '... then to at most this many points, a seeded draw', allowed=_closed(10, 100_000_000))
     batch_points: int = param(20000, 'points per call of the map query at most (ask in batches)',
                               allowed=_closed(1, 100_000_000))
     max_queries: int = param(6, 'rounds at most: each queries the map at the current pose, then solves on the '
@@ -697,16 +705,23 @@ class LocaliseParams(Section):
                                          allowed=_closed(0.0, 100.0))
     rotation_tolerance: float = param(0.01, '... and turns it less than this', unit='degrees',
                                       allowed=_closed(0.0, 180.0))
+    mahalanobis_tolerance: float = param(0.1, '... or moves it less than this many of its own standard deviations (the '
+                                              "Mahalanobis length of the move under the round's Hessian): directions "
+                                              'the map hardly sees (height, along a straight street) may wander more '
+                                              'than the tolerances above while staying well inside their uncertainty',
+                                         allowed=_closed(0.0, 100.0))
     search_radius: float = param(3.0, 'before the first round, horizontal offsets of the prior up to this far (and '
                                       'its yaw turned by search_yaw) are scored with a few points each and the best '
                                       'starts the solve: the map answers only within its façade bands (about 1 m '
                                       'behind and 2 m in front of a wall), so a prior 3 m off may see no wall at '
                                       'all; 0: start from the prior', unit='m', allowed=_closed(0.0, 1000.0))
     search_step: float = param(1.0, 'grid step of the horizontal offsets', unit='m', allowed=_closed(0.01, 1000.0))
-    search_yaw: float = param(3.0, 'yaw offsets -search_yaw, 0, +search_yaw are scored (0: the prior yaw only)',
-                              unit='degrees', allowed=_closed(0.0, 180.0))
-    search_points: int = param(200, 'scan points scored per offset', allowed=_closed(10, 1_000_000))
-    correlation_length: float = param(0.0, "the map's errors are alike within this distance (one surface error "
+    search_yaw: float = param(5.0, '... and yaws of the prior turned by up to this much either way (0: the prior yaw '
+                                   'only; a turn moves a wall 30 m away by 0.5 m per degree)', unit='degrees',
+                              allowed=_closed(0.0, 180.0))
+    search_yaw_step: float = param(2.5, 'step of those yaws', unit='degrees', allowed=_closed(0.01, 180.0))
+    search_points: int = param(100, 'scan points scored per offset', allowed=_closed(10, 1_000_000))
+    correlation_length: float = param(2.0, "the map's errors are alike within this distance (one surface error "
                                            'seen by many points): the map variance of each point is multiplied by '
                                            'the number of used points of its façade within a cube of this side, so '
                                            'a patch counts once, not once per point; 0: points independent (the '

@@ -66,13 +66,14 @@ class World:
     def _error(self, k: int, x: np.ndarray) -> np.ndarray:
         """The map error of plane k at points x (constant per patch, drawn on first use)."""
         cells = np.floor(x / self.patch).astype(np.int64)
-        out = np.empty(len(x))
-        for i, c in enumerate(map(tuple, cells)):
+        keys, inverse = np.unique(cells, axis=0, return_inverse=True)
+        values = np.empty(len(keys))
+        for i, c in enumerate(map(tuple, keys)):
             key = (k, *c)
             if key not in self._errors:
                 self._errors[key] = self.rng.normal(0.0, np.sqrt(self.planes[k].variance))
-            out[i] = self._errors[key]
-        return out
+            values[i] = self._errors[key]
+        return values[inverse.ravel()]
 
     def query(self, xyz: np.ndarray) -> Answers:
         self.calls += 1

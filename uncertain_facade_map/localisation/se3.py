@@ -45,20 +45,20 @@ def so3_exp(phi: np.ndarray) -> np.ndarray:
 def so3_log(rot: np.ndarray) -> np.ndarray:
     """The rotation vector (3,) of a rotation matrix (3, 3), angle in [0, pi]."""
     rot = np.asarray(rot, dtype=np.float64)
-    cos = np.clip((np.trace(rot) - 1.0) / 2.0, -1.0, 1.0)
-    theta = float(np.arccos(cos))
     vee = np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]])
+    sin2 = np.linalg.norm(vee)  # 2 sin(theta)
+    cos = (np.trace(rot) - 1.0) / 2.0
+    theta = float(np.arctan2(sin2 / 2.0, cos))  # precise at 0 and pi, unlike arccos
     if theta < _SMALL:
         return 0.5 * (1.0 + theta**2 / 6.0) * vee
-    if np.pi - theta < 1e-4:  # near pi: the axis from the symmetric part
+    if np.pi - theta < 1e-3:  # near pi: the axis from the symmetric part, its sign from vee
         sym = (rot + rot.T) / 2.0 - cos * np.eye(3)
         col = int(np.argmax(np.diag(sym)))
-        axis = sym[:, col] / np.sqrt(max(sym[col, col], 1e-300))
-        axis /= np.linalg.norm(axis)
+        axis = sym[:, col] / np.linalg.norm(sym[:, col])
         if axis @ vee < 0:
             axis = -axis
         return theta * axis
-    return theta / (2.0 * np.sin(theta)) * vee
+    return theta / sin2 * vee
 
 
 def so3_left_jacobian(phi: np.ndarray) -> np.ndarray:

@@ -58,6 +58,8 @@ from ..errors import InputError
 from ..params import LocaliseParams
 from . import se3
 
+#: Below this (metres) the annealing scale is zero.
+_TAU_MIN = 0.01
 __all__ = ['PoseEstimate', 'localise', 'patch_counts', 'robust_weights', 'subsample', 'point_jacobian']
 
 
@@ -130,6 +132,9 @@ def robust_weights(u: np.ndarray, kernel: str, scale: float) -> tuple[np.ndarray
     if kernel == 'cauchy':
         z = (u / scale) ** 2
         return 1.0 / (1.0 + z), 0.5 * scale**2 * np.log1p(z)
+    if kernel == 'geman':
+        z = (u / scale) ** 2
+        return 1.0 / (1.0 + z) ** 2, 0.5 * u**2 / (1.0 + z)
     if kernel == 'huber':
         a = np.abs(u)
         inside = a <= scale
@@ -217,7 +222,7 @@ class _Batched:
         return facade, np.where(ok, sd, 0.0), np.where(ok, var, 1.0), np.where(ok[:, None], normal, 0.0)
 
 
-def _search_start(points: np.ndarray, prior: np.ndarray, centre: np.ndarray, ask: _Batched,
+def _search_start(points: np.ndarray, prior: np.ndarray, prior_factor: tuple, centre: np.ndarray, ask: _Batched,
                   params: LocaliseParams, constant_variance: float | None, rng: np.random.Generator) -> np.ndarray:
     """The best-scoring of a grid of horizontal offsets and yaws of the prior (see the module docstring)."""
     r, step = params.search_radius, params.search_step
@@ -226,17 +231,22 @@ def _search_start(points: np.ndarray, prior: np.ndarray, centre: np.ndarray, ask
     dx, dy = np.meshgrid(grid, grid, indexing='ij')
     offsets = np.column_stack([dx.ravel(), dy.ravel()])
     offsets = offsets[np.hypot(offsets[:, 0], offsets[:, 1]) <= r + 1e-9]
-    yaws = np.deg2rad([0.0] if params.search_yaw == 0 else [0.0, -params.search_yaw, params.search_yaw])
-    pick = points[rng.choice(len(points), min(params.search_points, len(points)), replace=False)]
+    k_yaw = int(np.floor(params.search_yaw / params.search_yaw_step + 1e-9))
+    yaws = np.deg2rad(np.arange(-k_yaw, k_yaw + 1) * params.search_yaw_step)
+    # the farther half of the scan: façades rather than the road and cars next to the sensor, and a turn moves
+    # them most (points are in the sensor frame here: the range is their norm)
+    far = points[np.linalg.norm(points, axis=1) >= np.median(np.linalg.norm(points, axis=1))]
+    pick = far[rng.choice(len(far), min(params.search_points, len(far)), replace=False)]
     candidates = [np.array([ox, oy, 0.0, 0.0, 0.0, yaw]) for yaw in yaws for ox, oy in offsets]
     poses = [_centred_exp(d, prior, centre) for d in candidates]
     xyz = np.concatenate([se3.transform_points(p, pick) for p in poses])
     facade, sd, _, _ = ask(xyz, constant_variance)
     width = max(step / 2.0, 0.05)
     score = np.where(facade >= 0, np.exp(-0.5 * (sd / width) ** 2), 0.0).reshape(len(candidates), len(pick)).sum(1)
-    # ties (a street seen end-on) go to the candidate nearest the prior: first in this order
-    distance = np.array([np.hypot(d[0], d[1]) + abs(d[5]) * 10.0 for d in candidates])
-    best = int(np.lexsort((distance, -np.round(score, 6)))[0])
+    # the prior's log density breaks near-ties (a street seen end-on): the candidate nearest the prior wins them
+    offsets6 = np.array(candidates)
+    score -= 0.5 * np.einsum('ij,ij->i', offsets6, cho_solve(prior_factor, offsets6.T).T)
+    best = int(np.argmax(score))
     return poses[best]
 
 
@@ -286,7 +296,7 @@ def localise(scan: np.ndarray, prior_pose: np.ndarray, prior_covariance: np.ndar
     sensor2 = params.sensor_noise**2
     pose = prior
     if params.search_radius > 0:
-        pose = _search_start(points, prior, centre, ask, params, constant_variance, rng)
+        pose = _search_start(points, prior, prior_factor, centre, ask, params, constant_variance, rng)
 
     tol_t, tol_r = params.translation_tolerance, np.deg2rad(params.rotation_tolerance)
     iterations, converged = 0, False
@@ -304,13 +314,18 @@ def localise(scan: np.ndarray, prior_pose: np.ndarray, prior_covariance: np.ndar
         else:
             sigma2 = var + sensor2
         sigma = np.sqrt(sigma2)
+        # annealing: the kernel's scale is at least tau metres, tau shrinking 4x a round (module docstring)
+        tau = params.anneal_start / 4.0**_round
+        tau = tau if tau >= _TAU_MIN else 0.0
+        scale = params.kernel_scale * np.sqrt(1.0 + tau**2 / sigma2)
         start_pose = pose
         body = points[on]
-        hessian, cost, pose, n_iter, used = _solve_round(body, p0, r0, normal, sigma, pose, prior, prior_factor,
-                                                         centre, params)
+        hessian, cost, pose, n_iter, used = _solve_round(body, p0, r0, normal, sigma, scale, pose, prior,
+                                                         prior_factor, centre, params)
         iterations += n_iter
         moved = _centred_log(pose, start_pose, pose[:3, 3])
-        if np.linalg.norm(moved[:3]) < tol_t and np.linalg.norm(moved[3:]) < tol_r:
+        small = np.linalg.norm(moved[:3]) < tol_t and np.linalg.norm(moved[3:]) < tol_r
+        if tau == 0.0 and (small or float(moved @ hessian @ moved) < params.mahalanobis_tolerance**2):
             converged = True
             break
     # covariance at the centre c, moved to the estimate's position c'
@@ -328,17 +343,17 @@ def localise(scan: np.ndarray, prior_pose: np.ndarray, prior_covariance: np.ndar
                         seconds=time.perf_counter() - started)
 
 
-def _costs(points_now, p0, r0, normal, sigma, pose, prior, prior_factor, centre, params):
+def _costs(points_now, p0, r0, normal, sigma, scale, pose, prior, prior_factor, centre, params):
     """Residuals in sigmas, weights, robust costs and the prior error at ``pose``."""
     r = r0 + np.einsum('ij,ij->i', normal, points_now - p0)
     u = r / sigma
-    w, rho = robust_weights(u, params.kernel, params.kernel_scale)
+    w, rho = robust_weights(u, params.kernel, scale)
     e = _centred_log(pose, prior, centre)
     prior_cost = 0.5 * float(e @ cho_solve(prior_factor, e))
     return r, w, float(rho.sum()) + prior_cost, e
 
 
-def _solve_round(body, p0, r0, normal, sigma, pose, prior, prior_factor, centre, params):
+def _solve_round(body, p0, r0, normal, sigma, scale, pose, prior, prior_factor, centre, params):
     """Levenberg-Marquardt on the linearised surfaces of one round.
 
     Returns:
@@ -348,7 +363,7 @@ def _solve_round(body, p0, r0, normal, sigma, pose, prior, prior_factor, centre,
     lam = 1e-4
     tol_t, tol_r = params.translation_tolerance * 0.1, np.deg2rad(params.rotation_tolerance) * 0.1
     now = se3.transform_points(pose, body)
-    r, w, cost, e = _costs(now, p0, r0, normal, sigma, pose, prior, prior_factor, centre, params)
+    r, w, cost, e = _costs(now, p0, r0, normal, sigma, scale, pose, prior, prior_factor, centre, params)
     n_iter = 0
     hessian = None
     for _ in range(params.max_iterations):
@@ -369,7 +384,7 @@ def _solve_round(body, p0, r0, normal, sigma, pose, prior, prior_factor, centre,
                 continue
             trial = _centred_exp(step, pose, centre)
             trial_now = se3.transform_points(trial, body)
-            t_r, t_w, t_cost, t_e = _costs(trial_now, p0, r0, normal, sigma, trial, prior, prior_factor, centre,
+            t_r, t_w, t_cost, t_e = _costs(trial_now, p0, r0, normal, sigma, scale, trial, prior, prior_factor, centre,
                                            params)
             if t_cost <= cost:
                 pose, now, r, w, cost, e = trial, trial_now, t_r, t_w, t_cost, t_e
