@@ -331,7 +331,7 @@ def parser() -> argparse.ArgumentParser:
                    help='simulated scenes, comma-separated; NAME_occluded maps a drive past tall vans and dense '
                         'trees (default: %(default)s)')
     p.add_argument('--campaigns', type=_ints, default=(1, 2, 3, 4), help='drives localised (default: 1,2,3,4)')
-    p.add_argument('--scans-per-drive', type=int, default=3, help='scans per drive (default: %(default)s)')
+    p.add_argument('--scans-per-drive', type=int, default=4, help='scans per drive (default: %(default)s)')
     p.add_argument('--scan-seconds', type=float, default=1.0, help='seconds of returns per scan (default: %(default)s)')
     p.add_argument('--max-points', type=int, default=10_000, help='most points per scan (default: %(default)s)')
     p.add_argument('--seed', type=int, default=0, help='seed of the priors and subsets (default: %(default)s)')
