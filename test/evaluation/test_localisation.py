@@ -12,7 +12,8 @@ from uncertain_facade_map.evaluation import localisation as L
 
 
 def _outcome(position, heading, nees=float('nan'), seconds=0.01, converged=None):
-    return L.Outcome('s', 'r', 'x', np.zeros(6), position, heading, nees, seconds, converged, np.zeros(6))
+    return L.Outcome('s', 'r', 'x', np.array([position, 0, 0, 0, 0, 0]), position, heading, nees, seconds, converged,
+                     np.zeros(6))
 
 
 def test_heading_wraps():
@@ -81,6 +82,8 @@ def test_summary_by_hand():
     assert s['nees_in_band'] == pytest.approx(0.5)         # 5 and 7
     assert s['ms_median'] == pytest.approx(25.0)
     assert s['converged_share'] == pytest.approx(0.75)
+    assert s['nees_mean_converged'] == pytest.approx(12.5 / 3)    # 5, 0.5, 7: the second is flagged
+    assert s['failures'] == 3 and s['failures_flagged'] == 1     # 0.3 m (flagged), 2 deg, 1 m
     assert s['position_p95'] == pytest.approx(np.percentile([0.1, 0.3, 0.05, 1.0], 95))
     no_cov = L.summarise([_outcome(0.1, 0.1)])
     assert np.isnan(no_cov['nees_mean']) and np.isnan(no_cov['nees_in_band']) and no_cov['nees_n'] == 0

@@ -587,7 +587,10 @@ def summarise(outcomes: Sequence[Outcome]) -> dict[str, float]:
     z parts, m), ``heading_median``, ``heading_p95`` (absolute, degrees), ``good_share``
     (within 0.2 m and 1 degree), ``good_share_horizontal`` (the same, horizontally), ``nees_mean``, ``nees_in_band`` (share in
     :data:`NEES_BAND`; NaN without covariances), ``nees_n`` (scans with a NEES),
-    ``ms_median``, ``ms_p95``, ``converged_share`` (NaN when the row gives no verdict)."""
+    ``ms_median``, ``ms_p95``, ``converged_share`` (NaN when the row gives no verdict),
+    ``nees_mean_converged`` (over the scans the row did not flag as not converged),
+    ``failures`` (scans off by more than 0.2 m horizontally or 1 degree) and
+    ``failures_flagged`` (of those, the ones the row flagged as not converged)."""
     pos = np.array([o.position for o in outcomes])
     err = np.array([o.error for o in outcomes]).reshape(-1, 6)
     horizontal = np.hypot(err[:, 0], err[:, 1])
@@ -598,6 +601,9 @@ def summarise(outcomes: Sequence[Outcome]) -> dict[str, float]:
     verdicts = [o.converged for o in outcomes if o.converged is not None]
     finite = ne[np.isfinite(ne)]
     ms_ok = ms[np.isfinite(ms)]
+    flags = np.array([-1 if o.converged is None else int(o.converged) for o in outcomes])
+    conv_nees = ne[np.isfinite(ne) & (flags != 0)]
+    bad = (horizontal > GOOD_POSITION) | (head > GOOD_HEADING_DEG)
 
     def q(a: np.ndarray, p: float) -> float:
         return float(np.percentile(a, p)) if len(a) else float('nan')
@@ -616,6 +622,9 @@ def summarise(outcomes: Sequence[Outcome]) -> dict[str, float]:
         'nees_n': len(finite),
         'ms_median': q(ms_ok, 50), 'ms_p95': q(ms_ok, 95),
         'converged_share': float(np.mean(verdicts)) if verdicts else float('nan'),
+        'nees_mean_converged': float(conv_nees.mean()) if len(conv_nees) else float('nan'),
+        'failures': int(np.sum(bad)),
+        'failures_flagged': int(np.sum(bad & (flags == 0))),
     }
 
 
