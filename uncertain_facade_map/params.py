@@ -688,7 +688,7 @@ class LocaliseParams(Section):
     kernel_scale: float = param(3.0, "the kernel's scale k in sigmas (huber is quadratic up to it)",
                                 allowed=_closed(0.1, 1000.0))
     anneal_start: float = param(0.5, "the first round's kernel scale is at least this (k sigma_i grown to "
-                                     'k sqrt(sigma_i^2 + tau^2), tau this), shrinking 4x a round and ending below '
+                                     'k sqrt(sigma_i^2 + tau^2), tau this), shrinking 8x a round and ending below '
                                      '1 cm: the first rounds, still up to half a search step off, weigh every '
                                      'answer; the last ones leave outliers out; converged only then (0: off)',
                                 unit='m', allowed=_closed(0.0, 100.0))
@@ -705,7 +705,7 @@ class LocaliseParams(Section):
                                          allowed=_closed(0.0, 100.0))
     rotation_tolerance: float = param(0.01, '... and turns it less than this', unit='degrees',
                                       allowed=_closed(0.0, 180.0))
-    mahalanobis_tolerance: float = param(0.1, '... or moves it less than this many of its own standard deviations (the '
+    mahalanobis_tolerance: float = param(0.2, '... or moves it less than this many of its own standard deviations (the '
                                               "Mahalanobis length of the move under the round's Hessian): directions "
                                               'the map hardly sees (height, along a straight street) may wander more '
                                               'than the tolerances above while staying well inside their uncertainty',

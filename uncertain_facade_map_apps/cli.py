@@ -4,6 +4,7 @@ Sub-commands:
     simulate   scan a built-in scene in one or more campaigns and write clouds and bags
     build      build a façade map from classified point clouds or bags
     query      answer point queries against a map
+    localise   localise scans against a map: 6-DoF pose and covariance from a prior pose
     replay     replay bags into a map (offline) or to a running facade_mapper (publish)
     inspect    what a bag holds (clouds, frames, transforms) and whether its clouds can be mapped
     plot       draw a map's façades and an overview as PNG figures
@@ -490,6 +491,122 @@ def _facade_ids(text: str) -> list[int]:
     return ids
 
 
+def _six(text: str, what: str) -> tuple[float, ...]:
+    """Six comma- or space-separated finite numbers (``--prior``, ``--prior-std``)."""
+    try:
+        values = tuple(float(x) for x in text.replace(',', ' ').split())
+    except ValueError:
+        values = ()
+    if len(values) != 6 or not all(math.isfinite(v) for v in values):
+        raise CliError(f'{what}: expected six numbers {"X,Y,Z,ROLL,PITCH,YAW" if what == "--prior" else "SX,SY,SZ,SROLL,SPITCH,SYAW"} '
+                       f'(metres and degrees), got {text!r}')
+    return values
+
+
+def _prior_poses(args: argparse.Namespace, n_scans: int):
+    """The prior pose of each scan, (4, 4) sensor -> map (metres, map frame unless --georeferenced)."""
+    import numpy as np
+
+    from uncertain_facade_map.localisation import pose_from_xyzrpy
+
+    def from_values(values) -> np.ndarray:
+        return pose_from_xyzrpy(np.array([*values[:3], *np.deg2rad(values[3:])]))
+
+    if (args.prior is None) == (args.priors is None):
+        raise CliError('give the prior pose: --prior X,Y,Z,ROLL,PITCH,YAW (or a 4x4 .npy/.txt file) for one scan, or '
+                       '--priors FILE with one line per scan')
+    if args.priors is not None:
+        path = Path(args.priors)
+        if not path.is_file():
+            raise CliError(f'no such file: {path}')
+        lines = [ln.split('#')[0].strip() for ln in path.read_text(encoding='utf-8', errors='replace').splitlines()]
+        lines = [ln for ln in lines if ln]
+        if len(lines) != n_scans:
+            raise CliError(f'{path}: {len(lines)} prior poses for {n_scans} scans; give one line X Y Z ROLL PITCH YAW '
+                           '(metres, degrees) per scan, in the order of the scans')
+        return [from_values(_six(ln, f'{path} line {i + 1}')) for i, ln in enumerate(lines)]
+    if n_scans != 1:
+        raise CliError(f'--prior gives one pose for {n_scans} scans; use --priors FILE with one line per scan')
+    path = Path(args.prior)
+    if path.suffix.lower() in ('.npy', '.txt') or path.exists():
+        if not path.is_file():
+            raise CliError(f'no such file: {path}')
+        try:
+            matrix = np.load(path, allow_pickle=False) if path.suffix.lower() == '.npy' else np.loadtxt(path)
+        except (ValueError, OSError, EOFError) as exc:
+            raise CliError(f'{path}: not a 4x4 matrix ({exc})') from None
+        matrix = np.asarray(matrix, dtype=np.float64)
+        if matrix.shape != (4, 4):
+            raise CliError(f'{path}: expected a 4x4 pose matrix (sensor -> map), got shape {matrix.shape}')
+        return [matrix]
+    return [from_values(_six(args.prior, '--prior'))]
+
+
+def cmd_localise(args: argparse.Namespace) -> int:
+    """Localise scans against a map (see ``localise --help``)."""
+    import json
+
+    import numpy as np
+
+    from uncertain_facade_map.io.clouds import read_cloud
+    from uncertain_facade_map.io.map_file import load_map
+    from uncertain_facade_map.io.parameter_file import load_config
+    from uncertain_facade_map.localisation import covariance_from_std, localise, map_query, xyzrpy_from_pose
+
+    config = load_config(args.config)
+    params = config.localise
+    if args.max_points is not None:
+        params = dataclasses.replace(params, max_points=args.max_points)
+    if args.out and not Path(args.out).resolve().parent.exists():
+        raise CliError(f'output folder {Path(args.out).parent} does not exist')
+    if args.constant_variance is not None and not args.constant_variance >= 0:
+        raise CliError(f'--constant-variance must be >= 0 m^2, got {args.constant_variance}')
+    std = (_six(args.prior_std, '--prior-std') if args.prior_std is not None
+           else (*params.prior_position_std, *params.prior_rotation_std))
+    if not all(v > 0 for v in std):
+        raise CliError(f'--prior-std: every standard deviation must be > 0, got {args.prior_std!r}')
+    priors = _prior_poses(args, len(args.scans))
+    prior_cov = covariance_from_std([*std[:3], *np.deg2rad(std[3:])])
+    fmap = load_map(args.map)
+    origin = np.asarray(fmap.map_origin, dtype=np.float64)
+    if args.georeferenced:
+        for prior in priors:
+            prior[:3, 3] -= origin
+    query = map_query(fmap, config.query)
+    records = []
+    for path, prior in zip(args.scans, priors):
+        cloud = read_cloud(path)
+        if not len(cloud):
+            raise CliError(f'{path}: no points')
+        est = localise(cloud.xyz, prior, prior_cov, query, params, constant_variance=args.constant_variance)
+        pose = est.pose.copy()
+        if args.georeferenced:
+            pose[:3, 3] += origin
+        xyzrpy = xyzrpy_from_pose(pose)
+        cov = est.covariance
+        records.append({
+            'scan': str(path), 'frame': 'georeferenced' if args.georeferenced else 'map',
+            'pose': pose.tolist(), 'xyz': xyzrpy[:3].tolist(), 'rpy_deg': np.rad2deg(xyzrpy[3:]).tolist(),
+            'covariance': cov.tolist(),
+            'std': [*np.sqrt(np.diag(cov))[:3].tolist(), *np.rad2deg(np.sqrt(np.diag(cov))[3:]).tolist()],
+            'moved_from_prior': float(np.linalg.norm(est.pose[:3, 3] - prior[:3, 3])),
+            'iterations': est.iterations, 'queries': est.queries, 'points': len(cloud),
+            'points_used': est.points_used, 'converged': est.converged, 'cost': est.cost, 'seconds': est.seconds,
+        })
+    text = '\n'.join(json.dumps(r) for r in records) if len(records) > 1 else json.dumps(records[0], indent=2)
+    if args.out:
+        Path(args.out).write_text(text + '\n', encoding='utf-8')
+        for r in records:
+            print(f'localised {r["scan"]}: x {r["xyz"][0]:.3f} y {r["xyz"][1]:.3f} z {r["xyz"][2]:.3f} m, yaw '
+                  f'{r["rpy_deg"][2]:.2f} deg (std {r["std"][0] * 100:.1f}, {r["std"][1] * 100:.1f}, '
+                  f'{r["std"][2] * 100:.1f} cm, {r["std"][5]:.3f} deg), {r["points_used"]:,} points used, '
+                  f'{"converged" if r["converged"] else "NOT converged"}, {r["seconds"] * 1e3:.0f} ms')
+        print(f'poses    {args.out}')
+    else:
+        print(text)
+    return 0
+
+
 def cmd_plot(args: argparse.Namespace) -> int:
     """Draw a map's façades and an overview (see ``plot --help``)."""
     from uncertain_facade_map.io.map_file import load_map
@@ -853,6 +970,53 @@ def build_parser() -> argparse.ArgumentParser:
     inspect.add_argument('--poses', metavar='TOPICS', help='pose topics to read, comma-separated, or none (default: all)')
     inspect.add_argument('--config', metavar='YAML', help='ROS 2 parameter file (default: config/facade_mapper.yaml)')
     inspect.set_defaults(func=cmd_inspect)
+
+    loc = sub.add_parser(
+        'localise', help='localise scans against a map: 6-DoF pose and its covariance from a prior pose',
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description='Estimate the pose of a lidar scan against a map from build (MAP estimate with the prior pose as a '
+                    'Gaussian factor; robust point-to-surface residuals weighted by 1 / (map variance + sensor '
+                    'noise); points the map does not answer weigh nothing). Prints JSON: pose (4x4, sensor -> map), '
+                    'xyz, rpy_deg, covariance (6x6: x, y, z in m, rotations about the map\'s X, Y, Z axes in rad, '
+                    'at the sensor), std (m, deg), iterations, queries, points, points_used, converged, seconds; one '
+                    'JSON line per scan when several are given.',
+        epilog="""how to localise your own drive:
+  1. Map the street: uncertain-facade-map build DRIVE1.ply ... --out map.npz (or replay bags). The map
+     frame is the frame of those clouds (georeferenced = map + the map's origin, printed by build).
+  2. Export each scan to localise as PLY, PCD, NPZ or LAS/LAZ with its points in the SENSOR frame
+     (x, y, z fields, metres; de-skewed if the sensor moved during the sweep; every class may stay:
+     ground, cars and trees find no façade and weigh nothing).
+  3. Give each scan's prior pose of the sensor in the map frame, from GNSS/INS or odometry:
+       --prior X,Y,Z,ROLL,PITCH,YAW     metres and degrees (ROS: R = Rz(yaw) Ry(pitch) Rx(roll))
+       --prior pose.npy | pose.txt      a 4x4 sensor -> map matrix
+       --priors poses.txt               one line "X Y Z ROLL PITCH YAW" per scan, in the order given
+     with --georeferenced if those coordinates are georeferenced (the map's CRS, e.g. UTM), and its
+     standard deviations --prior-std SX,SY,SZ,SROLL,SPITCH,SYAW (m, deg; default localise.prior_*,
+     2 m / 3 deg: GNSS in a street canyon). The map answers only near its façades (about 1 m behind
+     and 2 m in front): priors up to localise.search_radius (3 m) and search_yaw (5 deg) off are
+     searched; further off, give a better prior.
+  4. uncertain-facade-map localise map.npz scan_*.ply --priors poses.txt --out poses.jsonl
+     and read the poses. Check "converged" and "std": vertical façades leave the height (and along
+     a straight street without cross walls, the position along it) to the prior, and the
+     covariance says so.
+  Parameters: the localise section of the parameter file (--config), docs/parameters.md.""")
+    loc.add_argument('map', metavar='MAP', help='map file from build')
+    loc.add_argument('scans', nargs='+', metavar='SCAN', help='scans (PLY, PCD, NPZ, LAS/LAZ), points in the sensor frame')
+    loc.add_argument('--prior', metavar='POSE',
+                     help='prior pose of one scan: X,Y,Z,ROLL,PITCH,YAW (metres, degrees) or a 4x4 .npy/.txt file')
+    loc.add_argument('--priors', metavar='FILE', help='prior poses, one line "X Y Z ROLL PITCH YAW" per scan')
+    loc.add_argument('--prior-std', metavar='SX,SY,SZ,SROLL,SPITCH,SYAW',
+                     help='standard deviations of the prior, metres and degrees (default: localise.prior_position_std '
+                          'and prior_rotation_std, 2 m / 3 deg)')
+    loc.add_argument('--georeferenced', action='store_true',
+                     help="prior and output positions are georeferenced (map frame + the map's origin)")
+    loc.add_argument('--constant-variance', type=float, metavar='V',
+                     help='take the map as exact: every answer\'s variance is V m^2 (a baseline; default: the map\'s '
+                          'own variance)')
+    loc.add_argument('--max-points', type=int, metavar='N', help='scan points used at most (default localise.max_points)')
+    loc.add_argument('--out', metavar='JSON', help='write the JSON here (default: print it)')
+    loc.add_argument('--config', metavar='YAML', help='ROS 2 parameter file (localise and query sections)')
+    loc.set_defaults(func=cmd_localise)
 
     plot = sub.add_parser('plot', help="draw a map's façades and an overview as PNG figures",
                           description='Write per façade facade_<id>.png (points by GMM layer, GP training points '

@@ -60,6 +60,8 @@ from . import se3
 
 #: Below this (metres) the annealing scale is zero.
 _TAU_MIN = 0.01
+#: The annealing scale shrinks this much a round.
+_ANNEAL = 8.0
 __all__ = ['PoseEstimate', 'localise', 'patch_counts', 'robust_weights', 'subsample', 'point_jacobian']
 
 
@@ -101,8 +103,11 @@ def subsample(xyz: np.ndarray, voxel: float, max_points: int, seed: int) -> np.n
     n = len(xyz)
     if voxel > 0 and n:
         cells = np.floor(xyz / voxel).astype(np.int64)
+        cells -= cells.min(axis=0)
+        span = cells.max(axis=0) + 1
+        key = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]  # one integer per voxel
         order = rng.permutation(n)  # the first point of a voxel in this order is a random one
-        _, first = np.unique(cells[order], axis=0, return_index=True)
+        _, first = np.unique(key[order], return_index=True)
         keep = order[first]
     else:
         keep = np.arange(n)
@@ -167,7 +172,7 @@ def _centred_exp(delta: np.ndarray, pose: np.ndarray, centre: np.ndarray) -> np.
     """``C exp(delta) C^-1 pose``."""
     step = se3.se3_exp(delta)
     step[:3, 3] += centre - step[:3, :3] @ centre
-    return se3.compose(step, pose)
+    return step @ pose  # re-orthonormalised once at the end of localise()
 
 
 def _check_inputs(scan: Any, prior_pose: Any, prior_covariance: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -237,17 +242,19 @@ def _search_start(points: np.ndarray, prior: np.ndarray, prior_factor: tuple, ce
     # them most (points are in the sensor frame here: the range is their norm)
     far = points[np.linalg.norm(points, axis=1) >= np.median(np.linalg.norm(points, axis=1))]
     pick = far[rng.choice(len(far), min(params.search_points, len(far)), replace=False)]
-    candidates = [np.array([ox, oy, 0.0, 0.0, 0.0, yaw]) for yaw in yaws for ox, oy in offsets]
-    poses = [_centred_exp(d, prior, centre) for d in candidates]
-    xyz = np.concatenate([se3.transform_points(p, pick) for p in poses])
+    candidates = np.array([[ox, oy, 0.0, 0.0, 0.0, yaw] for yaw in yaws for ox, oy in offsets])
+    # the candidates' points, vectorised: turned about the centre by the yaw, then moved (a pure yaw's
+    # exp moves by J(phi) rho; the grid is what is scored, the best candidate's pose is made from its own twist)
+    rel = se3.transform_points(prior, pick) - centre
+    turned = np.einsum('yij,mj->ymi', se3.so3_exp(np.column_stack([np.zeros((len(yaws), 2)), yaws])), rel)
+    shifts = np.array([se3.so3_left_jacobian(c[3:]) @ c[:3] for c in candidates]).reshape(len(yaws), -1, 3)
+    xyz = (centre + turned[:, None, :, :] + shifts[:, :, None, :]).reshape(-1, 3)
     facade, sd, _, _ = ask(xyz, constant_variance)
     width = max(step / 2.0, 0.05)
     score = np.where(facade >= 0, np.exp(-0.5 * (sd / width) ** 2), 0.0).reshape(len(candidates), len(pick)).sum(1)
     # the prior's log density breaks near-ties (a street seen end-on): the candidate nearest the prior wins them
-    offsets6 = np.array(candidates)
-    score -= 0.5 * np.einsum('ij,ij->i', offsets6, cho_solve(prior_factor, offsets6.T).T)
-    best = int(np.argmax(score))
-    return poses[best]
+    score -= 0.5 * np.einsum('ij,ij->i', candidates, cho_solve(prior_factor, candidates.T).T)
+    return _centred_exp(candidates[int(np.argmax(score))], prior, centre)
 
 
 # ----------------------------------------------------------------------------------------
@@ -314,8 +321,8 @@ def localise(scan: np.ndarray, prior_pose: np.ndarray, prior_covariance: np.ndar
         else:
             sigma2 = var + sensor2
         sigma = np.sqrt(sigma2)
-        # annealing: the kernel's scale is at least tau metres, tau shrinking 4x a round (module docstring)
-        tau = params.anneal_start / 4.0**_round
+        # annealing: the kernel's scale is at least tau metres, tau shrinking 8x a round (module docstring)
+        tau = params.anneal_start / _ANNEAL**_round
         tau = tau if tau >= _TAU_MIN else 0.0
         scale = params.kernel_scale * np.sqrt(1.0 + tau**2 / sigma2)
         start_pose = pose
@@ -328,6 +335,7 @@ def localise(scan: np.ndarray, prior_pose: np.ndarray, prior_covariance: np.ndar
         if tau == 0.0 and (small or float(moved @ hessian @ moved) < params.mahalanobis_tolerance**2):
             converged = True
             break
+    pose = se3.compose(pose, np.eye(4))  # re-orthonormalised
     # covariance at the centre c, moved to the estimate's position c'
     try:
         h_factor = cho_factor(hessian, lower=True)
