@@ -240,7 +240,8 @@ def write_report(out: Path, scenarios: list[L.Scenario], outcomes: list[L.Outcom
               f"{meta['perturbation']['heading_deg']} deg (uniform, either sign), z sigma "
               f"{meta['perturbation']['z_sigma']} m, roll/pitch sigma {meta['perturbation']['tilt_sigma_deg']} deg; "
               f"prior covariance diagonal, sigma {meta['prior_sigma']}. Seed {meta['seed']}.", '',
-              f"Rows: {'; '.join(f'{k} {v}' for k, v in meta['row_descriptions'].items())}.", '']
+              f"Rows: {'; '.join(f'{k} {v}' for k, v in meta['row_descriptions'].items())}. "
+              f"Normals of rows (a)/(b): {meta['normals']}.", '']
     for sc in scenarios:
         lines.append(f'## {sc.name} ({sc.kind})')
         lines.append('')
@@ -347,6 +348,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--gicp-stages', type=_floats, default=(3.0, 1.5, 0.5),
                    help='GICP maximum correspondence distances, coarse to fine, m (default: 3,1.5,0.5)')
     p.add_argument('--gicp-threads', type=int, default=1, help='GICP threads (default: %(default)s)')
+    p.add_argument('--normals', choices=('surface', 'plane'), default='surface',
+                   help="normals of rows (a)/(b): the map's answers' (the mean surface's; the façade plane's when "
+                        "the answers carry none) or the façade plane's (default: %(default)s)")
     p.add_argument('--stub', action='store_true', help='rows (a)/(b) run the stub even when the localiser exists')
     p.add_argument('--quick', action='store_true',
                    help='a smoke run: scene small, campaign 1, one scan, 3,000 points, no real row')
@@ -378,10 +382,10 @@ def main(argv: list[str] | None = None) -> int:
     descriptions = {}
     for r in rows_wanted:
         if r == 'a':
-            rows[ROW_NAMES[r]] = L.localiser_row(localise)
+            rows[ROW_NAMES[r]] = L.localiser_row(localise, plane_normals=args.normals == 'plane')
             descriptions[r] = 'localise() with the map\'s variance' + ('' if real_localiser else ' (STUB)')
         elif r == 'b':
-            rows[ROW_NAMES[r]] = L.localiser_row(localise, constant)
+            rows[ROW_NAMES[r]] = L.localiser_row(localise, constant, plane_normals=args.normals == 'plane')
             descriptions[r] = 'localise() with one constant variance' + ('' if real_localiser else ' (STUB)')
         elif r == 'c':
             rows[ROW_NAMES[r]] = gicp_row(args.gicp_stages, threads=args.gicp_threads)
@@ -414,6 +418,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f'error: {exc}', file=sys.stderr)
         return 2
     outcomes = L.run(scenarios, rows, progress=print)
+    from uncertain_facade_map.pipeline.step7_queries import PointQuery
+
+    answers_have_normals = 'normal' in getattr(PointQuery, '__dataclass_fields__', {})
+    normals_used = ('the façade planes\' (--normals plane)' if args.normals == 'plane' else
+                    "the map answers' (the mean surface's gradient)" if answers_have_normals else
+                    "the façade planes' (the map's answers carry no normal in this version)")
     cov = L.prior_covariance(spec)
     sd = np.sqrt(np.diag(cov))
     meta = {
@@ -425,7 +435,7 @@ def main(argv: list[str] | None = None) -> int:
                          'z_sigma': spec.z_sigma, 'tilt_sigma_deg': spec.tilt_sigma_deg},
         'prior_sigma': (f'x, y {sd[0]:.2f} m, z {sd[2]:.2f} m, roll/pitch {np.rad2deg(sd[3]):.2f} deg, '
                         f'yaw {np.rad2deg(sd[5]):.2f} deg'),
-        'row_descriptions': descriptions, 'constant_variance': constant_used,
+        'row_descriptions': descriptions, 'constant_variance': constant_used, 'normals': normals_used,
         'options': dict(vars(args)),
     }
     write_report(Path(args.out), scenarios, outcomes, _clean(meta))

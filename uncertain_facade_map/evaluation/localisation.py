@@ -254,15 +254,16 @@ def thin(xyz: np.ndarray, voxel: float = 0.1) -> np.ndarray:
     return xyz[np.sort(first)]
 
 
-def map_query(fmap: Any) -> Callable[[np.ndarray], Any]:
-    """The map's point query as the localiser calls it: ``FacadeMap.query`` with the
-    façade plane's unit outward normal added as ``normal`` ((M, 3), NaN where facade == -1)
-    when the answers do not carry one yet."""
+def map_query(fmap: Any, plane_normals: bool = False) -> Callable[[np.ndarray], Any]:
+    """The map's point query as the localiser calls it: ``FacadeMap.query``, its answers'
+    ``normal`` (the mean surface's, issue 28 item 1) replaced by the façade plane's unit
+    outward normal ((M, 3), NaN where facade == -1) when ``plane_normals`` or when the
+    answers carry none."""
     normals = np.array([f.frame.normal for f in fmap.facades], dtype=np.float64).reshape(-1, 3)
 
     def query(xyz: np.ndarray) -> Any:
         answer = fmap.query(np.asarray(xyz, dtype=np.float64))
-        if getattr(answer, 'normal', None) is not None:
+        if not plane_normals and getattr(answer, 'normal', None) is not None:
             return answer
         facade = np.asarray(answer.facade)
         normal = np.full((len(facade), 3), np.nan)
@@ -503,17 +504,18 @@ def constant_variance(scenario: Scenario, max_points: int = 20_000, seed: int = 
 
 
 def localiser_row(localise: Callable[..., Any], constant: float | Callable[[Scenario], float] | None = None,
-                  params: Any = None) -> Method:
+                  params: Any = None, plane_normals: bool = False) -> Method:
     """Rows (a) and (b): ``localise`` (the API of ``uncertain_facade_map.localisation``)
-    asking the scenario's map, with its variance (``constant`` None) or one constant
-    variance (m^2, or a function of the scenario giving it; computed once per scenario)."""
+    asking the scenario's map (:func:`map_query`), with its variance (``constant`` None) or
+    one constant variance (m^2, or a function of the scenario giving it; computed once per
+    scenario)."""
     queries: dict[int, Callable] = {}
     constants: dict[int, float | None] = {}
 
     def row(scan: np.ndarray, prior: np.ndarray, covariance: np.ndarray, scenario: Scenario) -> Estimate:
         key = id(scenario)
         if key not in queries:
-            queries[key] = map_query(scenario.fmap)
+            queries[key] = map_query(scenario.fmap, plane_normals)
             # The first query builds the map's per-point reading (seconds on a street): not a scan's time.
             queries[key](scenario.map_points[:10])
             constants[key] = constant(scenario) if callable(constant) else constant
