@@ -361,7 +361,8 @@ def points_from_request(request: Any, max_points: int | None) -> np.ndarray:
 
     Reads ``request.points``: a sequence of ``geometry_msgs/Point`` (attributes x, y, z;
     read in C through ``operator.attrgetter`` and ``np.fromiter``, no Python loop body),
-    or an (N, 3) numeric array.
+    or an (N, 3) numeric array; when it is empty, ``request.xyz`` (if the request has it):
+    3 numbers per point, x0, y0, z0, x1, ... (the fast way: no message per point).
 
     Args:
         request: ``QueryPoints.Request`` or anything with ``points``.
@@ -378,11 +379,21 @@ def points_from_request(request: Any, max_points: int | None) -> np.ndarray:
     """
     pts = request.points
     n = len(pts)
+    flat_xyz = getattr(request, 'xyz', None) if n == 0 else None
+    if flat_xyz is not None and len(flat_xyz):
+        if len(flat_xyz) % 3:
+            raise InputError(f'query xyz must hold 3 numbers per point, got {len(flat_xyz)} numbers')
+        n = len(flat_xyz) // 3
     if max_points is not None and n > int(max_points):
         raise InputError(f'{n} query points, at most {int(max_points)} are accepted per request')
     if n == 0:
         return np.zeros((0, 3), dtype=np.float64)
-    if isinstance(pts, np.ndarray) and pts.ndim == 2:
+    if flat_xyz is not None and len(flat_xyz):
+        try:
+            xyz = np.array(flat_xyz, dtype=np.float64).reshape(n, 3)
+        except (TypeError, ValueError) as err:
+            raise InputError(f'query point coordinates must be numbers: {err}') from None
+    elif isinstance(pts, np.ndarray) and pts.ndim == 2:
         if pts.shape[1] != 3:
             raise InputError(f'query points must be (N, 3), got shape {pts.shape}')
         xyz = np.array(pts, dtype=np.float64)
@@ -410,7 +421,8 @@ def fill_query_response(response: Any, answers: Any, message: str = '', *,
         response: ``QueryPoints.Response`` (or anything with its fields); modified in place.
         answers: mapping with (N,) arrays ``facade`` (int, -1 for none), ``mean_depth``
             (metres), ``variance`` (m^2), ``noise_variance`` (m^2), ``signed_distance``
-            (metres, positive outside) and ``p_occupied``, as
+            (metres, positive outside) and ``p_occupied``, and optionally the (N, 3)
+            ``normal`` (unit, map frame; written 3 numbers per point), as
             :meth:`uncertain_facade_map.pipeline.step7_queries.PointQuery.as_dict` gives; a ``PointQuery``
             itself is accepted too.
         message: the response's ``message``.
@@ -419,11 +431,12 @@ def fill_query_response(response: Any, answers: Any, message: str = '', *,
             ``response`` is a dataclass (then numpy arrays).
 
     Returns:
-        ``response``, with ``success = True``, ``message`` and the six arrays set.
+        ``response``, with ``success = True``, ``message`` and the arrays set (``normal``
+        when the answers and the response have it).
 
     Raises:
-        InputError: a missing answer, arrays of different lengths or not 1-D, or façade ids
-            outside int32.
+        InputError: a missing answer, arrays of different lengths or not 1-D (``normal``:
+            not (N, 3)), or façade ids outside int32.
     """
     if hasattr(answers, 'as_dict'):
         answers = answers.as_dict()
@@ -437,10 +450,17 @@ def fill_query_response(response: Any, answers: Any, message: str = '', *,
     facade = arrays['facade']
     if facade.size and (facade.min() < -2**31 or facade.max() >= 2**31):
         raise InputError('façade ids do not fit int32')
+    normal = answers.get('normal')
+    if normal is not None:
+        normal = np.asarray(normal, dtype=np.float64)
+        if normal.shape != (len(facade), 3):
+            raise InputError(f'query normals must be ({len(facade)}, 3), got shape {normal.shape}')
     encoder = msg_types if msg_types is not None else SimpleNamespace()
     cls = type(response)
     for key, (dtype, code) in QUERY_FIELDS.items():
         setattr(response, key, _encode(encoder, cls, arrays[key].astype(dtype), code))
+    if normal is not None and hasattr(response, 'normal'):
+        response.normal = _encode(encoder, cls, normal.reshape(-1), 'd')
     response.success = True
     response.message = str(message)
     return response

@@ -84,18 +84,31 @@ class SpinningClient:
         self.rclpy.shutdown(context=self.context)
 
 
-def query_request(xyz: np.ndarray, resolution: float = 0.0) -> Any:
-    """A ``QueryPoints`` request for (N, 3) map-frame points, metres (resolution 0: the node's default)."""
-    from geometry_msgs.msg import Point
-
+def query_request(xyz: np.ndarray, resolution: float = 0.0, flat: bool = False) -> Any:
+    """A ``QueryPoints`` request for (N, 3) map-frame points, metres (resolution 0: the node's
+    default); ``flat``: in the request's ``xyz`` field, 3 numbers per point (no message per
+    point: the fast way for large batches), else as ``geometry_msgs/Point`` messages."""
     from uncertain_facade_map.srv import QueryPoints
 
+    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     request = QueryPoints.Request()
-    request.points = [Point(x=float(x), y=float(y), z=float(z)) for x, y, z in np.asarray(xyz, dtype=np.float64)]
+    if flat:
+        from msg_adapters.map_messages import encode_array
+
+        request.xyz = encode_array(xyz, 'd')
+    else:
+        from geometry_msgs.msg import Point
+
+        request.points = [Point(x=float(x), y=float(y), z=float(z)) for x, y, z in xyz]
     request.resolution = float(resolution)
     return request
 
 
 def answers_of(response: Any) -> dict[str, np.ndarray]:
-    """The per-point answers of a ``QueryPoints`` response, as arrays by :data:`ANSWER_KEYS`."""
-    return {k: np.asarray(getattr(response, k)) for k in ANSWER_KEYS}
+    """The per-point answers of a ``QueryPoints`` response, as arrays by :data:`ANSWER_KEYS`,
+    and ``normal`` as (N, 3) when the response carries it."""
+    out = {k: np.asarray(getattr(response, k)) for k in ANSWER_KEYS}
+    normal = getattr(response, 'normal', None)
+    if normal is not None and len(normal) == 3 * len(out['facade']):
+        out['normal'] = np.asarray(normal, dtype=np.float64).reshape(-1, 3)
+    return out

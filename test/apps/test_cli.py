@@ -111,12 +111,17 @@ def test_query_contract(simulated, built, tmp_path):
     assert main(['query', str(built), '--points', str(tmp_path / 'p.npy'), '--out', str(tmp_path / 'r.npz'),
                  '--resolution', '0.05']) == 0
     with np.load(tmp_path / 'r.npz') as r:
-        assert set(r.files) == {'facade', 'mean_depth', 'variance', 'noise_variance', 'signed_distance', 'p_occupied'}
-        assert all(r[k].shape == (len(pts),) for k in r.files)
+        assert set(r.files) == {'facade', 'mean_depth', 'variance', 'noise_variance', 'signed_distance', 'p_occupied',
+                                'normal'}
+        assert all(r[k].shape == ((len(pts), 3) if k == 'normal' else (len(pts),)) for k in r.files)
         assert np.issubdtype(r['facade'].dtype, np.integer)
         on = r['facade'] >= 0
         assert on.mean() > 0.3
         assert np.nanmedian(np.abs(r['signed_distance'][on])) < 0.05
+        np.testing.assert_allclose(np.linalg.norm(r['normal'][on], axis=1), 1.0, atol=1e-12)
+        assert np.isnan(r['normal'][~on]).all()
+        # mostly horizontal: façades are vertical
+        assert np.median(np.abs(r['normal'][on, 2])) < 0.2
 
 
 def test_query_reads_the_learnt_plsc_unless_the_configuration_says_fixed(simulated, built, tmp_path):

@@ -81,3 +81,30 @@ def test_a_snapshot_answers_as_its_map(wall):
     for config in (QueryConfig(), QueryConfig(surface='raster')):
         _assert_same(snap.query(probe, config, 0.05), fmap.query(probe, config, 0.05))
     assert snap.local_surface() is snap.local_surface()
+
+
+def test_normals_of_a_flat_wall_are_its_normal(wall):
+    """A flat wall scanned from y < WALL_Y with 2 cm noise: the answers' normals (raster alone
+    and with the local reading blended in) are unit vectors around the wall's outward normal
+    (towards the sensor, -y; their mean within 1 degree of it; each one the slope of a mean
+    surface fitted to noisy points at the cell's or the 12 neighbours' scale: 4.6 and 7.6
+    degrees off in the median), NaN exactly where no façade answers; the signed distance
+    grows by the step taken along them."""
+    xyz, origins, probe = wall
+    fmap = build_map(xyz, None, origins)
+    outward = np.array([0.0, -1.0, 0.0])
+    for config in (QueryConfig(), QueryConfig(surface='raster')):
+        got = fmap.query(probe, config)
+        hit = got.facade >= 0
+        assert hit.mean() > 0.8
+        assert np.isnan(got.normal[~hit]).all() and np.isfinite(got.normal[hit]).all()
+        np.testing.assert_allclose(np.linalg.norm(got.normal[hit], axis=1), 1.0, atol=1e-12)
+        angle = np.degrees(np.arccos(np.clip(got.normal[hit] @ outward, -1.0, 1.0)))
+        mean = got.normal[hit].mean(axis=0)
+        assert np.degrees(np.arccos(mean @ outward / np.linalg.norm(mean))) < 1.0
+        assert np.median(angle) < 10.0 and np.percentile(angle, 90) < 25.0, (config.surface, np.median(angle))
+        # 1 cm along the normal moves the signed distance by about 1 cm
+        moved = fmap.query(probe[hit] + 0.01 * got.normal[hit], config)
+        same = moved.facade == got.facade[hit]
+        change = moved.signed_distance[same] - got.signed_distance[hit][same]
+        assert np.median(np.abs(change - 0.01)) < 1e-3

@@ -335,6 +335,18 @@ def test_points_from_request_round_trip(types, xyz):
     assert out.dtype == np.float64 and out.shape == (len(xyz), 3)
     np.testing.assert_array_equal(out, xyz)
     np.testing.assert_array_equal(points_from_request(SimpleNamespace(points=xyz), None), xyz)
+    # the flat field, 3 numbers per point (used when points is empty)
+    flat = SimpleNamespace(points=[], xyz=array.array('d', xyz.reshape(-1).tolist()))
+    np.testing.assert_array_equal(points_from_request(flat, max_points=40), xyz)
+
+
+def test_points_from_request_flat_errors():
+    with pytest.raises(InputError, match='3 numbers per point'):
+        points_from_request(SimpleNamespace(points=[], xyz=[1.0, 2.0]), None)
+    with pytest.raises(InputError, match='at most 1'):
+        points_from_request(SimpleNamespace(points=[], xyz=[0.0] * 6), 1)
+    with pytest.raises(InputError, match='NaN'):
+        points_from_request(SimpleNamespace(points=[], xyz=[0.0, np.nan, 1.0]), None)
 
 
 def test_points_from_request_errors(types):
@@ -357,13 +369,18 @@ def test_fill_query_response_from_point_query():
     from uncertain_facade_map.pipeline.step7_queries import PointQuery
     answers = PointQuery(np.array([0, -1, 4], np.int32), np.array([0.1, np.nan, -0.2]),
                          np.array([1e-4, np.nan, 2e-4]), np.array([4e-4, np.nan, 4e-4]),
-                         np.array([0.05, np.nan, -0.3]), np.array([0.2, 0.5, 1.0]))
-    response = fill_query_response(SimpleNamespace(success=False, message='x'), answers, 'ok')
+                         np.array([0.05, np.nan, -0.3]), np.array([0.2, 0.5, 1.0]),
+                         np.array([[0.0, -1.0, 0.0], [np.nan] * 3, [0.6, 0.8, 0.0]]))
+    response = fill_query_response(SimpleNamespace(success=False, message='x', normal=None), answers, 'ok')
     assert response.success is True and response.message == 'ok'
     for key, value in answers.as_dict().items():
         got = getattr(response, key)
         assert isinstance(got, array.array) and got.typecode == ('i' if key == 'facade' else 'd')
-        np.testing.assert_array_equal(np.array(got), value)
+        np.testing.assert_array_equal(np.array(got), value.reshape(-1))  # normal: 3 numbers per point
+    old = fill_query_response(SimpleNamespace(success=False, message='x'), answers)  # a response without normals
+    assert not hasattr(old, 'normal') and old.success
+    with pytest.raises(InputError, match='normals'):
+        fill_query_response(SimpleNamespace(normal=None), dict(answers.as_dict(), normal=np.zeros((3, 2))))
     # a dict, and a dataclass response (rosbags-like) gets numpy arrays
     import dataclasses
     Resp = dataclasses.make_dataclass('Resp', ['success', 'message', *mm.QUERY_FIELDS])

@@ -321,6 +321,10 @@ def test_service_answers_equal_the_offline_core(client, mapped, scans, workdir):
     # Another resolution.
     response = client.call(QueryPoints, 'query_points', query_request(xyz[:500], 0.05))
     assert_answers_equal(answers_of(response), offline.query(xyz[:500], QueryConfig(), 0.05).as_dict())
+    # The points as 3 numbers each (the fast request) get the same answers, normals included.
+    flat = answers_of(client.call(QueryPoints, 'query_points', query_request(xyz, flat=True)))
+    assert flat['normal'].shape == (len(xyz), 3)
+    assert_answers_equal(flat, expected)
 
 
 def test_get_facades_describes_the_models(client, mapped, scans):

@@ -51,8 +51,10 @@ def test_point_query_answers(model):
     # sigma_eta is estimated from the points (their noise is 2 cm).
     np.testing.assert_allclose(np.sqrt(res.noise_variance[:3]), 0.02, rtol=0.1)
     assert np.isnan(res.mean_depth[3]) and res.p_occupied[3] == 0.5
-    for arr in res.as_dict().values():
-        assert arr.shape == (5,)
+    for key, arr in res.as_dict().items():
+        assert arr.shape == ((5, 3) if key == 'normal' else (5,))
+    np.testing.assert_allclose(res.normal[:3] @ frame.normal, 1.0, atol=0.05)  # a flat wall's answers
+    assert np.isnan(res.normal[3:]).all()
 
 
 def test_points_on_the_face_of_a_step_are_on_the_surface(model):

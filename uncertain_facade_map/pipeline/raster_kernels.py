@@ -134,10 +134,14 @@ def assign_all(xyz, origin, axes, corner, cell, shape, offset, facet, box_lo, bo
 
 @njit(cache=True)
 def _surface_at(f, u, v, corner, cell, shape, offset, mean, var, facet):
+    """Mean depth, variance and the mean's slopes (dm/du, dm/dv) at (u, v) of façade ``f``:
+    bilinear inside one facet (its slopes; 0 where the location is clamped to the raster's
+    edge), the nearest cell otherwise (flat: slopes 0)."""
     h, w = shape[f, 0], shape[f, 1]
     o = offset[f]
-    fu = (u - corner[f, 0]) / cell[f] - 0.5
-    fv = (v - corner[f, 1]) / cell[f] - 0.5
+    cl = cell[f]
+    fu = (u - corner[f, 0]) / cl - 0.5
+    fv = (v - corner[f, 1]) / cl - 0.5
     c0 = min(max(int(np.floor(fu)), 0), max(w - 2, 0))
     r0 = min(max(int(np.floor(fv)), 0), max(h - 2, 0))
     c1 = min(c0 + 1, w - 1)
@@ -150,27 +154,35 @@ def _surface_at(f, u, v, corner, cell, shape, offset, mean, var, facet):
         w00, w01, w10, w11 = (1 - tu) * (1 - tv), tu * (1 - tv), (1 - tu) * tv, tu * tv
         m = w00 * mean[a] + w01 * mean[b] + w10 * mean[c] + w11 * mean[d]
         s = w00 * var[a] + w01 * var[b] + w10 * var[c] + w11 * var[d]
-        return m, s
+        du = ((1 - tv) * (mean[b] - mean[a]) + tv * (mean[d] - mean[c])) / cl if 0.0 < fu - c0 < 1.0 else 0.0
+        dv = ((1 - tu) * (mean[c] - mean[a]) + tu * (mean[d] - mean[b])) / cl if 0.0 < fv - r0 < 1.0 else 0.0
+        return m, s, du, dv
     rn = r0 if tv < 0.5 else r1
     cn = c0 if tu < 0.5 else c1
-    return mean[o + rn * w + cn], var[o + rn * w + cn]
+    return mean[o + rn * w + cn], var[o + rn * w + cn], 0.0, 0.0
 
 
 @njit(cache=True, parallel=True)
 def raster_answer_all(which, uvd, corner, cell, shape, offset, mean, var, facet, observed, lo, hi, noise, reach,
-                      mean_out, var_out, noise_out, dist_out):
+                      mean_out, var_out, noise_out, dist_out, grad_out):
     """:func:`~.step7_queries._raster_answer`: (N,) mean depth, variance, noise variance
     and signed distance (the nearer step faces searched within ``reach``) written where
-    ``which`` >= 0, NaN elsewhere."""
+    ``which`` >= 0, NaN elsewhere; and (N, 3) ``grad_out``, the gradient of the signed
+    distance with respect to the point, façade frame (u, v, d): ``(-dm/du, -dm/dv, 1)``
+    off the step faces, the unit direction within the plane from the nearest face's
+    nearest point to the point (times the distance's sign) where a face is nearer; NaN
+    where ``which`` is -1."""
     n = len(which)
     for b in prange((n + _BATCH - 1) // _BATCH):
         for i in range(b * _BATCH, min(n, (b + 1) * _BATCH)):
             f = which[i]
             if f < 0:
                 mean_out[i] = var_out[i] = noise_out[i] = dist_out[i] = np.nan
+                grad_out[i, 0] = grad_out[i, 1] = grad_out[i, 2] = np.nan
                 continue
             u, v, d = uvd[i, 0], uvd[i, 1], uvd[i, 2]
-            m, s = _surface_at(f, u, v, corner, cell, shape, offset, mean, var, facet)
+            m, s, du, dv = _surface_at(f, u, v, corner, cell, shape, offset, mean, var, facet)
+            grad_out[i, 0], grad_out[i, 1], grad_out[i, 2] = -du, -dv, 1.0
             mean_out[i] = m
             noise_out[i] = noise[f]
             distance = d - m
@@ -190,6 +202,7 @@ def raster_answer_all(which, uvd, corner, cell, shape, offset, mean, var, facet,
             row, col = int(np.floor(vv)), int(np.floor(uu))
             start = abs(distance) / cl
             best, best_var = start, s
+            gu, gv = 0.0, 0.0  # in-plane offset of the point from the best face's nearest point (cells)
             k = int(np.ceil(reach / cl))
             for dr in range(-k - 1, k + 1):
                 for dc in range(-k - 1, k + 1):
@@ -205,17 +218,22 @@ def raster_answer_all(which, uvd, corner, cell, shape, offset, mean, var, facet,
                         if not (min(ma, mb) <= d <= max(ma, mb)):
                             continue
                         if across == 0:
-                            g = np.hypot(uu - (c + 1), vv - min(max(vv, r), r + 1))
+                            ou, ov = uu - (c + 1), vv - min(max(vv, r), r + 1)
                         else:
-                            g = np.hypot(vv - (r + 1), uu - min(max(uu, c), c + 1))
+                            ou, ov = uu - min(max(uu, c), c + 1), vv - (r + 1)
+                        g = np.hypot(ou, ov)
                         if not g * cl <= reach:
                             continue
                         if g < best:
                             best = g
                             best_var = max(var[ia], var[ib]) + cl * cl / 12
+                            gu, gv = ou, ov
             if best < start:
-                dist_out[i] = (-1.0 if distance < 0 else 1.0) * best * cl
+                sign = -1.0 if distance < 0 else 1.0
+                dist_out[i] = sign * best * cl
                 var_out[i] = best_var
+                if best > 0:
+                    grad_out[i, 0], grad_out[i, 1], grad_out[i, 2] = sign * gu / best, sign * gv / best, 0.0
 
 
 #: The kernels on one core (``prange`` runs as ``range``): small calls, where waking the

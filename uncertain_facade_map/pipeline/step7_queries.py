@@ -40,6 +40,9 @@ from .raster_kernels import (
 from .step7_local_surface import LocalReading, LocalSurface, for_query, raster_agreement
 from .step8_occupancy import FIXED, PLSC, UNKNOWN, half_depth, occupancy_model
 
+#: The answers of a point query, in order (:class:`PointQuery`; ``normal`` is (N, 3), the rest (N,)).
+ANSWER_FIELDS = ('facade', 'mean_depth', 'variance', 'noise_variance', 'signed_distance', 'p_occupied', 'normal')
+
 #: What ``p_occupied`` is the probability of (see :func:`query_points`).
 EVENTS = ('surface', 'solid')
 
@@ -216,6 +219,14 @@ class PointQuery:
         noise_variance: (N,) sigma_eta^2, m^2.
         signed_distance: (N,) point depth minus mean depth, metres, positive outside.
         p_occupied: (N,) occupancy probability of the voxel centred at the point.
+        normal: (N, 3) unit outward normal of the mean surface at the point, map frame: the
+            direction of the gradient of ``signed_distance`` with respect to the point's
+            position (``(-dm/du, -dm/dv, 1)`` of the raster's mean depth ``m`` in the façade
+            frame; the face's, within the plane, where a depth step's face is nearer; the
+            local plane's normal blended in with the local reading's weight); NaN where the
+            point belongs to no façade. A localiser's point-to-surface residual is
+            ``signed_distance``, its Jacobian with respect to the point ``normal`` (scaled).
+            No uncertainty: the rasters hold the mean's marginal variance, not its slopes'.
     """
 
     facade: np.ndarray
@@ -224,11 +235,11 @@ class PointQuery:
     noise_variance: np.ndarray
     signed_distance: np.ndarray
     p_occupied: np.ndarray
+    normal: np.ndarray
 
     def as_dict(self) -> dict[str, np.ndarray]:
         """The arrays by name."""
-        return {k: getattr(self, k) for k in ('facade', 'mean_depth', 'variance', 'noise_variance',
-                                              'signed_distance', 'p_occupied')}
+        return {k: getattr(self, k) for k in ANSWER_FIELDS}
 
 
 def raster_bounds(raster: SurfaceRaster) -> tuple[float, float, float, float]:
@@ -332,7 +343,8 @@ def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: fl
     n = len(xyz)
     facade = np.full(n, -1, dtype=np.int32)
     mean, var, noise, dist = (np.full(n, np.nan) for _ in range(4))
-    normal = np.zeros((n, 3))
+    normal = np.zeros((n, 3))  # the occupancy's (the façade's, the local plane's where it leads)
+    surface_normal = np.full((n, 3), np.nan)
     normals = np.array([f.frame.normal for f in facades]).reshape(-1, 3)
     rasters = packed(facades, STEP_REACH)
     boxes = rasters.boxes(band_back, band_front)
@@ -354,11 +366,12 @@ def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: fl
                 u0, u1, v0, v1 = raster_bounds(facades[i].surface)
                 off = (uvd[sel, 0] < u0) | (uvd[sel, 0] > u1) | (uvd[sel, 1] < v0) | (uvd[sel, 1] > v1)
                 weight[sel[off]] = 1.0
-        answer = _raster_answer_compiled(rasters, which, uvd)
+        answer, grad = _raster_answer_compiled(rasters, which, uvd)
         if reading is not None:
-            answer = _blend(answer, reading, weight)
+            answer, grad = _blend(answer, reading, weight, grad)
         facade[part] = which
         mean[part], var[part], noise[part], dist[part] = answer[:4]
+        surface_normal[part] = grad / np.linalg.norm(grad, axis=1, keepdims=True)
         normal[part] = np.where((which >= 0)[:, None], normals[np.maximum(which, 0)] if len(normals) else 0.0, 0.0)
         if reading is not None:
             use_local = weight >= 0.5
@@ -369,7 +382,7 @@ def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: fl
         p = occupancy.solid(dist, var, noise0, resolution)
     else:
         p = occupancy.surface(dist, var, noise0, half_depth(normal, resolution), outside=UNKNOWN)
-    return PointQuery(facade, mean, var, noise, dist, p)
+    return PointQuery(facade, mean, var, noise, dist, p, surface_normal)
 
 
 def _assign(rasters: PackedRasters, boxes: tuple[np.ndarray, np.ndarray], xyz: np.ndarray, band_back: float,
@@ -385,15 +398,20 @@ def _assign(rasters: PackedRasters, boxes: tuple[np.ndarray, np.ndarray], xyz: n
 
 
 def _raster_answer_compiled(rasters: PackedRasters, which: np.ndarray, uvd: np.ndarray
-                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`_raster_answer` by the compiled kernel (:func:`~.raster_kernels.raster_answer_all`)."""
+                            ) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
+    """:func:`_raster_answer` by the compiled kernel (:func:`~.raster_kernels.raster_answer_all`),
+    and the (N, 3) gradient of the signed distance, map frame (NaN where ``which`` is -1)."""
     n = len(which)
     mean, var, noise, dist = (np.empty(n) for _ in range(4))
+    grad = np.empty((n, 3))
     kernel = raster_answer_all if n >= SERIAL_BELOW else raster_answer_all_serial
     kernel(np.ascontiguousarray(which, dtype=np.int32), np.ascontiguousarray(uvd, dtype=np.float64),
            rasters.corner, rasters.cell, rasters.shape, rasters.offset, rasters.mean, rasters.var, rasters.facet,
-           rasters.observed, rasters.lo, rasters.hi, rasters.noise, rasters.reach, mean, var, noise, dist)
-    return mean, var, noise, dist, uvd[:, 2]
+           rasters.observed, rasters.lo, rasters.hi, rasters.noise, rasters.reach, mean, var, noise, dist, grad)
+    # (u, v, d) components to the map frame: the façade's axes' rows are e_u, e_v, n.
+    if len(rasters.axes):
+        grad = np.einsum('ni,nij->nj', grad, rasters.axes[np.maximum(which, 0)])
+    return (mean, var, noise, dist, uvd[:, 2]), grad
 
 
 def _raster_answer(facades: Sequence[FacadeModel], which: np.ndarray, uvd: np.ndarray
@@ -411,13 +429,17 @@ def _raster_answer(facades: Sequence[FacadeModel], which: np.ndarray, uvd: np.nd
     return mean, var, noise, dist, uvd[:, 2]
 
 
-def _blend(answer: tuple[np.ndarray, ...], reading: LocalReading, w: np.ndarray) -> tuple[np.ndarray, ...]:
+def _blend(answer: tuple[np.ndarray, ...], reading: LocalReading, w: np.ndarray, grad: np.ndarray
+           ) -> tuple[tuple[np.ndarray, ...], np.ndarray]:
     """The raster's answer blended with the local reading by the (N,) weights ``w`` (the
     reading's, :mod:`~uncertain_facade_map.pipeline.step7_local_surface` step 5, or 1 off
     the raster), the raster's share scaled by its agreement with the local plane
     (:func:`~uncertain_facade_map.pipeline.step7_local_surface.raster_agreement`): the
-    mixture's mean and variance, so that neither jumps where the weight moves."""
+    mixture's mean and variance, so that neither jumps where the weight moves. The (N, 3)
+    gradient of the signed distance blends alike (the local plane's is its normal; the
+    weight held fixed)."""
     mean, var, noise, dist, depth = (a.copy() for a in answer)
+    grad = grad.copy()
     sel = np.flatnonzero((w > 0) & np.isfinite(dist))
     ws, s_l, s_r = w[sel], reading.signed_distance[sel], dist[sel]
     # The local reading's posterior share: the raster keeps its weight where it agrees with
@@ -428,7 +450,8 @@ def _blend(answer: tuple[np.ndarray, ...], reading: LocalReading, w: np.ndarray)
     var[sel] = ws * reading.variance[sel] + (1.0 - ws) * var[sel] + ws * (1.0 - ws) * np.square(s_l - s_r)
     noise[sel] = ws * reading.noise_variance[sel] + (1.0 - ws) * noise[sel]
     mean[sel] = depth[sel] - dist[sel]
-    return mean, var, noise, dist, depth
+    grad[sel] = ws[:, None] * reading.normal[sel] + (1.0 - ws)[:, None] * grad[sel]
+    return (mean, var, noise, dist, depth), grad
 
 
 def query_map(facades: Sequence[FacadeModel], stored_points: dict[int, np.ndarray], xyz: np.ndarray,
