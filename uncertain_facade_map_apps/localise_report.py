@@ -128,7 +128,7 @@ def _fmt(v: float, digits: int = 2) -> str:
 
 def markdown_table(summaries: dict[str, dict[str, float]], band: tuple[float, float]) -> list[str]:
     """One scenario's rows as a markdown table."""
-    lines = ['| row | scans | pos. median (m) | pos. p95 (m) | horiz. median (m) | horiz. p95 (m) | |z| p95 (m) | '
+    lines = ['| row | scans | pos. median (m) | pos. p95 (m) | horiz. median (m) | horiz. p95 (m) | vert. p95 (m) | '
              'heading median (deg) | heading p95 (deg) | <= 0.2 m & 1 deg | horiz. <= 0.2 m & 1 deg | NEES mean | '
              'NEES in band | NEES mean, converged | converged | failures (flagged) | ms/scan median | ms p95 |',
              '|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|']

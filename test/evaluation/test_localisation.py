@@ -135,6 +135,11 @@ def test_scans_lie_on_the_map_at_the_true_pose_and_not_at_the_prior(small):
         normals = at_truth.normal[hit]
         np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-9)
         assert np.all(np.isnan(at_truth.normal[~hit]))
+        plane = L.map_query(small.fmap, plane_normals=True)(L.transform(case.truth, case.points))
+        expected = np.array([f.frame.normal for f in small.fmap.facades])[at_truth.facade[hit]]
+        np.testing.assert_allclose(plane.normal[hit], expected)
+        np.testing.assert_array_equal(plane.signed_distance, at_truth.signed_distance)
+        assert np.median(np.sum(normals * expected, axis=1)) > 0.95   # the surface's: mostly the wall's
     # Seeded: the same arguments give the same scans and priors.
     again = L.simulated_scenario('small', campaigns=(1,), scans_per_drive=1, max_points=2000, seed=1)
     one = L.simulated_scenario('small', campaigns=(1,), scans_per_drive=1, max_points=2000, seed=1)

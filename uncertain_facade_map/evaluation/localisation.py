@@ -563,23 +563,29 @@ def run(scenarios: Sequence[Scenario], rows: dict[str, Method],
         progress: Callable[[str], None] | None = None) -> list[Outcome]:
     """Localise every scan of every scenario by every row; one :class:`Outcome` each.
 
-    A row that raises on a scan is recorded as failed at its prior (error of the prior,
-    NaN NEES, ``converged`` False) and the message passed to ``progress``.
+    The rows take turns scan by scan (so that a busy machine slows them alike). A row that
+    raises on a scan is recorded as failed at its prior (error of the prior, NaN NEES,
+    ``converged`` False) and the message passed to ``progress``. Outcomes are ordered by
+    scenario, row, scan.
     """
     out = []
     for scenario in scenarios:
-        for name, method in rows.items():
-            started = time.perf_counter()
-            for case in scenario.cases:
+        started = time.perf_counter()
+        by_row: dict[str, list[Outcome]] = {name: [] for name in rows}
+        for case in scenario.cases:
+            for name, method in rows.items():
                 try:
                     est = method(case.points, case.prior, case.prior_covariance, scenario)
                 except Exception as exc:  # noqa: BLE001 - a row failing on one scan is a result
                     if progress:
                         progress(f'{scenario.name} {name} {case.label}: failed ({type(exc).__name__}: {exc})')
                     est = Estimate(case.prior.copy(), None, float('nan'), False)
-                out.append(score(est, case, scenario.name, name))
-            if progress:
-                progress(f'{scenario.name} {name}: {len(scenario.cases)} scans in {time.perf_counter() - started:.1f} s')
+                by_row[name].append(score(est, case, scenario.name, name))
+        for name in rows:
+            out += by_row[name]
+        if progress:
+            progress(f'{scenario.name}: {len(scenario.cases)} scans x {len(rows)} rows in '
+                     f'{time.perf_counter() - started:.1f} s')
     return out
 
 
