@@ -721,11 +721,14 @@ class LocaliseParams(Section):
                               allowed=_closed(0.0, 180.0))
     search_yaw_step: float = param(2.5, 'step of those yaws', unit='degrees', allowed=_closed(0.01, 180.0))
     search_points: int = param(100, 'scan points scored per offset', allowed=_closed(10, 1_000_000))
-    correlation_length: float = param(2.0, "the map's errors are alike within this distance (one surface error "
-                                           'seen by many points): the map variance of each point is multiplied by '
-                                           'the number of used points of its façade within a cube of this side, so '
-                                           'a patch counts once, not once per point; 0: points independent (the '
-                                           'plain Gauss-Newton covariance)', unit='m', allowed=_closed(0.0, 1000.0))
+    correlation_length: float = param(2.0, "the map's surface errors are alike within this distance (one error of the "
+                                           'mean surface seen by many points): the surface variance of each point '
+                                           '(not the noise about the surface) is multiplied by the number of used '
+                                           'points of its façade within a cube of this side, so a patch counts once, '
+                                           'not once per point; 2 m: the wall surface\'s node spacing '
+                                           '(layers.relief_spacing), over which its errors are alike; 0: points '
+                                           'independent (the plain Gauss-Newton covariance, overconfident)',
+                                      unit='m', allowed=_closed(0.0, 1000.0))
     prior_position_std: tuple[float, float, float] = param(
         (2.0, 2.0, 2.0), 'the command line\'s default standard deviation of the prior position (x, y, z), a GNSS '
                          'fix in a street canyon', unit='m', allowed=Interval(0.0, 1e6, 'neither'))

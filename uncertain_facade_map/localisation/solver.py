@@ -8,8 +8,9 @@ cost is
 
     F(T) = sum_i rho(r_i(T) / sigma_i) + 1/2 e(T)^T Sigma_p^-1 e(T)
 
-with ``rho`` a robust kernel (Cauchy or Huber, scale ``kernel_scale`` sigmas) and ``e`` the
-prior's error. Points the map does not answer (``facade == -1``) weigh nothing.
+with ``rho`` a robust kernel (``kernel``: Geman-McClure by default, Cauchy, Huber or none;
+scale ``kernel_scale`` sigmas) and ``e`` the prior's error. Points the map does not answer
+(``facade == -1``) weigh nothing.
 
 Pose perturbations. ``delta = (t, w)`` (6,), ROS order: metres along the map's X, Y, Z,
 then radians about the map's X, Y, Z axes, applied on the left in the map's axes *at the
@@ -27,22 +28,37 @@ Rounds. A map query is the expensive part, so the map is queried once per round 
 current pose (in batches of ``batch_points``); the round then runs Levenberg-Marquardt on
 the *linearised surfaces* ``r_i(T) ~ r_i0 + n_i . (p_i(T) - p_i0)`` (exact for planes; the
 rotation is exact) until the step is below the tolerances; the next round queries again at
-the new pose. It ends when a round moves the pose less than the tolerances (converged), or
-after ``max_queries`` rounds.
+the new pose. It ends when a round moves the pose less than the tolerances, or less than
+``mahalanobis_tolerance`` of its own standard deviations (converged), or after
+``max_queries`` rounds. Annealing: in round j the kernel's scale is at least
+``anneal_start / 8^j`` metres (zero once below 1 cm), so the first rounds, whose start may
+be half a search step off, weigh every answer, and the last ones leave outliers out; a round
+with annealing left cannot end the solve. A round whose move turns back on the previous
+one's (negative inner product under the Hessian: answers flipping across a depth step) moves
+half as far, so such flips die out instead of using up the rounds.
 
 Start. The map answers only within its façade bands (``extraction.band_back`` behind a
 wall, ``band_front`` in front), so a prior 3 m off may leave a street's walls unanswered.
-Before the first round a grid of horizontal offsets (and yaws) of the prior is scored with a
-few points each in one batched query, and the best starts the solve; the prior factor stays
-the prior, so directions the scan cannot see still come from the prior.
+Before the first round a grid of horizontal offsets (``search_radius``, ``search_step``) and
+yaws (``search_yaw``, ``search_yaw_step``) of the prior is scored with ``search_points`` of
+the scan's farther half each, in one batched query: per candidate, the sum over its points
+of ``exp(-sd^2 / 2 (step/2)^2)`` (unanswered: 0) minus half the candidate's squared
+Mahalanobis distance from the prior. The best starts the solve; the prior factor stays the
+prior, so directions the scan cannot see still come from the prior.
 
 Covariance. The inverse of the final Gauss-Newton Hessian ``Sigma_p^-1 + sum_i J_i^T w_i J_i
 / sigma_i^2`` (Cholesky), with the robust weights ``w_i`` of the last iteration. The map's
 errors are spatially correlated (a wall's mean surface is off by the same amount over a
 patch), which points sharing that error cannot average away; ``correlation_length`` > 0
-multiplies each point's map variance ``v_i`` by the number of used points of its façade in
-its cube of that side (see :func:`patch_counts`), so a patch carries the information of one
-surface observation.
+multiplies each point's surface variance ``v_i`` (not ``eta_i``, the scatter about the
+surface, nor the sensor noise: those are the points' own) by the number of used points of
+its façade in its cube of that side (:func:`patch_counts`, keyed by the point moved onto the
+map's surface), so that ``m`` points sharing one surface error carry ``1 / (v + s^2/m)`` of
+information about it, as they should, not ``m / (v + s^2)``. The default, 2 m, is the map's
+wall-surface node spacing (``layers.relief_spacing``): the mean surface is a smooth surface
+with nodes that far apart, so its errors are alike over about that distance. It is a model
+choice, not fitted: see the tests (a world of planes whose errors are alike over 3 m patches:
+NEES of the plain Hessian far above its band, inside it with ``correlation_length`` 3 m).
 """
 
 from __future__ import annotations
@@ -204,27 +220,29 @@ class _Batched:
         self.query, self.batch, self.calls = query, batch, 0
 
     def __call__(self, xyz: np.ndarray, constant_variance: float | None) -> tuple[np.ndarray, ...]:
-        """(M,) facade, signed distance, variance + noise variance, (M, 3) normals; NaN-free where facade >= 0."""
+        """(M,) facade, signed distance, variance, noise variance, (M, 3) normals; NaN-free where facade >= 0."""
         parts = []
         for start in range(0, len(xyz), self.batch):
             self.calls += 1
             ans = self.query(np.ascontiguousarray(xyz[start:start + self.batch]))
             try:
                 parts.append((np.asarray(ans.facade), np.asarray(ans.signed_distance, dtype=np.float64),
-                              np.asarray(ans.variance, dtype=np.float64) + np.asarray(ans.noise_variance,
-                                                                                    dtype=np.float64),
+                              np.asarray(ans.variance, dtype=np.float64),
+                              np.asarray(ans.noise_variance, dtype=np.float64),
                               np.asarray(ans.normal, dtype=np.float64)))
             except AttributeError as err:
                 raise InputError(f'query: the answer lacks {err.name or "a field"} (needs facade, signed_distance, '
                                  'variance, noise_variance and normal)') from err
-        facade, sd, var, normal = (np.concatenate(x) for x in zip(*parts))
+        facade, sd, var, noise, normal = (np.concatenate(x) for x in zip(*parts))
         if facade.shape != (len(xyz),) or normal.shape != (len(xyz), 3):
             raise InputError(f'query: answered {facade.shape} facades and {normal.shape} normals for {len(xyz)} points')
-        ok = (facade >= 0) & np.isfinite(sd) & np.isfinite(var) & np.isfinite(normal).all(axis=1)
-        if constant_variance is not None:
-            var = np.full(len(xyz), float(constant_variance))
+        ok = ((facade >= 0) & np.isfinite(sd) & np.isfinite(var) & np.isfinite(noise)
+              & np.isfinite(normal).all(axis=1))
+        if constant_variance is not None:  # the map taken as exact: one value for variance + noise
+            var, noise = np.full(len(xyz), float(constant_variance)), np.zeros(len(xyz))
         facade = np.where(ok, facade, -1)
-        return facade, np.where(ok, sd, 0.0), np.where(ok, var, 1.0), np.where(ok[:, None], normal, 0.0)
+        return (facade, np.where(ok, sd, 0.0), np.where(ok, var, 1.0), np.where(ok, noise, 0.0),
+                np.where(ok[:, None], normal, 0.0))
 
 
 def _search_start(points: np.ndarray, prior: np.ndarray, prior_factor: tuple, centre: np.ndarray, ask: _Batched,
@@ -249,7 +267,7 @@ def _search_start(points: np.ndarray, prior: np.ndarray, prior_factor: tuple, ce
     turned = np.einsum('yij,mj->ymi', se3.so3_exp(np.column_stack([np.zeros((len(yaws), 2)), yaws])), rel)
     shifts = np.array([se3.so3_left_jacobian(c[3:]) @ c[:3] for c in candidates]).reshape(len(yaws), -1, 3)
     xyz = (centre + turned[:, None, :, :] + shifts[:, :, None, :]).reshape(-1, 3)
-    facade, sd, _, _ = ask(xyz, constant_variance)
+    facade, sd, _, _, _ = ask(xyz, constant_variance)
     width = max(step / 2.0, 0.05)
     score = np.where(facade >= 0, np.exp(-0.5 * (sd / width) ** 2), 0.0).reshape(len(candidates), len(pick)).sum(1)
     # the prior's log density breaks near-ties (a street seen end-on): the candidate nearest the prior wins them
@@ -309,17 +327,16 @@ def localise(scan: np.ndarray, prior_pose: np.ndarray, prior_covariance: np.ndar
     iterations, converged = 0, False
     hessian = cost = None
     used = 0
+    previous = None
     for _round in range(params.max_queries):
         p0 = se3.transform_points(pose, points)
-        facade, r0, var, normal = ask(p0, constant_variance)
+        facade, r0, var, noise, normal = ask(p0, constant_variance)
         on = facade >= 0
-        p0, r0, var, normal, fac = p0[on], r0[on], var[on], normal[on], facade[on]
+        p0, r0, var, noise, normal, fac = p0[on], r0[on], var[on], noise[on], normal[on], facade[on]
         if params.correlation_length > 0 and constant_variance is None:
-            counts = patch_counts(p0 - r0[:, None] * normal, fac, params.correlation_length)  # on the surface
-            # the map part (variance + noise) is shared within a patch, the sensor's is not
-            sigma2 = var * counts + sensor2
-        else:
-            sigma2 = var + sensor2
+            # the mean surface's error is shared within a patch; the scatter of points about it is not
+            var = var * patch_counts(p0 - r0[:, None] * normal, fac, params.correlation_length)  # on the surface
+        sigma2 = var + noise + sensor2
         sigma = np.sqrt(sigma2)
         # annealing: the kernel's scale is at least tau metres, tau shrinking 8x a round (module docstring)
         tau = params.anneal_start / _ANNEAL**_round
@@ -330,6 +347,12 @@ def localise(scan: np.ndarray, prior_pose: np.ndarray, prior_covariance: np.ndar
         hessian, cost, pose, n_iter, used = _solve_round(body, p0, r0, normal, sigma, scale, pose, prior,
                                                          prior_factor, centre, params)
         iterations += n_iter
+        step = _centred_log(pose, start_pose, start_pose[:3, 3])
+        if previous is not None and float(step @ hessian @ previous) < 0:
+            # the answers flip between two rounds (a depth step crossed back and forth): half the step
+            step = 0.5 * step
+            pose = _centred_exp(step, start_pose, start_pose[:3, 3])
+        previous = step
         moved = _centred_log(pose, start_pose, pose[:3, 3])
         small = np.linalg.norm(moved[:3]) < tol_t and np.linalg.norm(moved[3:]) < tol_r
         if tau == 0.0 and (small or float(moved @ hessian @ moved) < params.mahalanobis_tolerance**2):
