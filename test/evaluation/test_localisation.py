@@ -84,6 +84,7 @@ def test_summary_by_hand():
     assert s['converged_share'] == pytest.approx(0.75)
     assert s['nees_mean_converged'] == pytest.approx(12.5 / 3)    # 5, 0.5, 7: the second is flagged
     assert s['failures'] == 3 and s['failures_flagged'] == 1     # 0.3 m (flagged), 2 deg, 1 m
+    assert s['horizontal_p95_kept'] == pytest.approx(np.percentile([0.1, 0.05, 1.0], 95))
     assert s['position_p95'] == pytest.approx(np.percentile([0.1, 0.3, 0.05, 1.0], 95))
     no_cov = L.summarise([_outcome(0.1, 0.1)])
     assert np.isnan(no_cov['nees_mean']) and np.isnan(no_cov['nees_in_band']) and no_cov['nees_n'] == 0

@@ -596,7 +596,8 @@ def summarise(outcomes: Sequence[Outcome]) -> dict[str, float]:
     (within 0.2 m and 1 degree), ``good_share_horizontal`` (the same, horizontally), ``nees_mean``, ``nees_in_band`` (share in
     :data:`NEES_BAND`; NaN without covariances), ``nees_n`` (scans with a NEES),
     ``ms_median``, ``ms_p95``, ``converged_share`` (NaN when the row gives no verdict),
-    ``nees_mean_converged`` (over the scans the row did not flag as not converged),
+    ``nees_mean_converged`` and ``horizontal_p95_kept`` (over the scans the row did not flag
+    as not converged: what a user who drops flagged scans gets),
     ``failures`` (scans off by more than 0.2 m horizontally or 1 degree) and
     ``failures_flagged`` (of those, the ones the row flagged as not converged)."""
     pos = np.array([o.position for o in outcomes])
@@ -631,6 +632,7 @@ def summarise(outcomes: Sequence[Outcome]) -> dict[str, float]:
         'ms_median': q(ms_ok, 50), 'ms_p95': q(ms_ok, 95),
         'converged_share': float(np.mean(verdicts)) if verdicts else float('nan'),
         'nees_mean_converged': float(conv_nees.mean()) if len(conv_nees) else float('nan'),
+        'horizontal_p95_kept': q(horizontal[flags != 0], 95),
         'failures': int(np.sum(bad)),
         'failures_flagged': int(np.sum(bad & (flags == 0))),
     }
