@@ -1,6 +1,6 @@
 """The localiser against a real FacadeMap: the map of campaign 0 of the simulated `small`
 scene, scans of campaign 1 (the other lane, driven the other way) in the lidar frame,
-priors perturbed like GNSS in a street canyon (0.5-3 m, 1-5 degrees, seeded). About 15 s
+priors perturbed like GNSS in a street canyon (0.5-3 m, 1-5 degrees, seeded). About 4 s
 (the map's build and its first query's set-up are most of it)."""
 
 import numpy as np
