@@ -210,6 +210,25 @@ def targets(tab: dict, kinds: dict[str, tuple[str, int]]) -> list[str]:
     return lines + ['']
 
 
+def paired_table(outcomes: list[L.Outcome], scenarios: list[L.Scenario]) -> list[str]:
+    """Row (a) against (b), (c) and (e) scan by scan, per kind of scenario: the scans only one
+    of the two got within 0.2 m horizontally and 1 degree."""
+    a = ROW_NAMES['a']
+    others = [ROW_NAMES[k] for k in ('b', 'c', 'e') if any(o.row == ROW_NAMES[k] for o in outcomes)]
+    if not any(o.row == a for o in outcomes) or not others:
+        return []
+    lines = ['## Scan by scan', '', 'Scans that only one of two rows got within 0.2 m (horizontally) and 1 deg.', '',
+             '| kind | other row | scans | only (a) | only the other | both failed |', '|---|---|---:|---:|---:|---:|']
+    for kind in dict.fromkeys(s.kind for s in scenarios):
+        names = {s.name for s in scenarios if s.kind == kind}
+        sel = [o for o in outcomes if o.scenario in names]
+        for other in others:
+            p = L.paired(sel, a, other)
+            lines.append(f"| {kind} | {other} | {p['scans']} | {p['first_only']} | {p['second_only']} | "
+                         f"{p['both_failed']} |")
+    return lines + ['']
+
+
 def _commit() -> str:
     try:
         out = subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], cwd=REPO, capture_output=True, text=True,
@@ -267,6 +286,7 @@ def write_report(out: Path, scenarios: list[L.Scenario], outcomes: list[L.Outcom
             if sel:
                 pooled.setdefault(kind, {})[row] = L.summarise(sel)
     lines += targets(tab, {s.name: (s.kind, len(s.cases)) for s in scenarios})
+    lines += paired_table(outcomes, scenarios)
     lines.append('## Pooled by kind of scenario')
     lines.append('')
     for kind, summaries in pooled.items():

@@ -31,7 +31,8 @@ def test_files_and_structure(report):
     assert md.startswith('# Localisation against the uncertain map')
     assert 'Command: `python -m uncertain_facade_map_apps.localise_report --out' in md
     for row in app.ROW_NAMES.values():
-        assert md.count(f'| {row} |') == 2                    # the scenario and the pooled table
+        # the scenario's and the pooled table (and the scan-by-scan one for (b), (c), (e))
+        assert md.count(f'| {row} |') == (3 if row[1] in 'bce' else 2)
     assert set(data['summary']) == {'small'}
     assert list(data['summary']['small']) == list(app.ROW_NAMES.values())
     assert len(data['scans']) == 2 * len(app.ROW_NAMES)
@@ -44,6 +45,7 @@ def test_files_and_structure(report):
     assert data['summary']['small'][app.ROW_NAMES['e']]['nees_mean'] is None
     assert data['meta']['localiser_real'] is (app.find_localiser()[1])
     assert 'small' in data['meta']['constant_variance']
+    assert '## Scan by scan' in md and '| clean | (b) map, constant variance | 2 |' in md
 
 
 def test_prior_row_is_the_perturbation_and_the_localiser_beats_it(report):

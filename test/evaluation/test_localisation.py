@@ -175,3 +175,14 @@ def test_horizontal_and_vertical_parts():
     assert s['vertical_median'] == pytest.approx(0.65)
     assert s['good_share'] == pytest.approx(0.5)              # the first is 1.3 m off in 3-D
     assert s['good_share_horizontal'] == pytest.approx(0.5)   # ... and 0.5 m horizontally
+
+
+def test_paired_counts():
+    def out(row, label, x, heading=0.0):
+        return L.Outcome('s', row, label, np.array([x, 0, 0, 0, 0, 0]), x, heading, 1.0, 0.0, None, np.zeros(6))
+
+    outs = [out('a', '1', 0.1), out('b', '1', 0.5),            # only a
+            out('a', '2', 0.5), out('b', '2', 0.1),            # only b
+            out('a', '3', 0.1, 2.0), out('b', '3', 0.3),       # both failed (a by its heading)
+            out('a', '4', 0.0), out('b', '4', 0.0), out('a', '5', 0.0)]   # both fine; 5 has no pair
+    assert L.paired(outs, 'a', 'b') == {'scans': 4, 'first_only': 1, 'second_only': 1, 'both_failed': 1}

@@ -652,3 +652,21 @@ def table(outcomes: Sequence[Outcome]) -> dict[str, dict[str, dict[str, float]]]
         for row in dict.fromkeys(o.row for o in outcomes if o.scenario == scenario):
             out[scenario][row] = summarise([o for o in outcomes if o.scenario == scenario and o.row == row])
     return out
+
+
+def failed(outcome: Outcome) -> bool:
+    """More than :data:`GOOD_POSITION` off horizontally or :data:`GOOD_HEADING_DEG` in heading."""
+    return bool(np.hypot(outcome.error[0], outcome.error[1]) > GOOD_POSITION
+                or abs(outcome.heading_deg) > GOOD_HEADING_DEG)
+
+
+def paired(outcomes: Sequence[Outcome], first: str, second: str) -> dict[str, int]:
+    """Two rows scan by scan (same scenario and scan): ``scans`` compared, ``first_only``
+    (scans only ``first`` got right, i.e. ``second`` failed), ``second_only``, ``both_failed``."""
+    a = {(o.scenario, o.label): o for o in outcomes if o.row == first}
+    b = {(o.scenario, o.label): o for o in outcomes if o.row == second}
+    keys = [k for k in a if k in b]
+    fa = np.array([failed(a[k]) for k in keys], dtype=bool)
+    fb = np.array([failed(b[k]) for k in keys], dtype=bool)
+    return {'scans': len(keys), 'first_only': int(np.sum(~fa & fb)), 'second_only': int(np.sum(fa & ~fb)),
+            'both_failed': int(np.sum(fa & fb))}
