@@ -1,6 +1,6 @@
 """The localisation comparison's pieces (issue 28 item 3): metrics against hand-computed
 values, the priors' ranges and seeding, scenarios whose scans lie on the map at the true
-pose, and row (d) scoring exactly the perturbation. About 3 s."""
+pose, and row (d) scoring exactly the perturbation. About 4 s (3.5-4.0 s, three runs on a busy machine)."""
 
 import numpy as np
 import pytest
