@@ -24,13 +24,14 @@ setup(
     data_files=[
         ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
         (f'share/{PACKAGE}', ['package.xml']),
-        (f'share/{PACKAGE}/config', ['config/facade_mapper.yaml']),
+        (f'share/{PACKAGE}/config', ['config/facade_mapper.yaml', 'config/facade_localizer.yaml']),
     ],
     install_requires=['numpy', 'scipy', 'scikit-learn', 'rosbags', 'pyyaml', 'plyfile', 'tqdm'],
     entry_points={
         'console_scripts': [
             'uncertain-facade-map = uncertain_facade_map_apps.cli:main',
             'facade_mapper = uncertain_facade_map_node.node:main',
+            'facade_localizer = uncertain_facade_map_node.localizer:main',
         ],
     },
 )

@@ -269,6 +269,7 @@ TRANSFORM_TYPES: dict[str, str] = {
     'Pose': 'geometry_msgs/msg/Pose',
     'PoseStamped': 'geometry_msgs/msg/PoseStamped',
     'PoseWithCovariance': 'geometry_msgs/msg/PoseWithCovariance',
+    'PoseWithCovarianceStamped': 'geometry_msgs/msg/PoseWithCovarianceStamped',
     'Twist': 'geometry_msgs/msg/Twist',
     'TwistWithCovariance': 'geometry_msgs/msg/TwistWithCovariance',
     'Odometry': 'nav_msgs/msg/Odometry',
@@ -326,6 +327,7 @@ def transform_types_rclpy(*, require_tf2_msgs: bool = True) -> SimpleNamespace:
         Pose,
         PoseStamped,
         PoseWithCovariance,
+        PoseWithCovarianceStamped,
         Quaternion,
         Transform,
         TransformStamped,
@@ -346,5 +348,6 @@ def transform_types_rclpy(*, require_tf2_msgs: bool = True) -> SimpleNamespace:
     return SimpleNamespace(
         TFMessage=TFMessage, TransformStamped=TransformStamped, Transform=Transform, Vector3=Vector3,
         Quaternion=Quaternion, Point=Point, Pose=Pose, PoseStamped=PoseStamped,
-        PoseWithCovariance=PoseWithCovariance, Twist=Twist, TwistWithCovariance=TwistWithCovariance,
+        PoseWithCovariance=PoseWithCovariance, PoseWithCovarianceStamped=PoseWithCovarianceStamped, Twist=Twist,
+        TwistWithCovariance=TwistWithCovariance,
         Odometry=Odometry, Header=Header, Time=Time)

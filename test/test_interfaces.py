@@ -255,11 +255,12 @@ def test_colcon_build_of_the_package(tmp_path):
     assert result.returncode == 0, result.stdout[-5000:] + result.stderr[-5000:]
 
     install = ws / 'install' / 'uncertain_facade_map'
-    launcher = install / 'lib' / 'uncertain_facade_map' / 'facade_mapper'
-    assert os.access(launcher, os.X_OK)
-    assert launcher.read_text().splitlines()[0] == f'#!{sys.executable}'
+    for node in ('facade_mapper', 'facade_localizer'):
+        launcher = install / 'lib' / 'uncertain_facade_map' / node
+        assert os.access(launcher, os.X_OK)
+        assert launcher.read_text().splitlines()[0] == f'#!{sys.executable}'
+        assert (install / 'share' / 'uncertain_facade_map' / 'config' / f'{node}.yaml').is_file()
     assert (install / 'share' / 'uncertain_facade_map' / 'package.xml').is_file()
-    assert (install / 'share' / 'uncertain_facade_map' / 'config' / 'facade_mapper.yaml').is_file()
     assert (install / 'share' / 'ament_index' / 'resource_index' / 'packages' /
             'uncertain_facade_map').is_file()
     # The nested tf2_msgs is neither built nor installed: the workspace's own tf2_msgs stays.

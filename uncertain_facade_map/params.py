@@ -36,11 +36,14 @@ __all__ = [
     'Config', 'ExtractionParams', 'GPParams', 'InputConfig', 'Interval', 'LayerParams', 'LocaliseParams', 'MapParams', 'ModelConfig',
     'NodeConfig', 'Options', 'OutlierParams', 'Param', 'PersistenceConfig', 'PublishConfig', 'QueryConfig',
     'Relation', 'Section', 'SelectionConfig', 'ServiceConfig', 'UpdateParams', 'config_from_parameters', 'map_params',
-    'map_params_from_record', 'map_params_record', 'parameters', 'NODE_NAME',
+    'map_params_from_record', 'map_params_record', 'parameters', 'NODE_NAME', 'LOCALIZER_NAME', 'LOCALIZER_SECTIONS',
+    'LocalizerConfig', 'node_sections',
 ]
 
 #: The node's name, and the section of the parameter file it reads.
 NODE_NAME = 'facade_mapper'
+#: The localiser node's name, and the section of its parameter file.
+LOCALIZER_NAME = 'facade_localizer'
 #: Largest int64 (ROS integer parameters are int64).
 INT64_MAX = 2**63 - 1
 
@@ -739,6 +742,27 @@ class LocaliseParams(Section):
 
 
 @dataclass(frozen=True)
+class LocalizerConfig(Section):
+    """The facade_localizer node: where its scans, priors and map come from."""
+
+    section: ClassVar[str] = 'localizer'
+
+    map_frame: str = param('map', "the map's frame: priors must be in it, estimates are published in it")
+    query_service: str = param('query_points', "the mapper's query service the node asks the map through")
+    query_timeout: float = param(5.0, 'a query the service has not answered in this time fails the scan', unit='s',
+                                 allowed=_positive(3600.0))
+    prior_max_age: float = param(0.5, 'a prior pose further than this from a scan\'s stamp is not used for it (the '
+                                      'last estimate moved on by the last motion is)', unit='s',
+                                 allowed=_closed(0.0, 3600.0))
+    motion_std_position: float = param(0.5, "growth of the moved-on estimate's position standard deviation in "
+                                             'each direction, per square root of a second (its variance grows '
+                                             'by this squared per second)', unit='m', allowed=_closed(0.0, 100.0))
+    motion_std_rotation: float = param(2.0, '... and of its rotation', unit='degrees', allowed=_closed(0.0, 180.0))
+    publish_tf: bool = param(True, 'publish each estimate on /tf as the transform map_frame -> tf_child')
+    tf_child: str = param('', 'the child frame of that transform ("": the scan\'s own frame)')
+
+
+@dataclass(frozen=True)
 class Config:
     """All parameters of the parameter file, by section (the modelling stages, then the rest)."""
 
@@ -756,6 +780,19 @@ class Config:
     service: ServiceConfig = field(default_factory=ServiceConfig)
     persistence: PersistenceConfig = field(default_factory=PersistenceConfig)
     localise: LocaliseParams = field(default_factory=LocaliseParams)
+    localizer: LocalizerConfig = field(default_factory=LocalizerConfig)
+
+
+#: The sections the localiser node reads (its parameter file's); the mapper reads the others.
+LOCALIZER_SECTIONS = ('localise', 'localizer')
+
+
+def node_sections(node_name: str = NODE_NAME) -> tuple[str, ...]:
+    """The sections of :class:`Config` a node declares and its parameter file holds."""
+    names = tuple(name for name, _ in _sections())
+    if node_name == LOCALIZER_NAME:
+        return LOCALIZER_SECTIONS
+    return tuple(n for n in names if n not in LOCALIZER_SECTIONS)
 
 
 def map_params(config: Config) -> MapParams:
@@ -806,14 +843,17 @@ def _item_type(typ: Any) -> Any:
     return get_args(typ)[0] if get_origin(typ) is tuple else typ
 
 
-def parameters(config: Config | None = None) -> Iterator[ParameterInfo]:
+def parameters(config: Config | None = None, sections: tuple[str, ...] | None = None) -> Iterator[ParameterInfo]:
     """Every parameter of the parameter file, in file order, with its value in ``config``.
 
     Args:
         config: the values to list; the defaults if None.
+        sections: only these sections (:func:`node_sections`); None for all.
     """
     config = config or Config()
     for section, cls in _sections():
+        if sections is not None and section not in sections:
+            continue
         sub = getattr(config, section)
         hints = _hints(cls)
         for f in dataclasses.fields(cls):

@@ -552,8 +552,9 @@ def cmd_localise(args: argparse.Namespace) -> int:
     from uncertain_facade_map.io.map_file import load_map
     from uncertain_facade_map.io.parameter_file import load_config
     from uncertain_facade_map.localisation import covariance_from_std, localise, map_query, xyzrpy_from_pose
+    from uncertain_facade_map.params import LOCALIZER_NAME
 
-    config = load_config(args.config)
+    config = load_config(args.config, LOCALIZER_NAME)
     params = config.localise
     if args.max_points is not None:
         params = dataclasses.replace(params, max_points=args.max_points)
@@ -1015,7 +1016,8 @@ def build_parser() -> argparse.ArgumentParser:
                           'own variance)')
     loc.add_argument('--max-points', type=int, metavar='N', help='scan points used at most (default localise.max_points)')
     loc.add_argument('--out', metavar='JSON', help='write the JSON here (default: print it)')
-    loc.add_argument('--config', metavar='YAML', help='ROS 2 parameter file (localise and query sections)')
+    loc.add_argument('--config', metavar='YAML', help='ROS 2 parameter file of the localiser (its localise section; '
+                     'default: config/facade_localizer.yaml)')
     loc.set_defaults(func=cmd_localise)
 
     plot = sub.add_parser('plot', help="draw a map's façades and an overview as PNG figures",

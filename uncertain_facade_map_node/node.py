@@ -85,6 +85,7 @@ from uncertain_facade_map.params import (
     Config,
     config_from_parameters,
     map_params,
+    node_sections,
     parameters,
 )
 from uncertain_facade_map.pipeline.step7_local_surface import LocalSurface
@@ -109,8 +110,10 @@ TRANSFORM_POLL = 0.01
 _WARN_EVENTS = ('dropped', 'rejected', 'failed', 'callback_error')
 
 
-def declare_config(node: Any) -> Config:
-    """Declare every parameter on ``node`` (read-only, with its descriptor) and read the configuration.
+def declare_config(node: Any, sections: tuple[str, ...] | None = None) -> Config:
+    """Declare every parameter of ``sections`` (default: the mapper's, :func:`node_sections`) on
+    ``node`` (read-only, with its descriptor) and read the configuration (the other
+    sections at their defaults).
 
     The node's parameter path: each parameter's default, description, unit, range and
     relations come from its declaration (:mod:`uncertain_facade_map.params`); rclpy checks
@@ -123,7 +126,7 @@ def declare_config(node: Any) -> Config:
     """
     types = mp_params.rclpy_parameter_types()
     values = {}
-    for info in parameters():
+    for info in parameters(sections=node_sections() if sections is None else sections):
         default = list(info.value) if info.is_list else info.value
         try:
             node.declare_parameter(info.name, default, mp_params.parameter_descriptor(info, types))

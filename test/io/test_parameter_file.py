@@ -9,12 +9,21 @@ from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.io.parameter_file import (
     DEFAULT_CONFIG,
     PARAMETERS_PAGE,
+    default_config_file,
     dump_config,
     load_config,
     markdown_parameters,
 )
 from uncertain_facade_map.io.parameter_file import main as print_default_file
-from uncertain_facade_map.params import Config, InputConfig, config_from_parameters, parameters
+from uncertain_facade_map.params import (
+    LOCALIZER_NAME,
+    LOCALIZER_SECTIONS,
+    Config,
+    InputConfig,
+    config_from_parameters,
+    node_sections,
+    parameters,
+)
 
 
 def test_shipped_file_holds_the_defaults():
@@ -27,6 +36,21 @@ def test_shipped_file_is_the_generated_one(capsys):
     """config/facade_mapper.yaml is derived from the declarations, comments included."""
     print_default_file()
     assert capsys.readouterr().out == DEFAULT_CONFIG.read_text()
+
+
+def test_each_node_has_its_own_sections_and_file(capsys):
+    """config/facade_localizer.yaml holds the localiser's sections only, the mapper's file the
+    others; both hold the defaults and are the generated ones."""
+    localizer = default_config_file(LOCALIZER_NAME)
+    print_default_file(['--node', LOCALIZER_NAME])
+    assert capsys.readouterr().out == localizer.read_text(), (
+        'config/facade_localizer.yaml is out of date: python -m uncertain_facade_map.io.parameter_file --node '
+        'facade_localizer > config/facade_localizer.yaml')
+    assert load_config(localizer, LOCALIZER_NAME) == Config() == load_config(node_name='facade_mapper')
+    mapper = set(yaml.safe_load(DEFAULT_CONFIG.read_text())['facade_mapper']['ros__parameters'])
+    assert set(yaml.safe_load(localizer.read_text())[LOCALIZER_NAME]['ros__parameters']) == set(LOCALIZER_SECTIONS)
+    assert mapper == set(node_sections()) and not mapper & set(LOCALIZER_SECTIONS)
+    assert {p.name.split('.')[0] for p in parameters()} == mapper | set(LOCALIZER_SECTIONS)
 
 
 def test_parameter_page_is_the_generated_one(capsys):

@@ -17,7 +17,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from support import assert_edge_taken, edge_cases  # noqa: E402
 
 from uncertain_facade_map.errors import InputError  # noqa: E402
-from uncertain_facade_map.params import Config, parameters  # noqa: E402
+from uncertain_facade_map.params import LOCALIZER_NAME, LOCALIZER_SECTIONS, Config, node_sections, parameters  # noqa: E402
 from uncertain_facade_map_node.node import NODE_NAME, declare_config  # noqa: E402
 
 CASES = edge_cases()
@@ -31,21 +31,32 @@ def context():
     rclpy.shutdown(context=ctx)
 
 
+def _node_of(params: dict) -> str:
+    """The node that declares these parameters (the localiser's sections, or the mapper's)."""
+    return LOCALIZER_NAME if any(n.split('.')[0] in LOCALIZER_SECTIONS for n in params) else NODE_NAME
+
+
 def node_config(context, params: dict) -> Config:
-    """The configuration a node reads with these overrides."""
-    node = rclpy.create_node(NODE_NAME, context=context,
+    """The configuration a node reads with these overrides (the node that declares them)."""
+    name = _node_of(params)
+    node = rclpy.create_node(name, context=context,
                              parameter_overrides=[Parameter(n, value=v) for n, v in params.items()])
     try:
-        return declare_config(node)
+        return declare_config(node, node_sections(name))
     finally:
         node.destroy_node()
 
 
-def test_defaults_and_descriptors(context):
-    node = rclpy.create_node(NODE_NAME, context=context)
+@pytest.mark.parametrize('name', [NODE_NAME, LOCALIZER_NAME])
+def test_defaults_and_descriptors(context, name):
+    node = rclpy.create_node(name, context=context)
     try:
-        assert declare_config(node) == Config()
-        for info in parameters():
+        assert declare_config(node, node_sections(name)) == Config()
+        declared = {n.split('.')[0] for n in node.get_parameters_by_prefix('')}
+        assert declared >= set(node_sections(name))
+        others = set(node_sections(LOCALIZER_NAME if name == NODE_NAME else NODE_NAME))
+        assert not declared & others  # each node declares its own sections only
+        for info in parameters(sections=node_sections(name)):
             d = node.describe_parameter(info.name)
             assert d.read_only and d.description.startswith(info.spec.description)
             bounds = info.closed_range()

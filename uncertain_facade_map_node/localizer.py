@@ -1,0 +1,231 @@
+"""The ``facade_localizer`` node: a scan's 6-DoF pose against the uncertain façade map.
+
+A thin shell around the core's :func:`~uncertain_facade_map.localisation.localise`: it asks
+the map as any client would, through the mapper's ``query_points`` service
+(``localizer.query_service``), in batches of ``localise.batch_points`` points.
+
+Topics (names relative, remap with ``--ros-args -r``):
+
+- subscribed: ``scan`` (sensor_msgs/PointCloud2 in the sensor frame; sensor-data QoS, the
+  newest scan only: a scan that arrives while one is being localised replaces the waiting
+  one) and ``prior_pose`` (geometry_msgs/PoseWithCovarianceStamped: the pose of the scan's
+  frame in ``localizer.map_frame``, from GNSS, odometry or an operator; an all-zero
+  covariance means "unknown" and takes ``localise.prior_std_*``);
+- published: ``pose`` (PoseWithCovarianceStamped of the scan's frame in the map frame, at the
+  scan's stamp, with the covariance of the solution) and, with ``localizer.publish_tf``,
+  the transform map -> scan frame on ``/tf``.
+
+The prior of a scan is the newest ``prior_pose`` when it is at most ``localizer.prior_max_age``
+seconds from the scan's stamp and newer than the last estimate; otherwise the last estimate
+moved on by the last estimated motion (constant velocity over the stamps' gap), its
+covariance grown by ``localizer.motion_std_*`` per second. With neither, the scan waits
+for a prior (counted as ``scans_without_prior``).
+
+No exception escapes a callback: a failure (the map service missing, a bad scan or prior)
+is logged and counted, and the node goes on with the next scan.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+from typing import Any
+
+import numpy as np
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, qos_profile_sensor_data
+from sensor_msgs.msg import PointCloud2
+
+import msg_adapters as ma
+from msg_adapters import localisation as ml
+from msg_adapters import transforms as mt
+from uncertain_facade_map.errors import FacadeMapError, InputError
+from uncertain_facade_map.localisation import PoseEstimate, covariance_from_std, localise
+from uncertain_facade_map.localisation.se3 import inverse, se3_exp, se3_log
+from uncertain_facade_map.params import LOCALIZER_NAME, LOCALIZER_SECTIONS, Config
+from uncertain_facade_map.srv import QueryPoints
+from uncertain_facade_map_node.node import declare_config
+
+
+class FacadeLocalizerNode(Node):
+    """Localises each scan against the map served by ``query_points``."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(LOCALIZER_NAME, **kwargs)
+        try:
+            self.config: Config = declare_config(self, LOCALIZER_SECTIONS)
+        except InputError as exc:
+            self.get_logger().fatal(f'bad parameters: {exc}')
+            raise
+        cfg = self.config.localizer
+        self.types = mt.transform_types_rclpy(require_tf2_msgs=cfg.publish_tf)
+        self.counters = {'scans_received': 0, 'scans_localised': 0, 'scans_failed': 0, 'scans_without_prior': 0,
+                         'scans_skipped': 0, 'priors_received': 0, 'priors_rejected': 0}
+        self._lock = threading.Lock()
+        self._prior: ml.PosePrior | None = None
+        self._last: tuple[int, np.ndarray, np.ndarray] | None = None  # (stamp ns, pose, covariance)
+        self._velocity: np.ndarray | None = None  # (6,) twist of the last motion per second, sensor frame
+        self._pending: Any = None  # the newest scan waiting
+        self._wake = threading.Event()
+        self.last_estimate: PoseEstimate | None = None
+
+        self.client = self.create_client(QueryPoints, cfg.query_service, callback_group=ReentrantCallbackGroup())
+        qos = QoSProfile(depth=2, reliability=qos_profile_sensor_data.reliability,
+                         durability=qos_profile_sensor_data.durability, history=qos_profile_sensor_data.history)
+        self.create_subscription(PointCloud2, 'scan', self.scan_callback, qos,
+                                 callback_group=MutuallyExclusiveCallbackGroup())
+        self.create_subscription(PoseWithCovarianceStamped, 'prior_pose', self.prior_callback, 10,
+                                 callback_group=MutuallyExclusiveCallbackGroup())
+        self.pub_pose = self.create_publisher(PoseWithCovarianceStamped, 'pose', 10)
+        self.pub_tf = None
+        if cfg.publish_tf:
+            from tf2_msgs.msg import TFMessage
+
+            self.pub_tf = self.create_publisher(TFMessage, '/tf', 100)
+        self._thread = threading.Thread(target=self._run, name='localizer', daemon=True)
+        self._stop = False
+        self._thread.start()
+        self.get_logger().info(f'localising scans on "{self.resolve_topic_name("scan")}" in frame "{cfg.map_frame}" '
+                               f'against the map of service "{cfg.query_service}"')
+
+    # -- input ------------------------------------------------------------------------
+    def prior_callback(self, msg: Any) -> None:
+        """Keep the newest prior pose (refused if it is not in the map frame or cannot be right)."""
+        try:
+            prior = ml.prior_from_msg(msg)
+            if prior.frame_id != self.config.localizer.map_frame:
+                raise InputError(f'prior pose is in frame "{prior.frame_id}", not the map frame '
+                                 f'"{self.config.localizer.map_frame}"')
+        except InputError as exc:
+            with self._lock:
+                self.counters['priors_rejected'] += 1
+            self.get_logger().warning(f'prior rejected: {exc}', throttle_duration_sec=5.0)
+            return
+        with self._lock:
+            self.counters['priors_received'] += 1
+            self._prior = prior
+
+    def scan_callback(self, msg: Any) -> None:
+        """Hand the scan to the localising thread (a scan still waiting is replaced)."""
+        with self._lock:
+            self.counters['scans_received'] += 1
+            if self._pending is not None:
+                self.counters['scans_skipped'] += 1
+            self._pending = msg
+        self._wake.set()
+
+    # -- the localising thread --------------------------------------------------------------
+    def _run(self) -> None:
+        while not self._stop:
+            self._wake.wait(0.5)
+            self._wake.clear()
+            with self._lock:
+                msg, self._pending = self._pending, None
+            if msg is None:
+                continue
+            try:
+                self._localise(msg)
+            except (FacadeMapError, TimeoutError, RuntimeError) as exc:
+                with self._lock:
+                    self.counters['scans_failed'] += 1
+                self.get_logger().error(f'scan not localised: {exc}', throttle_duration_sec=5.0)
+
+    def _prior_for(self, stamp_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """The prior pose and covariance of a scan at ``stamp_ns`` (see the module)."""
+        cfg, loc = self.config.localizer, self.config.localise
+        with self._lock:
+            prior, last, velocity = self._prior, self._last, self._velocity
+        default = covariance_from_std([*loc.prior_position_std, *np.deg2rad(loc.prior_rotation_std)])
+        fresh = prior is not None and abs(prior.stamp_ns - stamp_ns) <= cfg.prior_max_age * 1e9 and \
+            (last is None or prior.stamp_ns > last[0])
+        if fresh:
+            return prior.pose, default if prior.covariance is None else prior.covariance
+        if last is None:
+            return None
+        dt = max(0.0, (stamp_ns - last[0]) * 1e-9)
+        # Constant velocity in the sensor's own frame (a vehicle keeps its speed and turn rate).
+        pose = last[1] if velocity is None else last[1] @ se3_exp(velocity * dt)
+        growth = np.r_[np.full(3, cfg.motion_std_position) ** 2, np.full(3, np.deg2rad(cfg.motion_std_rotation)) ** 2]
+        return pose, last[2] + np.diag(growth) * max(dt, 1e-3)
+
+    def _localise(self, msg: Any) -> None:
+        stamp = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+        points = ma.structured_from_pointcloud2(msg)
+        if not all(k in (points.dtype.names or ()) for k in 'xyz'):
+            raise InputError('scan has no x, y and z fields')
+        xyz = np.stack([points['x'], points['y'], points['z']], axis=1).astype(np.float64)
+        xyz = xyz[np.isfinite(xyz).all(axis=1)]
+        prior = self._prior_for(stamp)
+        if prior is None:
+            with self._lock:
+                self.counters['scans_without_prior'] += 1
+            self.get_logger().warning('scan waits for a prior pose on "prior_pose"', throttle_duration_sec=5.0)
+            return
+        estimate = localise(xyz, prior[0], prior[1], self._query, self.config.localise)
+        self.last_estimate = estimate
+        with self._lock:
+            if self._last is not None and stamp > self._last[0]:
+                step = inverse(self._last[1]) @ estimate.pose  # the motion in the last pose's frame
+                self._velocity = se3_log(step) / ((stamp - self._last[0]) * 1e-9)
+            self._last = (stamp, estimate.pose, estimate.covariance)
+            self.counters['scans_localised'] += 1
+        frame = self.config.localizer.map_frame
+        self.pub_pose.publish(ml.pose_with_covariance_msg(frame, stamp, estimate.pose, estimate.covariance,
+                                                          self.types))
+        if self.pub_tf is not None:
+            from uncertain_facade_map.transforms.rotations import from_matrix
+
+            child = self.config.localizer.tf_child or str(msg.header.frame_id)
+            t = mt.StampedTransform(frame, child, stamp, estimate.pose[:3, 3], from_matrix(estimate.pose[:3, :3]))
+            self.pub_tf.publish(mt.tf_message([t], self.types))
+        self.get_logger().debug(f'scan at {stamp * 1e-9:.3f} s: {estimate.points_used} points, '
+                                f'{estimate.iterations} iterations, {estimate.seconds * 1e3:.0f} ms')
+
+    def _query(self, xyz: np.ndarray) -> Any:
+        """Ask the map at (M, 3) map-frame points through the service (blocking this thread)."""
+        timeout = self.config.localizer.query_timeout
+        if not self.client.wait_for_service(timeout_sec=timeout):
+            raise InputError(f'the map service "{self.config.localizer.query_service}" is not available')
+        done = threading.Event()
+        future = self.client.call_async(ml.fill_query_request(QueryPoints.Request(), xyz))
+        future.add_done_callback(lambda _f: done.set())
+        if not done.wait(timeout):
+            future.cancel()
+            raise TimeoutError(f'the map service did not answer within {timeout} s')
+        return ml.query_answers(future.result(), len(xyz))
+
+    def destroy_node(self) -> None:
+        self._stop = True
+        self._wake.set()
+        self._thread.join(5.0)
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> None:
+    """Run the node until Ctrl-C or shutdown (``ros2 run uncertain_facade_map facade_localizer``)."""
+    import rclpy
+    from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = FacadeLocalizerNode()
+        executor = MultiThreadedExecutor(num_threads=3)
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except FacadeMapError as exc:
+        print(f'{LOCALIZER_NAME}: {exc}', file=sys.stderr)
+        raise SystemExit(2) from None
+    finally:
+        if node is not None:
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+
+
+if __name__ == '__main__':
+    main()
