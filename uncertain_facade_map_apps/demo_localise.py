@@ -21,6 +21,8 @@ from typing import Any
 
 import numpy as np
 
+from .ros_client import SpinningClient
+
 ROOT = Path(__file__).resolve().parent.parent
 #: Seconds of returns in one scan (the street's profile scanners give about 56,000 a second).
 SCAN_SECONDS = 1.0
@@ -43,34 +45,20 @@ class Localised:
     latency: float
 
 
-class _Robot:
+class _Robot(SpinningClient):
     """Publishes priors and scans, receives the localiser's poses (a context of its own)."""
 
-    def __init__(self) -> None:
-        import rclpy
+    def __init__(self, domain: int) -> None:
         from geometry_msgs.msg import PoseWithCovarianceStamped
         from sensor_msgs.msg import PointCloud2
 
-        self.rclpy = rclpy
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context)
-        self.node = rclpy.create_node('demo_robot', context=self.context)
+        super().__init__('demo_robot', domain)
         self.scan_pub = self.node.create_publisher(PointCloud2, 'scan', 10)
         self.prior_pub = self.node.create_publisher(PoseWithCovarianceStamped, 'prior_pose', 10)
         self.poses: dict[int, tuple[float, Any]] = {}
         self.got = threading.Condition()
         self.node.create_subscription(PoseWithCovarianceStamped, 'pose', self._pose_callback, 10)
-        self._stop = False
-        self._thread = threading.Thread(target=self._spin, daemon=True)
-        self._thread.start()
-
-    def _spin(self) -> None:
-        from rclpy.executors import SingleThreadedExecutor
-
-        executor = SingleThreadedExecutor(context=self.context)
-        executor.add_node(self.node)
-        while not self._stop and self.context.ok():
-            executor.spin_once(timeout_sec=0.05)
+        self._start()
 
     def _pose_callback(self, msg: Any) -> None:
         stamp = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
@@ -94,12 +82,6 @@ class _Robot:
                     return None
                 self.got.wait(left)
             return self.poses[stamp]
-
-    def close(self) -> None:
-        self._stop = True
-        self._thread.join(5)
-        self.node.destroy_node()
-        self.rclpy.shutdown(context=self.context)
 
 
 def localise_drive(scene_name: str, out: Path, env: dict, scans: int = 12, seed: int = 0,
@@ -133,7 +115,7 @@ def localise_drive(scene_name: str, out: Path, env: dict, scans: int = 12, seed:
     log = open(out / f'{LOCALIZER_NAME}.log', 'wb')
     proc = subprocess.Popen([sys.executable, '-m', 'uncertain_facade_map_node.localizer', '--ros-args',
                              '--params-file', str(params)], env=env, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
-    robot = _Robot()
+    robot = _Robot(int(env.get('ROS_DOMAIN_ID', '0')))
     types, cloud_types = transform_types_rclpy(require_tf2_msgs=False), ma.rclpy_types()
     covariance = prior_covariance()
     done: list[Localised] = []

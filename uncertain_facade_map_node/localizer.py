@@ -27,7 +27,6 @@ is logged and counted, and the node goes on with the next scan.
 
 from __future__ import annotations
 
-import sys
 import threading
 from typing import Any
 
@@ -46,7 +45,7 @@ from uncertain_facade_map.localisation import PoseEstimate, covariance_from_std,
 from uncertain_facade_map.localisation.se3 import inverse, se3_exp, se3_log
 from uncertain_facade_map.params import LOCALIZER_NAME, LOCALIZER_SECTIONS, Config
 from uncertain_facade_map.srv import QueryPoints
-from uncertain_facade_map_node.node import declare_config
+from uncertain_facade_map_node.node import declare_config, spin
 
 
 class FacadeLocalizerNode(Node):
@@ -205,27 +204,7 @@ class FacadeLocalizerNode(Node):
 
 def main(args: list[str] | None = None) -> None:
     """Run the node until Ctrl-C or shutdown (``ros2 run uncertain_facade_map facade_localizer``)."""
-    import rclpy
-    from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
-
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = FacadeLocalizerNode()
-        executor = MultiThreadedExecutor(num_threads=3)
-        executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except FacadeMapError as exc:
-        print(f'{LOCALIZER_NAME}: {exc}', file=sys.stderr)
-        raise SystemExit(2) from None
-    finally:
-        if node is not None:
-            node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
-
+    spin(FacadeLocalizerNode, LOCALIZER_NAME, args, threads=3)
 
 if __name__ == '__main__':
     main()

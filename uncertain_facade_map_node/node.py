@@ -954,33 +954,39 @@ class FacadeMapperNode(Node):
 
 def main(args: list[str] | None = None) -> None:
     """Run the node until Ctrl-C or shutdown (``ros2 run uncertain_facade_map facade_mapper``)."""
-    import rclpy
-    from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
-
     limit_heap_growth()  # before rclpy starts its threads
-    rclpy.init(args=args)
     # Queries and input share this interpreter with the worker thread (and, with
     # node.mapping_process false, with the mapping itself): at the default 5 ms a query's
     # numpy calls each wait up to a switch interval for the lock while another thread runs
     # Python code; 0.5 ms shortens those waits.
     sys.setswitchinterval(SWITCH_INTERVAL)
+    spin(FacadeMapperNode, NODE_NAME, args, threads=4)
+
+
+def spin(factory: Callable[[], Any], name: str, args: list[str] | None = None, threads: int = 4) -> None:
+    """Start rclpy, run the node ``factory()`` on a multi-threaded executor until Ctrl-C or
+    shutdown, and clean up; a :class:`FacadeMapError` (bad parameters, say) ends the process
+    with its message and status 2."""
+    import rclpy
+    from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+
+    rclpy.init(args=args)
     node = None
     try:
-        node = FacadeMapperNode()
-        executor = MultiThreadedExecutor(num_threads=4)
+        node = factory()
+        executor = MultiThreadedExecutor(num_threads=threads)
         executor.add_node(node)
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except FacadeMapError as exc:
-        print(f'facade_mapper: {exc}', file=sys.stderr)
+        print(f'{name}: {exc}', file=sys.stderr)
         raise SystemExit(2) from None
     finally:
         if node is not None:
             node.destroy_node()
         if rclpy.ok():
             rclpy.shutdown()
-
 
 if __name__ == '__main__':
     main()

@@ -31,3 +31,8 @@ def test_demo_produces_the_folder(tmp_path):
     for line in text.splitlines():
         if line.strip().startswith(('map ', 'figure ')):
             assert Path(line.split()[-1]).exists(), line
+    # The last step: scans of another drive localised by facade_localizer through the map's service.
+    assert (out / 'figures' / 'localisation.png').exists()
+    line = next(x for x in text.splitlines() if x.strip().startswith('localise '))
+    within = int(line.split('% within')[0].split()[-1])
+    assert within >= 75, line

@@ -348,8 +348,8 @@ def simulated_scenario(name: str, campaigns: Sequence[int] = (1, 2, 3, 4), scans
     """
     from ..io.inputs import select_building_points
     from ..params import InputConfig
-    from ..simulation.campaign import SCENE_SENSORS, SensorConfig, campaign, drive_duration, poses, simulate_campaign
-    from ..simulation.export import vehicle_poses
+    from ..simulation.campaign import SCENE_SENSORS, SensorConfig, campaign, drive_duration, simulate_campaign
+    from ..simulation.export import sensor_scan
     from ..simulation.scenes import build_scene
 
     if scans_per_drive < 1 or max_points < 10 or not scan_seconds > 0:
@@ -370,7 +370,6 @@ def simulated_scenario(name: str, campaigns: Sequence[int] = (1, 2, 3, 4), scans
     if progress:
         progress(f'{name}: mapped campaign {map_campaign}: {len(building):,} building points, {len(fmap.facades)} façades '
                  f'({time.perf_counter() - started:.1f} s)')
-    mount = np.asarray(sensor.mount[0], dtype=np.float64)
     cov = prior_covariance(perturbation)
     cases = []
     for k in campaigns:
@@ -380,18 +379,10 @@ def simulated_scenario(name: str, campaigns: Sequence[int] = (1, 2, 3, 4), scans
         starts = duration * 0.1 + (np.arange(scans_per_drive) + 0.5) / scans_per_drive * span
         for j, t0 in enumerate(starts):
             rng = np.random.default_rng([seed, k, j, 28])
-            window = simulate_campaign(scene, k, sensor, window=(float(t0), float(t0 + scan_seconds)))
-            mid = float(t0 + scan_seconds / 2)
-            xy, yaw = poses(scene, drive, sensor, np.array([mid]))
-            truth = yaw_pose(xy[0, 0], xy[0, 1], 0.0, yaw[0]) @ pose_matrix(np.eye(3), mount)
             # The campaign's points lie where its (possibly misregistered) poses put them: back
             # into the sensor frame with those poses, they are what the sensor measured.
-            t_ns = np.array([int(round((drive.start_time + mid) * 1e9))], dtype=np.int64)
-            position, quat = vehicle_poses(scene, drive, sensor, t_ns)
-            recorded = pose_matrix(Rotation.from_quat(quat[0]).as_matrix(), position[0]) @ pose_matrix(np.eye(3), mount)
-            xyz = transform(invert(recorded), _points_xyz(window.points))
-            if len(xyz) > max_points:
-                xyz = xyz[np.sort(rng.choice(len(xyz), max_points, replace=False))]
+            xyz, truth, t_mid = sensor_scan(scene, k, sensor, float(t0), scan_seconds, max_points, rng)
+            mid = t_mid - drive.start_time
             prior, delta = perturb(truth, rng, perturbation)
             cases.append(ScanCase(f'c{k} t={mid:.1f}s', xyz, truth, prior, cov, delta))
     notes = [f'scene {base} ({kind}), sensor {_sensor_name(sensor)}, map: campaign {map_campaign} '
