@@ -12,8 +12,10 @@ Topics (names relative, remap with ``--ros-args -r``):
   frame in ``localizer.map_frame``, from GNSS, odometry or an operator; an all-zero
   covariance means "unknown" and takes ``localise.prior_std_*``);
 - published: ``pose`` (PoseWithCovarianceStamped of the scan's frame in the map frame, at the
-  scan's stamp, with the covariance of the solution) and, with ``localizer.publish_tf``,
-  the transform map -> scan frame on ``/tf``.
+  scan's stamp, with the covariance of the solution), with ``localizer.publish_tf`` the
+  transform map -> scan frame on ``/tf``, and every second ``/diagnostics`` (the counters
+  below, and the last solve's time, points used, rounds and whether it converged; WARN
+  while scans fail or wait for a prior).
 
 The prior of a scan is the newest ``prior_pose`` when it is at most ``localizer.prior_max_age``
 seconds from the scan's stamp and newer than the last estimate; otherwise the last estimate
@@ -39,6 +41,7 @@ from sensor_msgs.msg import PointCloud2
 
 import msg_adapters as ma
 from msg_adapters import localisation as ml
+from msg_adapters import map_messages as mm
 from msg_adapters import transforms as mt
 from uncertain_facade_map.errors import FacadeMapError, InputError
 from uncertain_facade_map.localisation import PoseEstimate, covariance_from_std, localise
@@ -83,6 +86,12 @@ class FacadeLocalizerNode(Node):
             from tf2_msgs.msg import TFMessage
 
             self.pub_tf = self.create_publisher(TFMessage, '/tf', 100)
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        self.diag_types = mm.rclpy_map_types()
+        self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._reported: dict[str, int] = {}
+        self.create_timer(1.0, self.diagnostics_callback, callback_group=MutuallyExclusiveCallbackGroup())
         self._thread = threading.Thread(target=self._run, name='localizer', daemon=True)
         self._stop = False
         self._thread.start()
@@ -115,6 +124,21 @@ class FacadeLocalizerNode(Node):
             self._pending = msg
         self._wake.set()
 
+    def diagnostics_callback(self) -> None:
+        """Publish the counters and the last solve (WARN while scans fail or wait for a prior)."""
+        with self._lock:
+            values: dict[str, Any] = dict(self.counters)
+        est = self.last_estimate
+        if est is not None:
+            values.update(last_seconds=round(est.seconds, 4), last_points_used=est.points_used,
+                          last_queries=est.queries, last_converged=est.converged)
+        troubles = sum(values[k] - self._reported.get(k, 0) for k in ('scans_failed', 'scans_without_prior'))
+        self._reported = {k: int(values[k]) for k in ('scans_failed', 'scans_without_prior')}
+        message = 'localising' if not troubles else f'{troubles} scans failed or waited for a prior in the last second'
+        self.pub_diag.publish(mm.diagnostic_array(f'{LOCALIZER_NAME}: pose', 1 if troubles else 0, message, values,
+                                                  LOCALIZER_NAME, self.get_clock().now().nanoseconds,
+                                                  self.diag_types))
+
     # -- the localising thread --------------------------------------------------------------
     def _run(self) -> None:
         while not self._stop:
@@ -126,10 +150,11 @@ class FacadeLocalizerNode(Node):
                 continue
             try:
                 self._localise(msg)
-            except (FacadeMapError, TimeoutError, RuntimeError) as exc:
+            except Exception as exc:  # noqa: BLE001 - the thread must live on: logged and counted
                 with self._lock:
                     self.counters['scans_failed'] += 1
-                self.get_logger().error(f'scan not localised: {exc}', throttle_duration_sec=5.0)
+                kind = '' if isinstance(exc, (FacadeMapError, TimeoutError)) else f'{type(exc).__name__}: '
+                self.get_logger().error(f'scan not localised: {kind}{exc}', throttle_duration_sec=5.0)
 
     def _prior_for(self, stamp_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
         """The prior pose and covariance of a scan at ``stamp_ns`` (see the module)."""

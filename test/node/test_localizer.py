@@ -49,6 +49,7 @@ class Robot(SpinningClient):
     """Publishes priors and scans; keeps the poses and transforms the localiser publishes."""
 
     def __init__(self, domain: int) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PoseWithCovarianceStamped
         from sensor_msgs.msg import PointCloud2
         from tf2_msgs.msg import TFMessage
@@ -61,7 +62,24 @@ class Robot(SpinningClient):
         self.got = threading.Condition()
         self.node.create_subscription(PoseWithCovarianceStamped, 'pose', self._pose_callback, 10)
         self.node.create_subscription(TFMessage, '/tf', lambda m: self.tf.extend(m.transforms), 100)
+        self.diag: dict[str, str] = {}
+        self.node.create_subscription(DiagnosticArray, '/diagnostics', self._diagnostics_callback, 10)
         self._start()
+
+    def _diagnostics_callback(self, msg) -> None:
+        if msg.status and msg.status[0].hardware_id == LOCALIZER_NAME:
+            with self.got:
+                self.diag = {kv.key: kv.value for kv in msg.status[0].values}
+                self.got.notify_all()
+
+    def diagnostics(self, until, timeout: float = 30.0) -> dict:
+        deadline = time.monotonic() + timeout
+        with self.got:
+            while not (self.diag and until(self.diag)):
+                left = deadline - time.monotonic()
+                assert left > 0, f'the diagnostics never reached the condition: {self.diag}'
+                self.got.wait(left)
+            return dict(self.diag)
 
     def _pose_callback(self, msg) -> None:
         stamp = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
@@ -189,3 +207,26 @@ def test_a_scan_without_a_new_prior_starts_from_the_last_estimate(world, nodes):
     _, msg = robot.wait_pose(stamp)
     got = prior_from_msg(msg)
     assert np.isfinite(got.pose).all()
+
+
+def test_a_bad_scan_is_logged_and_the_node_goes_on(world, nodes):
+    """A scan without x, y and z fails (logged, counted); the next scan is localised."""
+    robot, localizer, tmp = nodes
+    _, scans = world
+    bad = np.zeros(100, dtype=[('a', 'f4'), ('b', 'f4'), ('c', 'f4')])
+    robot.scan_pub.publish(ma.pointcloud2_from_structured(bad, stamp_ns=(SCANS + 7) * 1_000_000_000,
+                                                          frame_id='lidar', msg_types=ma.rclpy_types()))
+    deadline = time.monotonic() + 30
+    while 'scan not localised' not in (tmp / 'localizer.log').read_text(errors='replace'):
+        assert time.monotonic() < deadline and localizer.poll() is None, 'the bad scan was not reported'
+        time.sleep(0.2)
+    xyz, _ = scans[0]
+    stamp = (SCANS + 8) * 1_000_000_000
+    points = np.zeros(len(xyz), dtype=[('x', 'f4'), ('y', 'f4'), ('z', 'f4')])
+    points['x'], points['y'], points['z'] = xyz.T
+    robot.scan_pub.publish(ma.pointcloud2_from_structured(points, stamp_ns=stamp, frame_id='lidar',
+                                                          msg_types=ma.rclpy_types()))
+    robot.wait_pose(stamp)
+    assert localizer.poll() is None
+    values = robot.diagnostics(lambda v: int(v['scans_failed']) >= 1 and int(v['scans_localised']) >= SCANS + 2)
+    assert int(values['scans_received']) >= SCANS + 3 and float(values['last_seconds']) > 0
