@@ -34,7 +34,7 @@ from map_scans import sensor_scan  # noqa: E402
 from plane_world import perturbed  # noqa: E402
 
 from uncertain_facade_map.localisation import covariance_from_std, localise, map_query  # noqa: E402
-from uncertain_facade_map.localisation.solver import _centred_log  # noqa: E402
+from uncertain_facade_map.localisation.solver import centred_log  # noqa: E402
 from uncertain_facade_map.mapping.facade_map import build_map  # noqa: E402
 from uncertain_facade_map.params import LocaliseParams, MapParams  # noqa: E402
 from uncertain_facade_map.simulation.campaign import simulate_campaign  # noqa: E402
@@ -73,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
         scan, truth = sensor_scan(scene, cloud, 1, rng.uniform(0.1, 0.9), args.points)
         prior = perturbed(truth, rng)
         est = localise(scan, prior, prior_cov, query, params, constant_variance=args.constant_variance)
-        d = _centred_log(truth, est.pose, est.pose[:3, 3])
+        d = centred_log(truth, est.pose, est.pose[:3, 3])
         nees = float(d @ cho_solve(cho_factor(est.covariance), d))
         std = np.sqrt(np.diag(est.covariance))
         rows.append((np.hypot(d[0], d[1]), abs(d[2]), np.rad2deg(abs(d[5])), nees, est.seconds, est.queries,

@@ -40,6 +40,7 @@ import numpy as np
 
 from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.evaluation import localisation as L
+from uncertain_facade_map.localisation import se3
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_REAL = REPO.parent / 'shared' / 'data' / 'real'
@@ -58,7 +59,7 @@ def stub_localise(scan: np.ndarray, prior_pose: np.ndarray, prior_covariance: np
     from types import SimpleNamespace
 
     started = time.perf_counter()
-    query(L.transform(prior_pose, scan[:100]))
+    query(se3.transform_points(prior_pose, scan[:100]))
     return SimpleNamespace(pose=prior_pose.copy(), covariance=prior_covariance.copy(), iterations=0, queries=1,
                            points_used=0, converged=False, cost=float('nan'), seconds=time.perf_counter() - started)
 

@@ -12,7 +12,7 @@ from uncertain_facade_map.io.cloud import Cloud
 from uncertain_facade_map.io.clouds import write_cloud
 from uncertain_facade_map.io.map_file import save_map
 from uncertain_facade_map.localisation import se3, xyzrpy_from_pose
-from uncertain_facade_map.localisation.solver import _centred_log
+from uncertain_facade_map.localisation.solver import centred_log
 from uncertain_facade_map.mapping.facade_map import build_map
 from uncertain_facade_map.params import MapParams
 from uncertain_facade_map_apps.cli import main
@@ -51,7 +51,7 @@ def _prior_text(truth, offset=(1.2, -0.8, 0.2), turn_deg=2.0, origin=(0.0, 0.0, 
 
 def _check(record, truth):
     pose = np.array(record['pose'])
-    d = _centred_log(truth, pose, pose[:3, 3])
+    d = centred_log(truth, pose, pose[:3, 3])
     assert np.hypot(d[0], d[1]) < 0.1 and np.rad2deg(abs(d[5])) < 0.2, d
     assert record['points_used'] > 100 and record['queries'] >= 2 and isinstance(record['converged'], bool)
     assert np.array(record['covariance']).shape == (6, 6)

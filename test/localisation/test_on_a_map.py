@@ -10,7 +10,7 @@ from plane_world import perturbed
 from scipy.linalg import cho_factor, cho_solve
 
 from uncertain_facade_map.localisation import covariance_from_std, localise, map_query
-from uncertain_facade_map.localisation.solver import _centred_log
+from uncertain_facade_map.localisation.solver import centred_log
 from uncertain_facade_map.mapping.facade_map import build_map
 from uncertain_facade_map.params import MapParams
 
@@ -35,7 +35,7 @@ def results(scenes, small_map):
         scan, truth = sensor_scan(scene, cloud, 1, rng.uniform(0.1, 0.9), 5000)
         prior = perturbed(truth, rng)
         est = localise(scan, prior, PRIOR_COV, query)
-        d = _centred_log(truth, est.pose, est.pose[:3, 3])
+        d = centred_log(truth, est.pose, est.pose[:3, 3])
         out.append((d, float(d @ cho_solve(cho_factor(est.covariance), d)), est))
     return out
 

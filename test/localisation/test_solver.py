@@ -15,7 +15,7 @@ from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.localisation import covariance_from_std, localise, se3
 from uncertain_facade_map.localisation.solver import (
     _centred_exp,
-    _centred_log,
+    centred_log,
     patch_counts,
     point_jacobian,
     robust_weights,
@@ -36,7 +36,7 @@ def _truth(rng) -> np.ndarray:
 
 def _error(truth, est):
     """(6,) the truth as a perturbation of the estimate, in the covariance's convention."""
-    return _centred_log(truth, est.pose, est.pose[:3, 3])
+    return centred_log(truth, est.pose, est.pose[:3, 3])
 
 
 def _nees(truth, est) -> float:
@@ -69,7 +69,7 @@ def test_centred_perturbation_round_trip():
     centre = rng.normal(0, 50, 3)
     delta = rng.normal(0, 0.3, 6)
     moved = _centred_exp(delta, pose, centre)
-    np.testing.assert_allclose(_centred_log(moved, pose, centre), delta, atol=1e-10)
+    np.testing.assert_allclose(centred_log(moved, pose, centre), delta, atol=1e-10)
     # translation part is the move of the point at the centre: rotation about the centre, not the origin
     only_turn = _centred_exp(np.array([0, 0, 0, 0, 0, 0.5]), np.eye(4), centre)
     np.testing.assert_allclose(se3.transform_points(only_turn, centre[None])[0], centre, atol=1e-12)
@@ -108,7 +108,7 @@ def trials():
 def test_pose_recovered_from_gnss_like_priors(trials):
     for world, truth, prior, est in trials:
         d = _error(truth, est)
-        start = _centred_log(truth, prior, prior[:3, 3])
+        start = centred_log(truth, prior, prior[:3, 3])
         assert np.linalg.norm(start[:3]) > 0.5 and np.linalg.norm(start[3:]) > np.deg2rad(0.9)
         assert np.linalg.norm(d[:3]) < 0.02, d
         assert np.rad2deg(np.linalg.norm(d[3:])) < 0.1, d

@@ -35,7 +35,7 @@ from msg_adapters.transforms import transform_types_rclpy  # noqa: E402
 from uncertain_facade_map.io.map_file import save_map  # noqa: E402
 from uncertain_facade_map.io.parameter_file import dump_config  # noqa: E402
 from uncertain_facade_map.localisation import covariance_from_std  # noqa: E402
-from uncertain_facade_map.localisation.solver import _centred_log  # noqa: E402
+from uncertain_facade_map.localisation.solver import centred_log  # noqa: E402
 from uncertain_facade_map.mapping.facade_map import build_map  # noqa: E402
 from uncertain_facade_map.params import LOCALIZER_NAME, Config, MapParams  # noqa: E402
 from uncertain_facade_map_apps.ros_client import SpinningClient  # noqa: E402
@@ -185,7 +185,7 @@ def test_scans_are_localised_through_the_map_service(world, nodes):
         got = prior_from_msg(msg)
         assert got.frame_id == 'map' and got.covariance is not None
         np.linalg.cholesky(got.covariance)
-        d = _centred_log(truth, got.pose, got.pose[:3, 3])
+        d = centred_log(truth, got.pose, got.pose[:3, 3])
         errors.append(float(np.hypot(d[0], d[1])))
     print(f'horizontal errors {np.round(errors, 3)} m; latencies {np.round(latencies, 3)} s')
     assert sum(e < 0.1 for e in errors) >= SCANS - 1, errors

@@ -68,17 +68,6 @@ def yaw_pose(x: float, y: float, z: float, yaw: float) -> np.ndarray:
     return pose_matrix(Rotation.from_euler('z', yaw).as_matrix(), np.array([x, y, z], dtype=np.float64))
 
 
-def transform(pose: np.ndarray, xyz: np.ndarray) -> np.ndarray:
-    """(N, 3) points moved by a (4, 4) pose."""
-    return xyz @ pose[:3, :3].T + pose[:3, 3]
-
-
-def invert(pose: np.ndarray) -> np.ndarray:
-    """Inverse of a rigid (4, 4) pose."""
-    rot = pose[:3, :3].T
-    return pose_matrix(rot, -rot @ pose[:3, 3])
-
-
 def heading(pose: np.ndarray) -> float:
     """Heading of the sensor's x axis in the map's x-y plane, radians from +x."""
     return float(np.arctan2(pose[1, 0], pose[0, 0]))
@@ -103,16 +92,9 @@ def centred_error(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:
     ``C`` the translation to the estimate's position and ``exp`` that of SE(3) (translation
     first, rotation about the map axes; the convention of ``PoseEstimate.covariance``). To
     first order ``-pose_error(estimate, truth)``."""
-    rot = truth[:3, :3] @ estimate[:3, :3].T
-    phi = Rotation.from_matrix(rot).as_rotvec()
-    dt = truth[:3, 3] - estimate[:3, 3]
-    theta = float(np.linalg.norm(phi))
-    k = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
-    if theta < 1e-8:
-        v = np.eye(3) + 0.5 * k
-    else:
-        v = np.eye(3) + (1 - np.cos(theta)) / theta ** 2 * k + (theta - np.sin(theta)) / theta ** 3 * (k @ k)
-    return np.concatenate([np.linalg.solve(v, dt), phi])
+    from ..localisation.solver import centred_log
+
+    return centred_log(truth, estimate, estimate[:3, 3])
 
 
 def nees(error: np.ndarray, covariance: np.ndarray | None) -> float:

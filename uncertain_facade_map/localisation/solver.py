@@ -175,7 +175,7 @@ def patch_counts(points: np.ndarray, facade: np.ndarray, length: float) -> np.nd
     return counts[inverse.ravel()].astype(np.float64)
 
 
-def _centred_log(pose: np.ndarray, reference: np.ndarray, centre: np.ndarray) -> np.ndarray:
+def centred_log(pose: np.ndarray, reference: np.ndarray, centre: np.ndarray) -> np.ndarray:
     """``delta`` with ``pose = C exp(delta) C^-1 reference`` (C: translation by ``centre``)."""
     rel = pose @ se3.inverse(reference)
     # C^-1 rel C: same rotation, translation R c + t - c
@@ -347,13 +347,13 @@ def localise(scan: np.ndarray, prior_pose: np.ndarray, prior_covariance: np.ndar
         hessian, cost, pose, n_iter, used = _solve_round(body, p0, r0, normal, sigma, scale, pose, prior,
                                                          prior_factor, centre, params)
         iterations += n_iter
-        step = _centred_log(pose, start_pose, start_pose[:3, 3])
+        step = centred_log(pose, start_pose, start_pose[:3, 3])
         if previous is not None and float(step @ hessian @ previous) < 0:
             # the answers flip between two rounds (a depth step crossed back and forth): half the step
             step = 0.5 * step
             pose = _centred_exp(step, start_pose, start_pose[:3, 3])
         previous = step
-        moved = _centred_log(pose, start_pose, pose[:3, 3])
+        moved = centred_log(pose, start_pose, pose[:3, 3])
         small = np.linalg.norm(moved[:3]) < tol_t and np.linalg.norm(moved[3:]) < tol_r
         if tau == 0.0 and (small or float(moved @ hessian @ moved) < params.mahalanobis_tolerance**2):
             converged = True
@@ -379,7 +379,7 @@ def _costs(points_now, p0, r0, normal, sigma, scale, pose, prior, prior_factor, 
     r = r0 + np.einsum('ij,ij->i', normal, points_now - p0)
     u = r / sigma
     w, rho = robust_weights(u, params.kernel, scale)
-    e = _centred_log(pose, prior, centre)
+    e = centred_log(pose, prior, centre)
     prior_cost = 0.5 * float(e @ cho_solve(prior_factor, e))
     return r, w, float(rho.sum()) + prior_cost, e
 
