@@ -19,9 +19,7 @@ street canyon (:mod:`uncertain_facade_map.evaluation.localisation` says how). Ro
 - (d) the prior alone.
 
 Writes ``report.md``, ``report.json`` (summaries and every scan's outcome) and
-``localisation.png`` into ``--out``. Without the localiser (the package has no
-``uncertain_facade_map.localisation`` yet) rows (a) and (b) run a stub that returns the prior
-and the report says so.
+``localisation.png`` into ``--out``.
 """
 
 from __future__ import annotations
@@ -34,13 +32,13 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
 from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.evaluation import localisation as L
-from uncertain_facade_map.localisation import se3
+from uncertain_facade_map.localisation import localise
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_REAL = REPO.parent / 'shared' / 'data' / 'real'
@@ -51,26 +49,6 @@ ROW_NAMES = {'a': '(a) map + variance', 'b': '(b) map, constant variance', 'c': 
 
 # ---------------------------------------------------------------------------------------
 # Rows
-
-
-def stub_localise(scan: np.ndarray, prior_pose: np.ndarray, prior_covariance: np.ndarray, query: Callable,
-                  params: Any = None, *, constant_variance: float | None = None) -> Any:
-    """A stand-in with the localiser's signature: asks the map once and returns the prior."""
-    from types import SimpleNamespace
-
-    started = time.perf_counter()
-    query(se3.transform_points(prior_pose, scan[:100]))
-    return SimpleNamespace(pose=prior_pose.copy(), covariance=prior_covariance.copy(), iterations=0, queries=1,
-                           points_used=0, converged=False, cost=float('nan'), seconds=time.perf_counter() - started)
-
-
-def find_localiser() -> tuple[Callable, bool]:
-    """``(localise, real)``: the package's localiser, or :func:`stub_localise` (real False)."""
-    try:
-        from uncertain_facade_map.localisation import localise
-    except ImportError:
-        return stub_localise, False
-    return localise, True
 
 
 def gicp_row(stages: tuple[float, ...] = (3.0, 1.5, 0.5), downsampling: float = 0.25, neighbours: int = 10,
@@ -249,9 +227,6 @@ def write_report(out: Path, scenarios: list[L.Scenario], outcomes: list[L.Outcom
     lines = ['# Localisation against the uncertain map (issue 28)', '',
              f"Command: `{meta['command']}`  ", f"Date: {meta['date']} (UTC), commit {meta['commit']}, "
              f"wall time {meta['wall_seconds']:.0f} s.", '']
-    if not meta['localiser_real']:
-        lines += ['**Rows (a) and (b) ran a STUB** (the package has no `uncertain_facade_map.localisation` yet): '
-                  'they return the prior; their figures say nothing about the localiser.', '']
     lines += ['Errors: position 3-D (m), and its horizontal (x-y) and vertical parts; heading = yaw of the sensor x axis, absolute, wrapped (deg); '
               '"<= 0.2 m & 1 deg" the share of scans within both; failures: scans more than 0.2 m off horizontally or '
               '1 deg in heading, "flagged" those the row reported as not converged; NEES of the (6-D) error under the output '
@@ -373,9 +348,8 @@ def parser() -> argparse.ArgumentParser:
                    help='GICP maximum correspondence distances, coarse to fine, m (default: 3,1.5,0.5)')
     p.add_argument('--gicp-threads', type=int, default=1, help='GICP threads (default: %(default)s)')
     p.add_argument('--normals', choices=('surface', 'plane'), default='surface',
-                   help="normals of rows (a)/(b): the map's answers' (the mean surface's; the façade plane's when "
-                        "the answers carry none) or the façade plane's (default: %(default)s)")
-    p.add_argument('--stub', action='store_true', help='rows (a)/(b) run the stub even when the localiser exists')
+                   help="normals of rows (a)/(b): the map's answers' (the mean surface's) or the façade "
+                        "plane's (default: %(default)s)")
     p.add_argument('--quick', action='store_true',
                    help='a smoke run: scene small, campaign 1, one scan, 3,000 points, no real row')
     return p
@@ -394,7 +368,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f'error: unknown rows {unknown}; choose from {", ".join(ROW_NAMES)}', file=sys.stderr)
         return 2
     spec = L.Perturbation()
-    localise, real_localiser = (stub_localise, False) if args.stub else find_localiser()
     constant_used: dict[str, float] = {}
 
     def constant(scenario: L.Scenario) -> float:
@@ -407,10 +380,10 @@ def main(argv: list[str] | None = None) -> int:
     for r in rows_wanted:
         if r == 'a':
             rows[ROW_NAMES[r]] = L.localiser_row(localise, plane_normals=args.normals == 'plane')
-            descriptions[r] = 'localise() with the map\'s variance' + ('' if real_localiser else ' (STUB)')
+            descriptions[r] = 'localise() with the map\'s variance'
         elif r == 'b':
             rows[ROW_NAMES[r]] = L.localiser_row(localise, constant, plane_normals=args.normals == 'plane')
-            descriptions[r] = 'localise() with one constant variance' + ('' if real_localiser else ' (STUB)')
+            descriptions[r] = 'localise() with one constant variance'
         elif r == 'c':
             rows[ROW_NAMES[r]] = gicp_row(args.gicp_stages, threads=args.gicp_threads)
             descriptions[r] = (f'small_gicp GICP, max. correspondence {"/".join(f"{s:g}" for s in args.gicp_stages)} m, '
@@ -442,19 +415,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f'error: {exc}', file=sys.stderr)
         return 2
     outcomes = L.run(scenarios, rows, progress=print)
-    from uncertain_facade_map.pipeline.step7_queries import PointQuery
-
-    answers_have_normals = 'normal' in getattr(PointQuery, '__dataclass_fields__', {})
     normals_used = ('the façade planes\' (--normals plane)' if args.normals == 'plane' else
-                    "the map answers' (the mean surface's gradient)" if answers_have_normals else
-                    "the façade planes' (the map's answers carry no normal in this version)")
+                    "the map answers' (the mean surface's gradient)")
     cov = L.prior_covariance(spec)
     sd = np.sqrt(np.diag(cov))
     meta = {
         'command': 'python -m uncertain_facade_map_apps.localise_report ' + ' '.join(shlex.quote(a) for a in argv),
         'date': datetime.datetime.now(datetime.UTC).strftime('%Y-%m-%d %H:%M'),
         'commit': _commit(), 'wall_seconds': time.perf_counter() - started,
-        'localiser_real': real_localiser, 'seed': args.seed,
+        'seed': args.seed,
         'perturbation': {'position': list(spec.position), 'heading_deg': list(spec.heading_deg),
                          'z_sigma': spec.z_sigma, 'tilt_sigma_deg': spec.tilt_sigma_deg},
         'prior_sigma': (f'x, y {sd[0]:.2f} m, z {sd[2]:.2f} m, roll/pitch {np.rad2deg(sd[3]):.2f} deg, '

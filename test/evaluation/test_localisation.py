@@ -9,7 +9,7 @@ from scipy.stats import chi2
 
 from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.evaluation import localisation as L
-from uncertain_facade_map.localisation import se3
+from uncertain_facade_map.localisation import map_query, se3
 
 
 def _outcome(position, heading, nees=float('nan'), seconds=0.01, converged=None):
@@ -126,7 +126,7 @@ def small():
 
 def test_scans_lie_on_the_map_at_the_true_pose_and_not_at_the_prior(small):
     assert len(small.cases) == 4 and small.kind == 'clean'
-    query = L.map_query(small.fmap)
+    query = map_query(small.fmap)
     for case in small.cases:
         assert case.points.shape == (2000, 3)
         assert np.linalg.norm(case.points, axis=1).max() < 80.0               # sensor frame
@@ -137,7 +137,7 @@ def test_scans_lie_on_the_map_at_the_true_pose_and_not_at_the_prior(small):
         normals = at_truth.normal[hit]
         np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-9)
         assert np.all(np.isnan(at_truth.normal[~hit]))
-        plane = L.map_query(small.fmap, plane_normals=True)(se3.transform_points(case.truth, case.points))
+        plane = map_query(small.fmap, plane_normals=True)(se3.transform_points(case.truth, case.points))
         expected = np.array([f.frame.normal for f in small.fmap.facades])[at_truth.facade[hit]]
         np.testing.assert_allclose(plane.normal[hit], expected)
         np.testing.assert_array_equal(plane.signed_distance, at_truth.signed_distance)

@@ -42,9 +42,7 @@ def results(scenes, small_map):
 
 def test_map_query_gives_the_maps_surface_normals(small_map):
     """The map's own answers, normals included (the mean surface's gradient); the façade
-    plane's normal only for answers that lack them (an older map service)."""
-    from types import SimpleNamespace
-
+    plane's normals with ``plane_normals`` (the comparison's ``--normals plane``)."""
     rng = np.random.default_rng(0)
     f = small_map.facades[0]
     xyz = f.frame.to_world(np.column_stack([rng.uniform(0, 5, 50), rng.uniform(0, 5, 50), rng.normal(0, 0.2, 50)]))
@@ -53,9 +51,7 @@ def test_map_query_gives_the_maps_surface_normals(small_map):
     assert on.mean() > 0.5
     np.testing.assert_array_equal(ans.normal, small_map.query(xyz).normal)
     assert np.isnan(ans.normal[~on]).all()
-    older = SimpleNamespace(facades=small_map.facades, query=lambda *a, **k: SimpleNamespace(
-        **{k: v for k, v in small_map.query(*a, **k).as_dict().items() if k != 'normal'}))
-    plane = map_query(older)(xyz)
+    plane = map_query(small_map, plane_normals=True)(xyz)
     np.testing.assert_allclose(plane.normal[on], np.array([small_map.facades[k].frame.normal for k in ans.facade[on]]))
 
 

@@ -43,6 +43,7 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from ..errors import InputError
+from ..localisation.queries import map_query
 
 #: The central 95 % band of chi-square with 6 degrees of freedom (per-scan NEES).
 NEES_BAND = (float(chi2.ppf(0.025, 6)), float(chi2.ppf(0.975, 6)))
@@ -234,37 +235,6 @@ def thin(xyz: np.ndarray, voxel: float = 0.1) -> np.ndarray:
     keys = np.floor(xyz / voxel).astype(np.int64)
     _, first = np.unique(keys, axis=0, return_index=True)
     return xyz[np.sort(first)]
-
-
-def map_query(fmap: Any, plane_normals: bool = False) -> Callable[[np.ndarray], Any]:
-    """The map's point query as the localiser calls it: ``FacadeMap.query``, its answers'
-    ``normal`` (the mean surface's, issue 28 item 1) replaced by the façade plane's unit
-    outward normal ((M, 3), NaN where facade == -1) when ``plane_normals`` or when the
-    answers carry none."""
-    normals = np.array([f.frame.normal for f in fmap.facades], dtype=np.float64).reshape(-1, 3)
-
-    def query(xyz: np.ndarray) -> Any:
-        answer = fmap.query(np.asarray(xyz, dtype=np.float64))
-        if not plane_normals and getattr(answer, 'normal', None) is not None:
-            return answer
-        facade = np.asarray(answer.facade)
-        normal = np.full((len(facade), 3), np.nan)
-        hit = facade >= 0
-        normal[hit] = normals[facade[hit]]
-        return _WithNormal(answer, normal)
-
-    return query
-
-
-class _WithNormal:
-    """A point query's answers with ``normal`` added (every other attribute passed through)."""
-
-    def __init__(self, answer: Any, normal: np.ndarray) -> None:
-        self._answer = answer
-        self.normal = normal
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._answer, name)
 
 
 def _build_map(xyz: np.ndarray, building_id: np.ndarray | None, origins: np.ndarray | None,
@@ -479,7 +449,7 @@ def constant_variance(scenario: Scenario, max_points: int = 20_000, seed: int = 
 def localiser_row(localise: Callable[..., Any], constant: float | Callable[[Scenario], float] | None = None,
                   params: Any = None, plane_normals: bool = False) -> Method:
     """Rows (a) and (b): ``localise`` (the API of ``uncertain_facade_map.localisation``)
-    asking the scenario's map (:func:`map_query`), with its variance (``constant`` None) or
+    asking the scenario's map (:func:`~uncertain_facade_map.localisation.map_query`), with its variance (``constant`` None) or
     one constant variance (m^2, or a function of the scenario giving it; computed once per
     scenario)."""
     queries: dict[int, Callable] = {}
@@ -488,7 +458,7 @@ def localiser_row(localise: Callable[..., Any], constant: float | Callable[[Scen
     def row(scan: np.ndarray, prior: np.ndarray, covariance: np.ndarray, scenario: Scenario) -> Estimate:
         key = id(scenario)
         if key not in queries:
-            queries[key] = map_query(scenario.fmap, plane_normals)
+            queries[key] = map_query(scenario.fmap, plane_normals=plane_normals)
             # The first query builds the map's per-point reading (seconds on a street): not a scan's time.
             queries[key](scenario.map_points[:10])
             constants[key] = constant(scenario) if callable(constant) else constant
