@@ -27,7 +27,8 @@ import numpy as np
 from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.transforms.rotations import from_matrix, to_matrix
 
-from .map_messages import QUERY_FIELDS, _header, encode_array
+from .map_messages import QUERY_FIELDS, _encode, _header
+from .transforms import _quaternion, _vector, stamped_transforms
 
 __all__ = ['PosePrior', 'fill_query_request', 'pose_with_covariance_msg', 'prior_from_msg', 'query_answers']
 
@@ -60,15 +61,11 @@ def prior_from_msg(msg: Any) -> PosePrior:
             positive definite matrix (all zeros is accepted: unknown).
     """
     try:
-        header, pose, cov = msg.header, msg.pose.pose, msg.pose.covariance
-        p, q = pose.position, pose.orientation
-        position = np.array([float(p.x), float(p.y), float(p.z)])
-        quat = np.array([float(q.x), float(q.y), float(q.z), float(q.w)])
-        stamp = int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
-        frame = str(header.frame_id)
-        flat = np.asarray(cov, dtype=np.float64).reshape(-1)
-    except (AttributeError, TypeError, ValueError) as err:
+        (t,) = stamped_transforms(msg, child_frame='prior')  # the pose, as any pose message's
+        flat = np.asarray(msg.pose.covariance, dtype=np.float64).reshape(-1)
+    except (InputError, AttributeError, TypeError, ValueError) as err:
         raise InputError(f'not a PoseWithCovarianceStamped: {err}') from err
+    position, quat, stamp, frame = t.translation, t.rotation, t.stamp_ns, t.parent
     if not (np.isfinite(position).all() and np.isfinite(quat).all()):
         raise InputError('prior pose has a NaN or infinite position or orientation')
     norm = float(np.linalg.norm(quat))
@@ -107,10 +104,7 @@ def pose_with_covariance_msg(frame_id: str, stamp_ns: int, pose: np.ndarray, cov
     covariance = np.asarray(covariance, dtype=np.float64)
     if pose.shape != (4, 4) or covariance.shape != (6, 6):
         raise InputError(f'pose must be (4, 4) and covariance (6, 6), got {pose.shape} and {covariance.shape}')
-    q = from_matrix(pose[:3, :3])
-    t = pose[:3, 3]
-    body = types.Pose(position=types.Point(x=float(t[0]), y=float(t[1]), z=float(t[2])),
-                      orientation=types.Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))
+    body = types.Pose(position=_vector(types, 'Point', pose[:3, 3]), orientation=_quaternion(types, from_matrix(pose[:3, :3])))
     with_cov = types.PoseWithCovariance(pose=body, covariance=np.ascontiguousarray(covariance.reshape(-1)))
     return types.PoseWithCovarianceStamped(header=_header(types, frame_id, stamp_ns), pose=with_cov)
 
@@ -119,7 +113,7 @@ def fill_query_request(request: Any, xyz: np.ndarray, resolution: float = 0.0) -
     """Write (N, 3) map-frame points (metres) into a ``QueryPoints`` request as 3 numbers
     each (``xyz``; ``points`` left empty), the fast way for large batches."""
     xyz = np.ascontiguousarray(xyz, dtype=np.float64).reshape(-1, 3)
-    request.xyz = encode_array(xyz, 'd') if not hasattr(request, '__dataclass_fields__') else xyz.reshape(-1)
+    request.xyz = _encode(None, type(request), xyz.reshape(-1), 'd')
     request.resolution = float(resolution)
     return request
 
