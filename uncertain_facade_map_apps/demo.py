@@ -192,24 +192,22 @@ def main(argv: list[str] | None = None) -> int:
 
 def _query(loc: _Localisation, out: Path) -> tuple[dict[str, np.ndarray], float, int]:
     """Query points a localisation filter would test: map points of the drive, jittered 10 cm."""
-    from geometry_msgs.msg import Point
-
     from uncertain_facade_map.io.clouds import read_cloud
     from uncertain_facade_map.srv import QueryPoints
+    from uncertain_facade_map_apps.ros_client import answers_of, query_request
 
     cloud = read_cloud(out / 'campaign0.npz')
     building = cloud.points[cloud.points['class'] == 1]
     rng = np.random.default_rng(0)
     pick = building[rng.choice(len(building), min(20000, len(building)), replace=False)]
     xyz = np.stack([pick['x'], pick['y'], pick['z']], 1).astype(np.float64) + rng.normal(0, 0.1, (len(pick), 3))
-    request = QueryPoints.Request(points=[Point(x=float(x), y=float(y), z=float(z)) for x, y, z in xyz])
+    request = query_request(xyz)
     t0 = time.monotonic()
     response = loc.call(QueryPoints, 'query_points', request)
     seconds = time.monotonic() - t0
     if not response.success:
         raise RuntimeError(response.message)
-    answers = {k: np.asarray(getattr(response, k)) for k in ('facade', 'mean_depth', 'variance', 'noise_variance',
-                                                             'signed_distance', 'p_occupied')}
+    answers = answers_of(response)
     np.savez(out / 'queries.npz', points=xyz, **answers)
     return answers, seconds, len(xyz)
 

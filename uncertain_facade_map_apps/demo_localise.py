@@ -96,9 +96,14 @@ def localise_drive(scene_name: str, out: Path, env: dict, scans: int = 12, seed:
     import msg_adapters as ma
     from msg_adapters.localisation import pose_with_covariance_msg, prior_from_msg
     from msg_adapters.transforms import transform_types_rclpy
-    from uncertain_facade_map.evaluation.localisation import perturb, prior_covariance
+    from uncertain_facade_map.evaluation.localisation import (
+        centred_error,
+        heading,
+        perturb,
+        prior_covariance,
+        wrap_degrees,
+    )
     from uncertain_facade_map.io.parameter_file import dump_config
-    from uncertain_facade_map.localisation.solver import centred_log
     from uncertain_facade_map.params import LOCALIZER_NAME, Config
     from uncertain_facade_map.simulation.campaign import SCENE_SENSORS, SensorConfig, campaign, drive_duration
     from uncertain_facade_map.simulation.export import sensor_scan
@@ -136,11 +141,10 @@ def localise_drive(scene_name: str, out: Path, env: dict, scans: int = 12, seed:
                 progress(f'      scan {k + 1}: no pose within the time allowed')
                 continue
             estimate = prior_from_msg(got[1])
-            d = centred_log(truth, estimate.pose, estimate.pose[:3, 3])
-            heading = np.rad2deg(np.arctan2(estimate.pose[1, 0], estimate.pose[0, 0])
-                                 - np.arctan2(truth[1, 0], truth[0, 0]))
+            d = centred_error(estimate.pose, truth)
+            turn = wrap_degrees(np.rad2deg(heading(estimate.pose) - heading(truth)))
             done.append(Localised(truth, prior, estimate.pose, estimate.covariance, float(np.hypot(d[0], d[1])),
-                                  float(abs((heading + 180.0) % 360.0 - 180.0)), got[0] - sent))
+                                  float(abs(turn)), got[0] - sent))
     finally:
         robot.close()
         proc.send_signal(2)
