@@ -44,11 +44,12 @@ from msg_adapters import localisation as ml
 from msg_adapters import map_messages as mm
 from msg_adapters import transforms as mt
 from uncertain_facade_map.errors import FacadeMapError, InputError
+from uncertain_facade_map.io.scans import points_xyz
 from uncertain_facade_map.localisation import PoseEstimate, covariance_from_std, localise
 from uncertain_facade_map.localisation.se3 import inverse, se3_exp, se3_log
 from uncertain_facade_map.params import LOCALIZER_NAME, LOCALIZER_SECTIONS, Config
 from uncertain_facade_map.srv import QueryPoints
-from uncertain_facade_map_node.node import declare_config, spin
+from uncertain_facade_map_node.node import _stamp_ns, declare_config, spin
 
 
 class FacadeLocalizerNode(Node):
@@ -175,11 +176,8 @@ class FacadeLocalizerNode(Node):
         return pose, last[2] + np.diag(growth) * max(dt, 1e-3)
 
     def _localise(self, msg: Any) -> None:
-        stamp = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
-        points = ma.structured_from_pointcloud2(msg)
-        if not all(k in (points.dtype.names or ()) for k in 'xyz'):
-            raise InputError('scan has no x, y and z fields')
-        xyz = np.stack([points['x'], points['y'], points['z']], axis=1).astype(np.float64)
+        stamp = _stamp_ns(msg.header)
+        xyz = points_xyz(ma.structured_from_pointcloud2(msg))
         xyz = xyz[np.isfinite(xyz).all(axis=1)]
         prior = self._prior_for(stamp)
         if prior is None:

@@ -272,10 +272,6 @@ def occluded_scene(scene: Any, seed: int = 0, van_share: float = 0.9, tree_every
                  map_origin=scene.map_origin, walls=scene.walls)
 
 
-def _points_xyz(points: np.ndarray) -> np.ndarray:
-    return np.stack([points['x'], points['y'], points['z']], axis=1).astype(np.float64)
-
-
 def simulated_scenario(name: str, campaigns: Sequence[int] = (1, 2, 3, 4), scans_per_drive: int = 2,
                        scan_seconds: float = 1.0, max_points: int = 10_000, seed: int = 0,
                        perturbation: Perturbation = Perturbation(), map_campaign: int = 0,
@@ -345,7 +341,7 @@ def simulated_scenario(name: str, campaigns: Sequence[int] = (1, 2, 3, 4), scans
     if progress:
         progress(f'{name}: {len(cases)} scans ({time.perf_counter() - started:.1f} s)')
     return Scenario(name, kind, fmap, building.xyz, cases, notes, time.perf_counter() - started,
-                    thin(_points_xyz(cloud.points)))
+                    thin(cloud.xyz))
 
 
 def _sensor_name(sensor: Any) -> str:
@@ -376,7 +372,7 @@ def real_scenario(map_ply: str, scan_ply: str, draws: int = 10, max_points: int 
     scan = read_cloud(scan_ply)
     building = select_building_points(mapped, InputConfig(), SelectionConfig())
     fmap = _build_map(building.xyz, building.building_id, building.sensor_origins, mapped.map_origin)
-    xyz = _points_xyz(scan.points) + (np.asarray(scan.map_origin, float) - np.asarray(mapped.map_origin, float))
+    xyz = scan.xyz + (np.asarray(scan.map_origin, float) - np.asarray(mapped.map_origin, float))
     names = scan.points.dtype.names or ()
     if all(f'origin_{c}' in names for c in 'xyz'):
         centre = np.mean(np.stack([scan.points[f'origin_{c}'] for c in 'xyz'], axis=1), axis=0)
@@ -398,7 +394,7 @@ def real_scenario(map_ply: str, scan_ply: str, draws: int = 10, max_points: int 
              f'{draws} priors; truth: the identity in the shared city frame (map origins differ by '
              f'{np.linalg.norm(np.asarray(scan.map_origin, float) - np.asarray(mapped.map_origin, float)):.3f} m)']
     return Scenario('av2_sweep1_vs_0', 'real', fmap, building.xyz, cases, notes, time.perf_counter() - started,
-                    thin(_points_xyz(mapped.points)))
+                    thin(mapped.xyz))
 
 
 # ---------------------------------------------------------------------------------------

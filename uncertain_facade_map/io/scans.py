@@ -63,7 +63,7 @@ class ScanPoints:
     selection: Selection | None = None
 
 
-def _xyz(points: np.ndarray) -> np.ndarray:
+def points_xyz(points: np.ndarray) -> np.ndarray:
     """(M, 3) float64 coordinates of a scan; InputError without numeric x, y, z fields."""
     names = points.dtype.names or ()
     missing = [c for c in ('x', 'y', 'z') if c not in names]
@@ -104,7 +104,7 @@ class Scan:
         Raises:
             InputError: no numeric x, y or z field.
         """
-        xyz = _xyz(points)
+        xyz = points_xyz(points)
         return cls(points, str(frame_id), int(stamp_ns), np.isfinite(xyz).all(axis=1), config.time_field, xyz)
 
     @property
@@ -221,7 +221,7 @@ def select_scan_points(points: np.ndarray, config: InputConfig, selection: Selec
         ScanRejected: a point or sensor origin beyond ``max_coordinate`` (the message says
             when the other byte order would make the points plausible).
     """
-    xyz = _xyz(points) if xyz is None else xyz
+    xyz = points_xyz(points) if xyz is None else xyz
     names = points.dtype.names or ()
     keep = np.isfinite(xyz).all(axis=1)
     nonfinite = int((~keep).sum())
