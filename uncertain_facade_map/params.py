@@ -37,7 +37,7 @@ __all__ = [
     'NodeConfig', 'Options', 'OutlierParams', 'Param', 'PersistenceConfig', 'PublishConfig', 'QueryConfig',
     'Relation', 'Section', 'SelectionConfig', 'ServiceConfig', 'UpdateParams', 'config_from_parameters', 'map_params',
     'map_params_from_record', 'map_params_record', 'parameters', 'NODE_NAME', 'LOCALIZER_NAME', 'LOCALIZER_SECTIONS',
-    'LocalizerConfig', 'node_sections',
+    'LocalizerConfig', 'TilesConfig', 'node_sections',
 ]
 
 #: The node's name, and the section of the parameter file it reads.
@@ -673,6 +673,27 @@ class PersistenceConfig(Section):
 
 
 @dataclass(frozen=True)
+class TilesConfig(Section):
+    """City-scale maps (issue 29): the tiled map file (a manifest and one map file per tile,
+    :mod:`~.tiling`), how it is built and how much of it a reader keeps loaded."""
+
+    section: ClassVar[str] = 'tiles'
+
+    side: float = param(50.0, "side of a map tile (a square of the map frame's x, y grid from the map frame's "
+                              "origin); a building belongs to the tile of the centre of its points' bounding box "
+                              "at its first build, whole, so a tile's content may reach past its square",
+                        unit='m', allowed=_closed(1.0, 100_000.0))
+    cache_mb: float = param(2048.0, 'a tiled map keeps at most this much of its tiles loaded (least recently used '
+                                    'first out; one tile is always kept, whatever its size)', unit='MB',
+                            allowed=_closed(1.0, 10_000_000.0))
+    radius: float = param(150.0, 'the node keeps the tiles within this distance of its latest pose loaded, and '
+                                 'list_tiles answers within it by default', unit='m', allowed=_closed(0.0, 100_000.0))
+    follow_period: float = param(1.0, 'the node looks at its pose and loads the tiles near it this often (0: it '
+                                      'does not follow its pose; tiles load when a query needs them)', unit='s',
+                                 allowed=_closed(0.0, 3600.0))
+
+
+@dataclass(frozen=True)
 class LocaliseParams(Section):
     """The localiser against the map (:mod:`~.localisation`, ``uncertain-facade-map localise``): a MAP estimate of
     the sensor's 6-DoF pose from a scan, a prior pose and the map's answers (issue 28)."""
@@ -779,6 +800,7 @@ class Config:
     publish: PublishConfig = field(default_factory=PublishConfig)
     service: ServiceConfig = field(default_factory=ServiceConfig)
     persistence: PersistenceConfig = field(default_factory=PersistenceConfig)
+    tiles: TilesConfig = field(default_factory=TilesConfig)
     localise: LocaliseParams = field(default_factory=LocaliseParams)
     localizer: LocalizerConfig = field(default_factory=LocalizerConfig)
 
