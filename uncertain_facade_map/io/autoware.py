@@ -164,12 +164,28 @@ def _checked_prefix(prefix: str) -> str:
 
 
 def _pieces(source: Any) -> tuple[np.ndarray, Iterator[FacadeMap], int]:
-    """(map origin, the maps to export one at a time, how many) of a FacadeMap or a tiled map."""
+    """(map origin, the maps to export one at a time, how many) of ``source``.
+
+    A path is a map file or a tiled map (its folder or ``manifest.json``); a tiled map read
+    from its path loads each tile once, checked against the manifest's hash, and keeps none
+    (no reader cache: the export reads every tile once).
+    """
     if isinstance(source, FacadeMap):
         return np.asarray(source.map_origin, np.float64), iter([source]), 1
+    if isinstance(source, (str, os.PathLike)):
+        from ..tiling.manifest import is_tiled_map, manifest_path, read_manifest, verify_tile
+        from .map_file import load_map
+
+        if not is_tiled_map(source):
+            return _pieces(load_map(source))
+        manifest = read_manifest(source)
+        folder = manifest_path(source).parent
+        records = [manifest.tiles[t] for t in sorted(manifest.tiles)]
+        return (np.asarray(manifest.map_origin, np.float64),
+                (load_map(verify_tile(folder, r)) for r in records), len(records))
     manifest = getattr(source, 'manifest_', None)
     if manifest is None or not hasattr(source, 'tile'):
-        raise InputError(f'cannot export a {type(source).__name__}: give a FacadeMap or a tiled map')
+        raise InputError(f'cannot export a {type(source).__name__}: give a FacadeMap, a tiled map or a map path')
     ids = sorted(manifest.tiles)
     return np.asarray(source.map_origin, np.float64), (source.tile(t) for t in ids), len(ids)
 
@@ -258,7 +274,7 @@ def _prepare(folder: Path, force: bool) -> None:
         shutil.rmtree(p) if p.is_dir() else p.unlink()
 
 
-def export_autoware(source: FacadeMap | Any, out: str | os.PathLike[str], grid: float = AUTOWARE_GRID,
+def export_autoware(source: FacadeMap | str | os.PathLike[str] | Any, out: str | os.PathLike[str], grid: float = AUTOWARE_GRID,
                     prefix: str = DEFAULT_PREFIX, *, step: float | None = None, force: bool = False,
                     progress: Callable[[int, int], None] | None = None) -> AutowareExport:
     """Write the map's mean surface as Autoware PCD tiles plus ``pointcloud_map_metadata.yaml``.
@@ -270,8 +286,10 @@ def export_autoware(source: FacadeMap | Any, out: str | os.PathLike[str], grid: 
     module docstring for the loader's and the divider's conventions and their sources.
 
     Args:
-        source: a :class:`FacadeMap`, or a tiled map (``tiling.tiled_map.TiledMap``:
-            ``manifest_.tiles``, ``tile(id)``, ``map_origin``), read one tile at a time.
+        source: a :class:`FacadeMap`; a tiled map (``tiling.tiled_map.TiledMap``:
+            ``manifest_.tiles``, ``tile(id)``, ``map_origin``), read one tile at a time; or
+            the path of a map file or of a tiled map (its folder or ``manifest.json``), whose
+            tiles are loaded one at a time (each checked against the manifest's hash).
         out: export folder; created if missing (its parent must exist).
         grid: cell side, whole metres (default 20, Autoware's).
         prefix: start of the PCD file names (ASCII letters, digits, ``_ . -``; may be empty,
@@ -286,8 +304,9 @@ def export_autoware(source: FacadeMap | Any, out: str | os.PathLike[str], grid: 
         What was written (:class:`AutowareExport`).
 
     Raises:
-        InputError: a bad grid or prefix, an unusable folder, a folder holding an earlier
-            export without ``force``, or a file that cannot be written.
+        InputError: a bad grid or prefix, a missing or damaged map, an unusable folder, a
+            folder holding an earlier export without ``force``, or a file that cannot be
+            written.
     """
     grid_m = _checked_grid(grid)
     prefix = _checked_prefix(prefix)
