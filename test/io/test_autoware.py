@@ -6,7 +6,8 @@ The map is the ``small`` scene's (campaign 0, 4 façades, 54,029 facet cells of 
 cells -50 and 0. The metadata is read with the rule of Autoware's loader
 (autowarefoundation/autoware.universe, map/autoware_map_loader/src/pointcloud_map_loader/utils.cpp,
 ``load_pcd_metadata`` and ``replace_with_absolute_path``; pointcloud_map_loader_node.cpp,
-``get_pcd_paths``), replicated in :func:`loader_metadata`. About 7 s (5 of them building the map).
+``get_pcd_paths``), replicated in :func:`loader_metadata`. About 4 s of tests (1.5 of them building the
+map), 9 to 10 s with pytest's start-up.
 """
 
 from __future__ import annotations
@@ -21,7 +22,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from uncertain_facade_map.errors import InputError
-from uncertain_facade_map.io.autoware import METADATA_NAME, PCD_DTYPE, _cells, cell_file_name, export_autoware
+from uncertain_facade_map.io.autoware import (
+    METADATA_NAME,
+    PCD_DTYPE,
+    _cells,
+    _check_float32,
+    cell_file_name,
+    export_autoware,
+)
 from uncertain_facade_map.io.map_file import save_map
 from uncertain_facade_map.io.pcd import read_pcd
 from uncertain_facade_map.mapping.facade_map import FacadeMap, build_map
@@ -217,6 +225,14 @@ def test_bad_places_are_input_errors(small_map, tmp_path):
         export_autoware(small_map[0], tmp_path / 'file')
     with pytest.raises(InputError, match='no such'):
         export_autoware(tmp_path / 'nothing.npz', tmp_path / 'y')
+
+
+def test_points_far_from_the_map_origin_are_refused_not_rounded():
+    _check_float32(np.array([[131_071.9, -5.0, 3.0], [0.0, -100_000.0, 0.0]]))
+    with pytest.raises(InputError, match=r'200,000 m .* keeps only 1.56 cm: give the map a map origin near its data'):
+        _check_float32(np.array([[1.0, -200_000.0, 3.0]]))
+    with pytest.raises(InputError, match='float32'):
+        _check_float32(np.array([[np.nan, 0.0, 0.0]]))
 
 
 def test_an_empty_map_gives_metadata_without_files(tmp_path):

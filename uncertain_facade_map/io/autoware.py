@@ -49,6 +49,10 @@ What the loader and the divider expect (sources: ``autowarefoundation/autoware.u
   written. The divider reads ``PointXYZ`` or ``PointXYZI`` only (its README) and drops
   other fields: dividing our files again loses ``std``.
 
+Coordinates are float32, as Autoware's ``pcl::PointXYZ``: points farther than
+:data:`MAX_COORDINATE` (131 km, where float32 keeps 7.8 mm) from the map frame's origin are
+refused rather than rounded (a map whose origin is not near its data).
+
 The PCD files (binary, via :func:`~uncertain_facade_map.io.pcd.write_pcd`) hold
 ``x, y, z`` (float32, metres, map frame) and ``std`` (float32, metres: ``sqrt`` of the
 surface raster's variance at the cell, the measurement noise not included). ``VIEWPOINT`` is
@@ -83,7 +87,7 @@ from .cloud import Cloud
 from .map_file import _umask
 from .pcd import write_pcd
 
-__all__ = ['AUTOWARE_GRID', 'METADATA_NAME', 'PCD_DTYPE', 'AutowareExport', 'ExportedFile', 'cell_file_name',
+__all__ = ['AUTOWARE_GRID', 'MAX_COORDINATE', 'METADATA_NAME', 'PCD_DTYPE', 'AutowareExport', 'ExportedFile', 'cell_file_name',
            'export_autoware']
 
 #: Autoware's cell side, metres (the divider's default ``grid_size_x``; the loader's README
@@ -95,6 +99,10 @@ METADATA_NAME = 'pointcloud_map_metadata.yaml'
 DEFAULT_PREFIX = 'pointcloud_map'
 #: Fields of every PCD file: x, y, z (metres, map frame) and std (metres), float32.
 PCD_DTYPE = np.dtype([('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('std', '<f4')])
+
+#: Largest distance from the map frame's origin written, metres: float32 spacing is 7.8 mm
+#: below it (Autoware's MGRS-local map frames span 100 km).
+MAX_COORDINATE = 131_072.0
 
 _PREFIX = re.compile(r'[A-Za-z0-9_][A-Za-z0-9_.-]*')
 _SPILL = '.autoware-export-spill'
@@ -193,11 +201,22 @@ def _pieces(source: Any) -> tuple[np.ndarray, Iterator[FacadeMap], int]:
 def _surface_rows(fmap: FacadeMap, step: float | None) -> np.ndarray:
     """The map's mean-surface points as PCD rows (float32 x, y, z, std)."""
     grid = surface_grid(fmap.facades, step)
+    _check_float32(grid.xyz)
     rows = np.empty(len(grid), PCD_DTYPE)
     for i, name in enumerate('xyz'):
         rows[name] = grid.xyz[:, i]
     rows['std'] = grid.std
     return rows
+
+
+def _check_float32(xyz: np.ndarray) -> None:
+    """Refuse (N, 3) map-frame points (metres) that float32 would round by more than 8 mm."""
+    far = float(np.abs(xyz).max()) if len(xyz) else 0.0
+    if not far < MAX_COORDINATE:
+        spacing = float(np.spacing(np.float32(min(far, 3e38))))
+        raise InputError(f'surface points lie up to {far:,.0f} m from the map frame\'s origin, where float32 (PCD '
+                         f'x, y, z) keeps only {spacing * 100:.3g} cm: give the map a map origin near its data '
+                         f'(within {MAX_COORDINATE:,.0f} m)')
 
 
 def _cells(rows: np.ndarray, grid: int) -> np.ndarray:
@@ -304,9 +323,10 @@ def export_autoware(source: FacadeMap | str | os.PathLike[str] | Any, out: str |
         What was written (:class:`AutowareExport`).
 
     Raises:
-        InputError: a bad grid or prefix, a missing or damaged map, an unusable folder, a
-            folder holding an earlier export without ``force``, or a file that cannot be
-            written.
+        InputError: a bad grid or prefix, a missing or damaged map, surface points
+            ``MAX_COORDINATE`` m or more from the map frame's origin (float32 would round
+            them by more than 8 mm), an unusable folder, a folder holding an earlier export
+            without ``force``, or a file that cannot be written.
     """
     grid_m = _checked_grid(grid)
     prefix = _checked_prefix(prefix)
