@@ -153,42 +153,29 @@ def test_twenty_metre_cells_split_the_fifty_metre_ones(small_map, tmp_path):
     assert [len(coarse[n]) for n in sorted(coarse)] == [87, 53_942]
 
 
-def test_a_tiled_map_exports_as_its_one_file_map(small_map, tmp_path):
-    from uncertain_facade_map.params import map_params_record
-    from uncertain_facade_map.tiling.grid import TileGrid, tile_id
-    from uncertain_facade_map.tiling.manifest import Manifest, save_tile, write_manifest
-    from uncertain_facade_map.tiling.tiled_map import subset_map
+def test_a_tiled_map_exports_as_its_one_file_map(small_map, tmp_path, capsys):
+    from uncertain_facade_map.tiling.cut import cut_map
+    from uncertain_facade_map.tiling.tiled_map import TiledMap
 
     fmap, _ = small_map
     folder = tmp_path / 'tiled'
-    records = {}
-    for i, b in enumerate(fmap.buildings):  # one tile per building, tiles out of building order
-        ix = 3 - i
-        tid = tile_id(ix, 0)
-        records[tid] = save_tile(folder, tid, (ix, 0), TileGrid(50.0).bounds(ix, 0), subset_map(fmap, [b]), 'x')
-    write_manifest(folder, Manifest(50.0, tuple(fmap.map_origin), map_params_record(fmap.params), records,
-                                    building_tiles={}))
-    done = []
-    result = export_autoware(folder, tmp_path / 'out', progress=lambda d, n: done.append((d, n)))
-    assert done == [(k, len(records)) for k in range(1, len(records) + 1)] and len(records) >= 2
-    _, tiled = _read_export(tmp_path / 'out', 20)
-    _, whole = _read_export(export_autoware(fmap, tmp_path / 'one').folder, 20)
-    assert tiled.keys() == whole.keys()
-    assert all(np.array_equal(_rows_sorted(tiled[n]), _rows_sorted(whole[n])) for n in whole)
-    assert result.map_origin == (550000.0, 5804000.0, 55.0)
-    assert not (tmp_path / 'out' / '.autoware-export-spill').exists()
-
-    class Reader:  # what TiledMap offers the export: manifest_, tile(id), map_origin
-        def __init__(self):
-            from uncertain_facade_map.io.map_file import load_map
-            from uncertain_facade_map.tiling.manifest import read_manifest
-
-            self.manifest_ = read_manifest(folder)
-            self.map_origin = np.asarray(self.manifest_.map_origin)
-            self.tile = lambda t: load_map(folder / self.manifest_.tiles[t].file)
-
-    _, via_reader = _read_export(export_autoware(Reader(), tmp_path / 'reader').folder, 20)
+    manifest = cut_map(fmap, folder, 10.0)
+    assert sorted(manifest.tiles) == ['tile_0_1', 'tile_3_1']  # the two buildings; the first reaches x < 0
+    for grid in (50, 20):  # at 50 m the cell [0, 0] takes points of both tiles (through the spill files)
+        done = []
+        result = export_autoware(folder, tmp_path / f'out{grid}', grid, progress=lambda d, n: done.append((d, n)))
+        assert done == [(1, 2), (2, 2)]
+        _, tiled = _read_export(tmp_path / f'out{grid}', grid)
+        _, whole = _read_export(export_autoware(fmap, tmp_path / f'one{grid}', grid).folder, grid)
+        assert tiled.keys() == whole.keys()
+        assert all(np.array_equal(_rows_sorted(tiled[n]), _rows_sorted(whole[n])) for n in whole)
+    assert result.map_origin == (550000.0, 5804000.0, 55.0) and result.points == 54_029
+    assert not [p for p in (tmp_path / 'out20').iterdir() if p.name.startswith('.')]  # spill files removed
+    # Through the reader (its LRU bounded to one tile), and from the command line.
+    _, via_reader = _read_export(export_autoware(TiledMap(folder, cache_mb=1e-6), tmp_path / 'reader').folder, 20)
     assert all(np.array_equal(via_reader[n], tiled[n]) for n in tiled)
+    assert main(['export', str(folder / 'manifest.json'), '--out', str(tmp_path / 'cli'), '--quiet']) == 0
+    assert 'exported 54,029 points in 4 files of 20 m' in capsys.readouterr().out
 
 
 def test_cli_export_prints_files_points_and_bounds(small_map, tmp_path, capsys):
@@ -203,8 +190,11 @@ def test_cli_export_prints_files_points_and_bounds(small_map, tmp_path, capsys):
     assert main(['export', str(path), '--out', str(out), '--quiet']) == 2  # an earlier export is kept
     assert 'already holds an export' in capsys.readouterr().err
     (out / 'stale_1000_1000.pcd').write_bytes(b'')
+    (out / '.street_0_0.pcd.k3j2.tmp').write_bytes(b'')  # what a killed export leaves
+    (out / 'notes.txt').write_text('kept')
     assert main(['export', str(path), '--out', str(out), '--quiet', '--force']) == 0
-    assert sorted(p.name for p in out.glob('*.pcd')) == [f'pointcloud_map_{x}_0.pcd' for x in (-20, 0, 20, 40)]
+    assert sorted(p.name for p in out.iterdir()) == ['notes.txt', *(f'pointcloud_map_{x}_0.pcd' for x in (-20, 0, 20, 40)),
+                                                     METADATA_NAME]
 
 
 @pytest.mark.parametrize('kwargs, words', [

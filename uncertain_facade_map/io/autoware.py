@@ -289,7 +289,10 @@ def _prepare(folder: Path, force: bool) -> None:
     if old and not force:
         raise InputError(f'{folder} already holds an export ({len(old)} PCD/metadata files; the loader would read '
                          'them all): choose an empty folder or replace them (--force)')
-    for p in old:
+    # With them go the temporary files a killed export left (``.NAME.pcd.XXXX.tmp``).
+    stale = [p for p in folder.iterdir() if p.name.startswith('.') and p.name.endswith('.tmp')
+             and ('.pcd.' in p.name or p.name.startswith(f'.{METADATA_NAME}.'))]
+    for p in old + stale:
         shutil.rmtree(p) if p.is_dir() else p.unlink()
 
 
@@ -315,8 +318,9 @@ def export_autoware(source: FacadeMap | str | os.PathLike[str] | Any, out: str |
             as the divider's default).
         step: surface sampling step on each façade plane, metres; None (default) for each
             raster's own cells (the raster's values exactly).
-        force: replace an earlier export in ``out`` (its ``.pcd`` files and metadata);
-            otherwise such a folder is refused.
+        force: replace an earlier export in ``out`` (its ``.pcd`` files, metadata and the
+            temporary files of a killed export); otherwise such a folder is refused. Other
+            files in ``out`` are left alone.
         progress: called with (map pieces done, pieces) after each map tile.
 
     Returns:
