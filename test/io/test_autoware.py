@@ -6,8 +6,8 @@ The map is the ``small`` scene's (campaign 0, 4 façades, 54,029 facet cells of 
 cells -50 and 0. The metadata is read with the rule of Autoware's loader
 (autowarefoundation/autoware.universe, map/autoware_map_loader/src/pointcloud_map_loader/utils.cpp,
 ``load_pcd_metadata`` and ``replace_with_absolute_path``; pointcloud_map_loader_node.cpp,
-``get_pcd_paths``), replicated in :func:`loader_metadata`. About 4 s of tests (1.5 of them building the
-map), 9 to 10 s with pytest's start-up.
+``get_pcd_paths``), replicated in :func:`loader_metadata`. About 3 s of tests (most of it simulating and
+building the map), 9 to 11 s wall with pytest's start-up (median 9.6 s of 3 runs, busy machine).
 """
 
 from __future__ import annotations
