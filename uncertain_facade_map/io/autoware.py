@@ -106,7 +106,6 @@ MAX_COORDINATE = 131_072.0
 
 _PREFIX = re.compile(r'[A-Za-z0-9_][A-Za-z0-9_.-]*')
 _SPILL = '.autoware-export-spill'
-_RESOLUTION_KEYS = ('x_resolution', 'y_resolution')
 
 
 @dataclass(frozen=True)
@@ -182,10 +181,11 @@ def _pieces(source: Any) -> tuple[np.ndarray, Iterator[FacadeMap], int]:
         return np.asarray(source.map_origin, np.float64), iter([source]), 1
     if isinstance(source, (str, os.PathLike)):
         from ..tiling.manifest import is_tiled_map, manifest_path, read_manifest, verify_tile
+        from ..tiling.tiled_map import open_map
         from .map_file import load_map
 
         if not is_tiled_map(source):
-            return _pieces(load_map(source))
+            return _pieces(open_map(source))  # a map file; a folder without manifest is refused
         manifest = read_manifest(source)
         folder = manifest_path(source).parent
         records = [manifest.tiles[t] for t in sorted(manifest.tiles)]
