@@ -10,6 +10,7 @@ Sub-commands:
     plot       draw a map's façades and an overview as PNG figures
     evaluate   compare the map's occupancy with the baselines' against a reference scan
     benchmark  hold points out of a cloud, map the rest, score the held-out points beside reference maps
+    export     write a map's mean surface for other localisers (Autoware PCD tiles + metadata YAML)
 
 Every error a user can cause ends in one line on stderr and exit status 2; nothing ends in
 a traceback. Bag formats need ``msg_adapters`` (rosbags), imported only when asked for.
@@ -633,6 +634,30 @@ def cmd_plot(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_export(args: argparse.Namespace) -> int:
+    """Export a map for other localisers (see ``export --help``)."""
+    from uncertain_facade_map.io.autoware import export_autoware
+
+    if args.format != 'autoware':  # argparse's choices keep this unreachable; one format for now
+        raise CliError(f'unknown export format {args.format!r}')
+    started = time.perf_counter()
+    with _counter('map tiles', 'tile', args.quiet) as update:
+        result = export_autoware(args.map, args.out, args.grid, args.prefix, step=args.step, force=args.force,
+                                 progress=update)
+    seconds = time.perf_counter() - started
+    for f in result.files:
+        print(f'{result.folder / f.name}  {f.points:,} points  cell [{f.min_xy[0]}, {f.min_xy[1]}]')
+    print(f'metadata {result.metadata}')
+    b = result.bounds
+    print(f'exported {result.points:,} points in {len(result.files)} files of {result.grid:g} m in {seconds:.2f} s; '
+          f'bounds x {b[0]:.3f}..{b[3]:.3f} y {b[1]:.3f}..{b[4]:.3f} z {b[2]:.3f}..{b[5]:.3f} m (map frame, origin '
+          f'{" ".join(f"{v:.3f}" for v in result.map_origin)})')
+    if result.grid > 100:
+        print(f'{PROG}: note: Autoware\'s loader discourages cells over 100 m (it asks for about 20 m)',
+              file=sys.stderr)
+    return 0
+
+
 def _timed_campaign(scene, index: int):
     """``(cloud, seconds)``: campaign ``index`` of ``scene`` simulated (in a worker process)."""
     from uncertain_facade_map.simulation.campaign import simulate_campaign
@@ -1090,6 +1115,28 @@ def build_parser() -> argparse.ArgumentParser:
     bm.add_argument('--topic', help='PointCloud2 topic of bag inputs (default: the only one)')
     bm.add_argument('--quiet', action='store_true', help='no progress lines')
     bm.set_defaults(func=cmd_benchmark)
+    ex = sub.add_parser('export', help="write a map's mean surface for other localisers (Autoware PCD tiles)",
+                        description="Write the map's mean surface (the facet cells of every façade's surface raster) "
+                                    "for Autoware's pointcloud_map_loader: one binary PCD per GRID x GRID m cell, "
+                                    'named PREFIX_<min_x>_<min_y>.pcd (the pointcloud_divider\'s names; a point goes '
+                                    'to floor(x / GRID) * GRID), fields x, y, z, std (float32, metres, map frame; std '
+                                    'is the standard deviation of the surface), plus pointcloud_map_metadata.yaml '
+                                    '(x_resolution, y_resolution, per file [min_x, min_y]; the map origin in a '
+                                    'comment). Load it with pcd_paths_or_directory:=[DIR] '
+                                    'pcd_metadata_path:=DIR/pointcloud_map_metadata.yaml. Prints the files, points '
+                                    'and bounds.')
+    ex.add_argument('map', metavar='MAP', help="map file from build, or a tiled map's folder (or its manifest.json)")
+    ex.add_argument('--out', required=True, metavar='DIR', help='export folder (created if its parent exists)')
+    ex.add_argument('--format', default='autoware', choices=('autoware',), help='export format (default autoware)')
+    ex.add_argument('--grid', type=float, default=20.0,
+                    help="cell side, whole metres (default 20, Autoware's; over 100 is discouraged)")
+    ex.add_argument('--prefix', default='pointcloud_map', metavar='NAME',
+                    help='start of the PCD file names (default pointcloud_map)')
+    ex.add_argument('--step', type=float,
+                    help="surface sampling step on the façade planes, metres (default: each raster's cell)")
+    ex.add_argument('--force', action='store_true', help='replace an earlier export in DIR (its .pcd files and metadata)')
+    ex.add_argument('--quiet', action='store_true', help='no progress bar')
+    ex.set_defaults(func=cmd_export)
     return parser
 
 
