@@ -71,9 +71,9 @@ def test_the_cut_spreads_buildings_over_tiles(tiled, small_whole):
 
 @pytest.mark.parametrize('config, resolution', [(QueryConfig(), 0.1), (QueryConfig(surface='raster'), 0.2),
                                                 (QueryConfig(occupancy_event='solid', local_radius=0.8), 0.1)])
-@pytest.mark.parametrize('cache_mb', [2048.0, 1e-6])
-def test_tiled_answers_equal_the_one_file_map(tiled, small_whole, config, resolution, cache_mb):
-    tmap = TiledMap(tiled, cache_mb=cache_mb)
+@pytest.mark.parametrize('cache_mb, union', [(2048.0, 4), (2048.0, 0), (1e-6, 0)])
+def test_tiled_answers_equal_the_one_file_map(tiled, small_whole, config, resolution, cache_mb, union):
+    tmap = TiledMap(tiled, cache_mb=cache_mb, union_tiles=union)
     ids = whole_ids(tmap, small_whole)
     xyz = probes(small_whole)
     if config.local_radius != 0.5:  # a reading the manifest has no calibration for: the merged maps' own
@@ -101,7 +101,7 @@ def _check_uncalibrated(tmap, whole, xyz, config, resolution, ids):
 
 
 def test_queries_from_several_threads(tiled, small_whole):
-    tmap = TiledMap(tiled, cache_mb=1e-6)  # evicting while the others query
+    tmap = TiledMap(tiled, cache_mb=1e-6, union_tiles=0)  # evicting while the others query
     ids = whole_ids(tmap, small_whole)
     xyz = probes(small_whole, 6000, seed=3)
     # The one-file map's answers per batch (FacadeMap.query may differ in the last bit for a
