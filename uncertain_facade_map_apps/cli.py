@@ -1066,7 +1066,7 @@ def build_parser() -> argparse.ArgumentParser:
     plot.add_argument('map', metavar='MAP', help='map file from build, or a tiled map (its folder or its manifest.json)')
     plot.add_argument('--bounds', type=_bounds, metavar='MIN_X,MIN_Y,MAX_X,MAX_Y',
                       help='tiled map: plot the tiles whose content meets this box (map frame, metres; default all; '
-                           "the façades are then numbered within those tiles)")
+                           "the façades are then numbered within those tiles; negative values: --bounds=-10,...)")
     plot.add_argument('--out', required=True, metavar='DIR', help='output folder (created if its parent exists)')
     plot.add_argument('--facades', metavar='IDS', help='façade ids to draw, e.g. 0,3,5-7 (default: all)')
     plot.add_argument('--dpi', type=int, default=100, help='resolution of the PNG files (default 100)')
