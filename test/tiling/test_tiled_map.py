@@ -63,6 +63,7 @@ def test_the_cut_spreads_buildings_over_tiles(tiled, small_whole):
     m = read_manifest(tiled)
     assert len(m.tiles) == 2 and set(m.building_tiles) == set(small_whole.buildings)
     assert m.occupancy == small_whole.occupancy_.as_dict()
+    assert m.registration == {'var': small_whole.registration_var_, 'sums': small_whole.registration_sums_.tolist()}
     assert reading_id(QueryConfig()) in m.local_calibration
     where = building_tiles(small_whole, TileGrid(SIDE))
     for b, ij in where.items():
@@ -179,3 +180,20 @@ def test_damaged_tiles_and_parameters_are_refused(tiled, tmp_path):
     write_manifest(copy, m)
     with pytest.raises(InputError, match='cache_mb'):
         TiledMap(copy, cache_mb=0)
+
+
+def test_map_wide_quantities_come_from_the_manifest(tiled, small_whole, tmp_path):
+    import shutil
+
+    copy = tmp_path / 'copy'
+    shutil.copytree(tiled, copy)
+    m = read_manifest(copy)
+    m.registration = {'var': small_whole.registration_var_ + 0.01, 'sums': [0.0, 0.0, 0.0]}
+    write_manifest(copy, m)
+    xyz = probes(small_whole, 3000, seed=5)
+    raster = QueryConfig(surface='raster')
+    a, b = TiledMap(copy).query(xyz, raster), small_whole.query(xyz, raster)
+    on = b.facade >= 0
+    assert on.sum() > 100
+    np.testing.assert_allclose(a.variance[on], b.variance[on] + 0.01, rtol=0, atol=1e-12)
+    assert TiledMap(copy).merged().registration_var_ == small_whole.registration_var_ + 0.01

@@ -17,8 +17,8 @@ in one call of the compiled kernels: each call of the parallel kernels waits for
 cores, which costs about 10 ms when other processes keep them busy (the street drive's
 0.1 s scans, load 8 on 2 cores: 44,000 points/s by candidate sets, 104,000 by one merged
 map, 100,000 for the one-file map).
-Map-wide quantities are the manifest's: the learnt occupancy (``occupancy``) and the local
-reading's leave-one-out calibration (``local_calibration``, when the manifest has it for the
+Map-wide quantities are the manifest's: the learnt occupancy (``occupancy``), the
+scan-to-scan variance (``registration``) and the local reading's leave-one-out calibration (``local_calibration``, when the manifest has it for the
 query's settings; else each merged map's own, which differs a little from a one-file map's).
 
 **Façade ids** of a tiled map: the tiles in the order of their ids (sorted), each tile's
@@ -257,6 +257,8 @@ class TiledMap:
             self._occupancy = None if occupancy is None else PLSC(**occupancy)
         except (TypeError, InputError) as exc:
             raise InputError(f'{target}: damaged manifest (occupancy: {exc})') from exc
+        reg = self.manifest_.registration
+        self._registration = None if reg is None else (float(reg['var']), np.asarray(reg['sums'], np.float64))
         self._ids = sorted(self.manifest_.tiles)
         self._records = [self.manifest_.tiles[t] for t in self._ids]
         self._position = {t: i for i, t in enumerate(self._ids)}
@@ -301,9 +303,15 @@ class TiledMap:
         if fmap.params != self.params:
             raise InputError(f'{self.folder / rec.file}: tile {tile_id} was built with other parameters than the '
                              f'manifest lists; rebuild it')
+        self._map_wide(fmap)
+        return fmap
+
+    def _map_wide(self, fmap: FacadeMap) -> None:
+        """Set the manifest's map-wide occupancy and scan-to-scan variance on a tile's or a merged map."""
         if self._occupancy is not None:
             fmap.occupancy_ = self._occupancy
-        return fmap
+        if self._registration is not None:
+            fmap.registration_var_, fmap.registration_sums_ = self._registration[0], self._registration[1].copy()
 
     def tile(self, tile_id: str) -> FacadeMap:
         """A tile's map, loaded through the cache (do not modify it).
@@ -400,15 +408,9 @@ class TiledMap:
         return np.concatenate(parts).astype(np.int32) if parts else np.empty(0, np.int32)
 
     def _merge(self, maps: Sequence[FacadeMap]) -> FacadeMap:
-        if not maps:
-            fmap = FacadeMap(self.params, self.map_origin.copy())
-            if self._occupancy is not None:
-                fmap.occupancy_ = self._occupancy
-            return fmap
-        merged = merge_maps(maps)
-        if self._occupancy is not None:
-            merged.occupancy_ = self._occupancy
-        return merged
+        fmap = merge_maps(maps) if maps else FacadeMap(self.params, self.map_origin.copy())
+        self._map_wide(fmap)
+        return fmap
 
     def merged(self, tile_ids: Iterable[str] | None = None,
                bounds: tuple[float, float, float, float] | None = None) -> FacadeMap:
