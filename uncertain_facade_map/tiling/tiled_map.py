@@ -468,9 +468,12 @@ class TiledMap:
             return [], np.zeros((len(xyz), 0), bool)
         qlo, qhi = xyz.min(axis=0), xyz.max(axis=0)
         near = np.flatnonzero(np.all((lo <= qhi) & (hi >= qlo), axis=1))
-        mask = np.empty((len(xyz), len(near)), bool)
-        for j, i in enumerate(near):
-            mask[:, j] = np.all((xyz >= lo[i]) & (xyz <= hi[i]), axis=1)
+        mask = np.zeros((len(xyz), len(near)), bool)
+        x = xyz[:, 0]
+        for j, i in enumerate(near):  # x first (one pass over the points), y and z on those within
+            k = np.flatnonzero((x >= lo[i, 0]) & (x <= hi[i, 0]))
+            p = xyz[k]
+            mask[k[(p[:, 1] >= lo[i, 1]) & (p[:, 1] <= hi[i, 1]) & (p[:, 2] >= lo[i, 2]) & (p[:, 2] <= hi[i, 2])], j] = True
         used = mask.any(axis=0)
         return [self._ids[i] for i in near[used]], mask[:, used]
 
