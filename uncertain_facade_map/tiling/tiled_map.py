@@ -365,9 +365,10 @@ class TiledMap:
         return sum(s for _, s in self._tiles.values()) + sum(g.extra for g in self._groups.values())
 
     def _trim(self, keep: str | None = None) -> None:
-        """Evict least recently used tiles (and the merged maps holding them) and merged maps
-        until the cache is within its bound; pinned tiles (in use by a query), ``keep`` and
-        the most recent tile stay. Call under the lock."""
+        """Evict until the cache is within its bound: merged maps first (least recently used
+        first; rebuilt from loaded tiles when needed again), then tiles (least recently used
+        first, with the merged maps holding them); the tiles in use by a query (pinned),
+        ``keep`` and the last tile stay. Call under the lock."""
         budget = self.cache_mb * MB
         while self._bytes() > budget:
             victim = None
