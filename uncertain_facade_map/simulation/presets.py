@@ -6,7 +6,7 @@ Sensors (:data:`SENSOR_PRESETS`, :class:`~.sensor.SensorConfig`):
   ``zurich``): RIEGL VMX-250 geometry (two profile scanners in an X), 50 lines/s and 0.2
   degrees per scanner (a third of the real rate), Gaussian range noise of 2 cm, 1 %
   clutter outliers. ``mms-small``: the same, coarser (``small``, ``city_small``); ``mms-city``: the
-  same at half the line rate and 0.3 degree steps (about a third of the points; the ``city``).
+  same at half the line rate and 0.25 degree steps (40 % of the points; the ``city``).
 - ``vmx250``: the RIEGL VMX-250 at its real rate, from the published RIEGL VQ-250 / VMX-250
   data sheets (as recalled, no copy at hand to quote): two VQ-250 scanners, 300 kHz each (2 x 300 000 measurements/s), 100 scan
   lines/s each (so 3000 shots per 360-degree line, 0.12 degrees), range precision 5 mm
@@ -112,7 +112,7 @@ SENSOR_PRESETS: dict[str, SensorConfig] = {
     'vmx250-small': replace(_VMX250, scan_rate_hz=15.0, angular_step_deg=0.5),
     'av2': _AV2,
     'hdl64': _HDL64,
-    'mms-city': replace(_MMS, scan_rate_hz=25.0, angular_step_deg=0.3),
+    'mms-city': replace(_MMS, scan_rate_hz=25.0, angular_step_deg=0.25),
 }
 
 #: Walls by name.
