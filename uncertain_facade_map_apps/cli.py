@@ -1236,10 +1236,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit status (0 ok, 2 bad input, 1 I/O failure)."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    if (getattr(args, 'campaigns', 1) or 1) < 1:
-        parser.error('--campaigns must be at least 1')
-    if (getattr(args, 'jobs', 1) or 1) < 1:
-        parser.error('--jobs must be at least 1')
+    for name in ('campaigns', 'jobs'):
+        if getattr(args, name, None) is not None and getattr(args, name) < 1:
+            parser.error(f'--{name} must be at least 1')
     return run_reporting(PROG, lambda: args.func(args))
 
 if __name__ == '__main__':
