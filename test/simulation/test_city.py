@@ -129,16 +129,28 @@ def test_city_files_lists_the_run(tmp_path):
 
     out = tmp_path / 'city'
     assert main(['simulate', '--scene', 'city_small', '--city-blocks', '1,1', '--city-block', '20',
-                 '--campaigns', '2', '--formats', 'npz', '--out', str(out), '--quiet']) == 0
+                 '--campaigns', '2', '--formats', 'ply', '--out', str(out), '--quiet', '--jobs', '2']) == 0
     files = city_files(out)
     assert [p.relative_to(out).as_posix() for p in files] == [
-        f'campaign{k}/seg_{s:03d}.npz' for k in (0, 1) for s in range(4)]
+        f'campaign{k}/seg_{s:03d}.ply' for k in (0, 1) for s in range(4)]
+    # The pool's file is the one a single process writes.
+    task = SegmentTask(0, CityConfig((1, 1), 20.0), 'city_small', SENSOR, 1, 2, segment_file(tmp_path / 'one', 1, 2))
+    write_segment(task)
+    assert task.path.read_bytes() == files[6].read_bytes()
     assert city_files(out, [1]) == files[4:]
     desc = json.loads((out / 'scene.json').read_text())
     assert desc['city']['street_length'] == 4 * 38.0 and len(desc['buildings']) >= 3
     assert sum(desc['city']['segment_points']['0']) == desc['campaigns'][0]['points']
     with pytest.raises(InputError, match='no campaign 2'):
         city_files(out, [2])
+
+
+def test_build_scene_gives_the_city_truth(small):
+    from uncertain_facade_map.simulation.scenes import build_scene
+
+    scene = build_scene('city_small')
+    assert [b.building_id for b in scene.buildings] == [b.building_id for b in small.scene.buildings]
+    assert all(np.array_equal(a.polygon, b.polygon) for a, b in zip(scene.buildings, small.scene.buildings))
 
 
 def test_bad_sizes():

@@ -408,13 +408,21 @@ def build_scene(name: str, seed: int = 0, cityjson: str | Path | None = None) ->
         seed: the scene's seed.
         cityjson: for ``zurich`` and ``zurich_hard``: another CityJSON file than the packaged one.
 
+    A city (``city``, ``city_small``; :mod:`.city`) gives its truth: every building of the
+    city at its preset size (its drives are simulated segment by segment, see
+    :func:`~.city.simulate_segment`).
+
     Raises:
         InputError: unknown scene name, or a CityJSON file for another scene.
     """
+    from .city import CITY_PRESETS, build_city
+
+    if name in CITY_PRESETS and cityjson is None:
+        return build_city(seed, CITY_PRESETS[name], name).scene
     try:
         factory = SCENES[name]
     except KeyError:
-        raise InputError(f'unknown scene {name!r}; choose one of {", ".join(SCENES)}') from None
+        raise InputError(f'unknown scene {name!r}; choose one of {", ".join([*SCENES, *CITY_PRESETS])}') from None
     if cityjson is None:
         return factory(seed)
     clean, walls = HARD_SCENES.get(name, (name, None))
