@@ -101,6 +101,22 @@ def test_drive_follows_the_segments(small, drive):
         assert np.all(np.abs(lateral + 1.75) <= 0.31) and along.min() > -1.0 and along.max() < seg.length + 1.0
 
 
+def test_drive_poses_follow_the_origins(small, drive):
+    """The drive's poses put the vehicle under the scanners of every segment's returns."""
+    from uncertain_facade_map.simulation.campaign import EPOCH
+    from uncertain_facade_map.simulation.city import drive_poses
+
+    for k in (0, 5):
+        pts = drive[k].points[::997]
+        xy, yaw, seg = drive_poses(small, 0, pts['time'] - EPOCH, SENSOR)
+        assert np.all(seg == k)
+        mount = np.asarray(SENSOR.mount)[:, :2]  # (forward, left) of each scanner
+        c, s = np.cos(yaw), np.sin(yaw)
+        gap = np.min([np.hypot(xy[:, 0] + c * f - s * le - pts['origin_x'], xy[:, 1] + s * f + c * le - pts['origin_y'])
+                      for f, le in mount], axis=0)
+        assert gap.max() < 1e-6
+
+
 def test_parked_cars_follow_a_street_along_y(small):
     seg = next(s for s in small.segments if s.axis == 'y')
     scene, _, _ = segment_scene(small, seg.index, SENSOR)

@@ -37,14 +37,14 @@ import numpy as np
 
 from ..errors import InputError
 from ..io.cloud import Cloud
-from .campaign import campaign, drive_duration, simulate_campaign
+from .campaign import campaign, drive_duration, poses, simulate_campaign
 from .facades import FacadeStyle
 from .presets import SCENE_SENSORS
 from .scene import Building, Facade, Occluder, Pole, Scene, Street, Tree
 from .scenes import FACADE_LINE, make_building, street_frame
 from .sensor import SensorConfig
 
-__all__ = ['CITY_FORMATS', 'CITY_PRESETS', 'City', 'CityConfig', 'Segment', 'build_city', 'city_files',
+__all__ = ['CITY_FORMATS', 'CITY_PRESETS', 'City', 'CityConfig', 'Segment', 'build_city', 'city_files', 'drive_poses',
            'estimate_points', 'is_edge', 'segment_file', 'segment_scene', 'simulate_segment', 'SegmentTask', 'write_segment']
 
 #: File formats a city's segments can be written in.
@@ -318,6 +318,32 @@ def segment_offsets(city: City, index: int, sensor: SensorConfig) -> np.ndarray:
         street_scene_ = Scene(city.name, 0, [], [], _segment_street(seg))
         durations.append(drive_duration(street_scene_, campaign(street_scene_, index), sensor))
     return np.concatenate([[0.0], np.cumsum(durations)])
+
+
+def drive_poses(city: City, index: int, times: np.ndarray,
+                sensor: SensorConfig | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Vehicle pose of drive ``index`` at given times: segment after segment, each a straight run.
+
+    Args:
+        city: the city.
+        index: the drive (campaign).
+        times: (N,) seconds since the drive's start (the first segment's first shot).
+        sensor: gives the speed; the city's default if None.
+
+    Returns:
+        ``(xy, yaw, segment)``: (N, 2) vehicle position at ground level, metres, map frame;
+        (N,) heading, radians from +x; (N,) int64 segment driven (times past the end: the last).
+    """
+    sensor = sensor or SCENE_SENSORS['city']
+    times = np.asarray(times, dtype=np.float64)
+    offsets = segment_offsets(city, index, sensor)
+    segment = np.clip(np.searchsorted(offsets, times, side='right') - 1, 0, len(city.segments) - 1)
+    xy, yaw = np.zeros((len(times), 2)), np.zeros(len(times))
+    for k in np.unique(segment):
+        rows = segment == k
+        scene = Scene(city.name, 0, [], [], _segment_street(city.segments[k]))
+        xy[rows], yaw[rows] = poses(scene, campaign(scene, index), sensor, times[rows] - offsets[k])
+    return xy, yaw, segment
 
 
 def simulate_segment(city: City, index: int, segment: int, sensor: SensorConfig | None = None, *,
