@@ -60,6 +60,10 @@ def test_default_city_size_and_points():
     assert len(city.segments) == 31
     sizes = np.array([np.ptp(b.polygon, axis=0).max() for b in city.scene.buildings])
     assert len(sizes) >= 150 and sizes.min() < 9.0 and (sizes > 35.0).sum() >= 5  # some small, a few large
+    lo = np.array([b.polygon.min(axis=0) for b in city.scene.buildings])
+    hi = np.array([b.polygon.max(axis=0) for b in city.scene.buildings])
+    overlap = np.all((lo[:, None] < hi[None] - 0.5) & (lo[None] < hi[:, None] - 0.5), axis=2)
+    assert not np.any(overlap & ~np.eye(len(lo), dtype=bool))  # no two buildings share ground (all are boxes)
     assert estimate_points(city, campaigns=2, sample=1) >= 22e6
 
 
