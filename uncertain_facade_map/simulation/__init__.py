@@ -9,4 +9,6 @@ The hard simulator: :mod:`.walls` (walls as built: relief, plaster, glass), :mod
 (scan patterns and the error model), :mod:`.presets` (every sensor, walls and scene preset,
 as data). Also :mod:`.scene` (geometry and truth), :mod:`.facades` (façade detail),
 :mod:`.cityjson` (real footprints) and :mod:`.export` (scene.json, scans, a drive as a robot records it).
+City scale (issue 29): :mod:`.city`, a grid of streets driven segment by segment, each segment
+simulated and written on its own.
 """
