@@ -34,6 +34,8 @@ PROG = 'uncertain-facade-map'
 CLOUD_FORMATS = ('npz', 'ply')
 BAG_FORMATS = ('sqlite3', 'mcap', 'rosbag1')
 #: Output name of each format after the campaign stem (ROS 2 bags are folders).
+#: Formats of the mapped campaign by default (a city: ply, one file per street segment).
+DEFAULT_FORMATS = ('npz', 'ply', 'sqlite3', 'mcap')
 SUFFIXES = {'npz': '.npz', 'ply': '.ply', 'sqlite3': '_sqlite3', 'mcap': '_mcap', 'rosbag1': '.bag'}
 
 
@@ -107,21 +109,29 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         simulate_campaign,
         with_overrides,
     )
+    from uncertain_facade_map.simulation.city import CITY_PRESETS
     from uncertain_facade_map.simulation.export import scene_description, split_scans, write_scene_json
     from uncertain_facade_map.simulation.presets import SENSOR_PRESETS
     from uncertain_facade_map.simulation.scenes import build_scene
 
+    def sensor_of(name: str) -> SensorConfig:
+        preset = SENSOR_PRESETS[args.sensor] if args.sensor else SCENE_SENSORS.get(name, SensorConfig())
+        return with_overrides(preset, range_noise=args.range_noise,
+                              outlier_share=args.outlier_share, range_max=args.range_max,
+                              angular_step_deg=args.angular_step, scan_rate_hz=args.scan_rate, speed=args.speed)
+
+    if args.scene in CITY_PRESETS:
+        return _simulate_city(args, sensor_of(args.scene))
+    if args.city_blocks is not None or args.city_block is not None or args.jobs is not None:
+        raise CliError('--city-blocks, --city-block and --jobs are for --scene city or city_small')
     scene = build_scene(args.scene, args.seed, args.cityjson if args.scene.startswith('zurich') else None)
-    preset = SENSOR_PRESETS[args.sensor] if args.sensor else SCENE_SENSORS.get(scene.name, SensorConfig())
-    sensor = with_overrides(preset, range_noise=args.range_noise,
-                            outlier_share=args.outlier_share, range_max=args.range_max,
-                            angular_step_deg=args.angular_step, scan_rate_hz=args.scan_rate, speed=args.speed)
+    sensor = sensor_of(scene.name)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     written = []
-    for index in range(args.campaigns):
+    for index in range(1 if args.campaigns is None else args.campaigns):
         drive = campaign(scene, index)
-        formats = args.formats if index == 0 else args.reference_formats
+        formats = (args.formats or DEFAULT_FORMATS) if index == 0 else args.reference_formats
         stem = f'campaign{index}'
         targets = {fmt: _output_path(out, stem + SUFFIXES[fmt], args.force) for fmt in formats}
         update, close = _progress_bar(drive_duration(scene, drive, sensor),
@@ -155,6 +165,96 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     scene_json = write_scene_json(out / 'scene.json', scene_description(scene, sensor, written))
     print(f'scene    {scene_json}  ({len(scene.buildings)} buildings, {len(scene.facades)} façades, seed {scene.seed})')
     return 0
+
+
+def _simulate_city(args: argparse.Namespace, sensor) -> int:
+    """``simulate --scene city``: every segment of every drive to its own file, in a process pool."""
+    from concurrent.futures import ProcessPoolExecutor
+    from multiprocessing import get_context
+
+    from uncertain_facade_map.simulation.campaign import campaign
+    from uncertain_facade_map.simulation.city import (
+        CITY_FORMATS,
+        CITY_PRESETS,
+        CityConfig,
+        SegmentTask,
+        build_city,
+        segment_file,
+        write_segment,
+    )
+    from uncertain_facade_map.simulation.export import scene_description, write_scene_json
+
+    preset = CITY_PRESETS[args.scene]
+    config = CityConfig(preset.blocks if args.city_blocks is None else args.city_blocks,
+                        preset.block if args.city_block is None else args.city_block)
+    formats = args.formats or ('ply',)
+    if len(formats) != 1 or formats[0] not in CITY_FORMATS:
+        raise CliError(f'a city is written as one file per street segment: give --formats {" or ".join(CITY_FORMATS)}')
+    if args.robot:
+        raise CliError('--robot writes bags; a city is written as one cloud file per street segment')
+    campaigns = 2 if args.campaigns is None else args.campaigns
+    jobs = args.jobs or 1
+    if jobs < 1 or campaigns < 1:
+        raise CliError('--jobs and --campaigns must be at least 1')
+    started = time.perf_counter()
+    city = build_city(args.seed, config, args.scene)
+    out = Path(args.out)
+    tasks = []
+    for index in range(campaigns):
+        folder = out / f'campaign{index}'
+        if folder.exists():
+            if not args.force:
+                raise CliError(f'{folder} exists; use --force to replace it')
+            shutil.rmtree(folder)
+        tasks += [SegmentTask(args.seed, config, args.scene, sensor, index, seg.index,
+                              segment_file(out, index, seg.index, formats[0]), args.dtype) for seg in city.segments]
+    out.mkdir(parents=True, exist_ok=True)
+    if not args.quiet:
+        print(f'{args.scene}: {config.blocks[0]} x {config.blocks[1]} blocks of {config.block:g} m, '
+              f'{config.street_length / 1000:.2f} km of street in {len(city.segments)} segments, '
+              f'{len(city.scene.buildings)} buildings; {campaigns} drives, {len(tasks)} files, {jobs} jobs',
+              file=sys.stderr)
+    results: list[tuple[int, float]] = []
+    with _counter('segments', 'segment', args.quiet, len(tasks)) as update:
+        if jobs == 1:
+            for task in tasks:
+                results.append(write_segment(task))
+                update(len(results))
+        else:
+            with ProcessPoolExecutor(jobs, mp_context=get_context('spawn')) as pool:
+                for result in pool.map(write_segment, tasks):
+                    results.append(result)
+                    update(len(results))
+    elapsed = time.perf_counter() - started
+    written, per_segment = [], {}
+    for index in range(campaigns):
+        mine = [(t, r) for t, r in zip(tasks, results) if t.index == index]
+        files = [str(t.path.relative_to(out)) for t, _ in mine]
+        points = sum(n for _, (n, _) in mine)
+        written.append((campaign(city.scene, index), points, files))
+        per_segment[str(index)] = [n for _, (n, _) in mine]
+        print(f'campaign {index} ({"mapped" if index == 0 else "reference"}): {points:,} points in {len(files)} '
+              f'files {out / f"campaign{index}"}/seg_*.{formats[0]}, lane {written[-1][0].lane:+.2f} m'
+              f'{" reversed" if written[-1][0].reverse else ""}')
+    description = scene_description(city.scene, sensor, written)
+    description['city'] = dict(city.describe(), segment_points=per_segment)
+    scene_json = write_scene_json(out / 'scene.json', description)
+    total = sum(n for n, _ in results)
+    print(f'scene    {scene_json}  ({len(city.scene.buildings)} buildings, {len(city.scene.facades)} façades, '
+          f'{config.street_length / 1000:.2f} km of street, seed {args.seed})')
+    print(f'wrote    {total:,} points in {len(results)} files in {elapsed:.1f} s '
+          f'({sum(s for _, s in results):.1f} s of simulation over {jobs} job{"s" if jobs > 1 else ""})')
+    return 0
+
+
+def _city_blocks(text: str) -> tuple[int, int]:
+    try:
+        nx, ny = (int(v) for v in text.split(','))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'expected NX,NY (two whole numbers), got {text!r}') from None
+    if nx < 1 or ny < 1:
+        raise argparse.ArgumentTypeError(f'block counts must be at least 1, got {text!r}')
+    return nx, ny
 
 
 def _write_robot_bag(path: Path, storage: str, cloud, scene, drive, sensor, args: argparse.Namespace) -> None:
@@ -946,6 +1046,7 @@ def build_parser() -> argparse.ArgumentParser:
     """The argument parser of all sub-commands."""
     from uncertain_facade_map.evaluation.baselines import METHODS
     from uncertain_facade_map.evaluation.occupancy import PROTOCOLS
+    from uncertain_facade_map.simulation.city import CITY_PRESETS
     from uncertain_facade_map.simulation.presets import SENSOR_PRESETS
     from uncertain_facade_map.simulation.scenes import SCENES
 
@@ -955,19 +1056,22 @@ def build_parser() -> argparse.ArgumentParser:
     sim = sub.add_parser('simulate', help='scan a built-in scene with a simulated mobile-mapping system',
                          description='Scan a built-in scene (deterministic by seed) in one or more campaigns. '
                                      'Campaign 0 is the mapped one, the others are the reference.')
-    sim.add_argument('--scene', default='street', choices=tuple(SCENES),
+    sim.add_argument('--scene', default='street', choices=tuple(SCENES) + tuple(CITY_PRESETS),
                      help='street: ~1.7 M points, 7 buildings (default); small: < 50 000 points; '
                           'zurich: real CityJSON footprints; residential: detached houses behind front yards, '
                           'scanned by the hdl64 car lidar (walls seen to 2-3 m); NAME_hard: the same with walls as '
-                          'built and a real error model (see docs/simulator.md)')
+                          'built and a real error model (see docs/simulator.md); city: a grid of streets, 4 x 3 blocks, '
+                          '3.35 km of street, ~22 M points in 2 drives, one file per street segment '
+                          '(OUT/campaignK/seg_SSS.ply); city_small: 2 x 1 blocks, 0.34 km, ~0.55 M points in 2 drives')
     sim.add_argument('--sensor', choices=tuple(SENSOR_PRESETS),
                      help="sensor preset (default: the scene's; see docs/simulator.md, \"Hard simulator\")")
     sim.add_argument('--seed', type=int, default=0, help='scene seed (default 0)')
-    sim.add_argument('--campaigns', type=int, default=1, help='number of drives, 1 mapped + references (default 1)')
+    sim.add_argument('--campaigns', type=int, help='number of drives, 1 mapped + references (default 1; city: 2)')
     sim.add_argument('--out', default='output/simulation', help='output folder (default output/simulation)')
-    sim.add_argument('--formats', type=_formats, default=('npz', 'ply', 'sqlite3', 'mcap'),
+    sim.add_argument('--formats', type=_formats,
                      help='formats of the mapped campaign, comma-separated from '
-                          f'{",".join(CLOUD_FORMATS + BAG_FORMATS)} (default npz,ply,sqlite3,mcap)')
+                          f'{",".join(CLOUD_FORMATS + BAG_FORMATS)} (default npz,ply,sqlite3,mcap; city: ply or npz, '
+                          'one of them, for every drive)')
     sim.add_argument('--reference-formats', type=_formats, default=('npz',),
                      help='formats of the reference campaigns (default npz)')
     sim.add_argument('--dtype', choices=('f8', 'f4'), default='f8',
@@ -987,6 +1091,11 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument('--cityjson',
                      help='CityJSON file for --scene zurich or zurich_hard (default: the Zurich subset shipped '
                           'with the package)')
+    sim.add_argument('--city-blocks', type=_city_blocks, metavar='NX,NY',
+                     help='city: blocks along x and y (default 4,3; city_small 2,1)')
+    sim.add_argument('--city-block', type=float, metavar='M',
+                     help='city: side of a block between its façade lines, metres (default 90; city_small 30)')
+    sim.add_argument('--jobs', type=int, help='city: segments simulated at once in worker processes (default 1)')
     sim.add_argument('--force', action='store_true', help='replace existing output files')
     sim.add_argument('--quiet', action='store_true', help='no progress bar')
     sim.set_defaults(func=cmd_simulate)
@@ -1234,8 +1343,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit status (0 ok, 2 bad input, 1 I/O failure)."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    if getattr(args, 'campaigns', 1) < 1:
+    if (getattr(args, 'campaigns', 1) or 1) < 1:
         parser.error('--campaigns must be at least 1')
+    if (getattr(args, 'jobs', 1) or 1) < 1:
+        parser.error('--jobs must be at least 1')
     return run_reporting(PROG, lambda: args.func(args))
 
 if __name__ == '__main__':

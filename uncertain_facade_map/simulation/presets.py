@@ -5,7 +5,8 @@ Sensors (:data:`SENSOR_PRESETS`, :class:`~.sensor.SensorConfig`):
 - ``mms``: the clean simulator's mobile-mapping system (the default of ``street`` and
   ``zurich``): RIEGL VMX-250 geometry (two profile scanners in an X), 50 lines/s and 0.2
   degrees per scanner (a third of the real rate), Gaussian range noise of 2 cm, 1 %
-  clutter outliers. ``mms-small``: the same, coarser (``small``).
+  clutter outliers. ``mms-small``: the same, coarser (``small``, ``city_small``); ``mms-city``: the
+  same at half the line rate and 0.25 degree steps (40 % of the points; the ``city``).
 - ``vmx250``: the RIEGL VMX-250 at its real rate, from the published RIEGL VQ-250 / VMX-250
   data sheets (as recalled, no copy at hand to quote): two VQ-250 scanners, 300 kHz each (2 x 300 000 measurements/s), 100 scan
   lines/s each (so 3000 shots per 360-degree line, 0.12 degrees), range precision 5 mm
@@ -111,6 +112,7 @@ SENSOR_PRESETS: dict[str, SensorConfig] = {
     'vmx250-small': replace(_VMX250, scan_rate_hz=15.0, angular_step_deg=0.5),
     'av2': _AV2,
     'hdl64': _HDL64,
+    'mms-city': replace(_MMS, scan_rate_hz=25.0, angular_step_deg=0.25),
 }
 
 #: Walls by name.
@@ -133,4 +135,6 @@ SCENE_SENSORS: dict[str, SensorConfig] = {
     'stacked': SENSOR_PRESETS['mms-small'],
     'stacked_hard': SENSOR_PRESETS['vmx250-small'],
     'residential': SENSOR_PRESETS['hdl64'],
+    'city': SENSOR_PRESETS['mms-city'],
+    'city_small': SENSOR_PRESETS['mms-small'],
 }

@@ -548,12 +548,15 @@ class Street:
         kerb: distance from the centreline of the line the parked cars keep 0.8 to 1.1 m
             beyond (their centres), metres.
         van_share: share of the parked vehicles that are vans (5-5.5 m long, 2.0-2.5 m tall).
+        parking: (start, end) of the stretch where cars park, metres of arc length from the
+            centreline's start; None for 6 m after the start to 6 m before the end.
     """
 
     centreline: np.ndarray
     lanes: tuple[float, ...] = (-1.75, 1.75)
     kerb: float = 5.6
     van_share: float = 0.0
+    parking: tuple[float, float] | None = None
 
 
 @dataclass(eq=False)

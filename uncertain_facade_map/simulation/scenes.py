@@ -98,22 +98,53 @@ def _street_furniture(x0: float, x1: float, rng: np.random.Generator, tree_every
     return occ
 
 
+def street_frame(street: Street) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """The frame of a straight street: arc length ``s`` along it and lateral offset ``l`` (left positive).
+
+    A point is ``origin + s u + l n`` with ``u`` the unit direction from the centreline's first
+    to its last vertex and ``n`` its left normal; ``origin`` is the foot of the perpendicular
+    from the map origin, so for a street along +x on y = 0 the frame is the map frame itself
+    (``s`` = x, ``l`` = y, exactly). Axis-aligned directions get exact unit vectors.
+
+    Args:
+        street: the street (its centreline's first and last vertex give the direction).
+
+    Returns:
+        ``(origin, u, s0, s1)``: (2,) metres, (2,) unit vector, and the ``s`` of the
+        centreline's first and last vertex, metres.
+    """
+    a, b = street.centreline[0], street.centreline[-1]
+    e = b - a
+    if e[1] == 0.0 or e[0] == 0.0:  # along an axis: exact unit vectors keep the map frame's values
+        u = np.sign(e).astype(np.float64)
+    else:
+        u = e / float(np.hypot(*e))
+    s0 = float(a @ u)
+    return a - s0 * u, u, s0, float(b @ u)
+
+
 def parked_cars(scene: Scene, rng: np.random.Generator, share: float = 0.45) -> list[Car]:
     """Draw the cars parked along both kerbs for one campaign.
 
+    Cars park in slots every 6 m from 6 m after the centreline's start to 6 m before its end
+    (``Street.parking`` sets another stretch), in the street's frame (:func:`street_frame`);
+    a street along +x gets the cars it always had.
+
     Args:
-        scene: the scene (its street gives the length).
+        scene: the scene (its straight street gives the direction and the length).
         rng: the campaign's random source.
         share: probability that a parking slot is taken.
 
     Returns:
         Cars with their long side along the street.
     """
-    x0, x1 = float(scene.street.centreline[0, 0]), float(scene.street.centreline[-1, 0])
+    origin, u, x0, x1 = street_frame(scene.street)
+    first, last = (x0 + 6.0, x1 - 6.0) if scene.street.parking is None else (x0 + scene.street.parking[0],
+                                                                             x0 + scene.street.parking[1])
     kerb, vans = scene.street.kerb, scene.street.van_share
     cars = []
     for side in (1.0, -1.0):
-        for x in np.arange(x0 + 6.0, x1 - 6.0, 6.0):
+        for x in np.arange(first, last, 6.0):
             if rng.random() < share:
                 # Vans draw from the stream only in streets that have them: the others keep their cars.
                 if vans > 0 and rng.random() < vans:
@@ -124,7 +155,11 @@ def parked_cars(scene: Scene, rng: np.random.Generator, share: float = 0.45) -> 
                 cars.append(Car(float(x + rng.normal(0, 0.5)), side * float(kerb + rng.uniform(0.8, 1.1)),
                                 float(rng.normal(0, 0.03)), float(rng.uniform(4.0, 5.0)),
                                 float(rng.uniform(1.7, 1.9)), float(rng.uniform(1.4, 1.9))))
-    return cars
+    if u[0] == 1.0 and origin[0] == 0.0 and origin[1] == 0.0:
+        return cars  # a street along +x through the map origin's y: the frame is the map frame
+    heading = float(np.arctan2(u[1], u[0]))
+    n = np.array([-u[1], u[0]])
+    return [Car(*(origin + c.x * u + c.y * n).tolist(), c.yaw + heading, c.length, c.width, c.height) for c in cars]
 
 
 def street_scene(seed: int = 0) -> Scene:
