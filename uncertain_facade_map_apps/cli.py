@@ -371,7 +371,8 @@ def _build_tiles(args: argparse.Namespace, config) -> int:
     side = float(args.side if args.side is not None else (existing.side if existing else config.tiles.side))
     if existing is not None:
         check_params(existing, params, side)
-    for stale in [folder / MANIFEST, *(folder / 'tiles').glob('*.npz')]:
+    tiles = {folder / 'tiles' / (p.name[1:].split('.npz.')[0] + '.npz') for p in (folder / 'tiles').glob('.*.npz.*.tmp')}
+    for stale in [folder / MANIFEST, *sorted(tiles)]:
         remove_stale_temporaries(stale)  # of writes a killed build left
     bounds = None if args.bounds is None else parse_bounds(args.bounds)
     trajectory = None if args.trajectory is None else read_trajectory(args.trajectory)

@@ -44,7 +44,7 @@ def record_tile(folder: str | Path, manifest: Manifest, result: TileResult) -> N
 
 def run_tiles(tasks: Iterable[TileTask], folder: str | Path, manifest: Manifest, workers: int = 0,
               scheduler: str | None = None, progress: Callable[[TileResult], None] | None = None,
-              retries: int = RETRIES) -> list[TileResult]:
+              retries: int = RETRIES, function: Callable[[TileTask], TileResult] = build_tile) -> list[TileResult]:
     """Run the tile tasks and record each finished tile in the manifest (written after each).
 
     Args:
@@ -55,6 +55,7 @@ def run_tiles(tasks: Iterable[TileTask], folder: str | Path, manifest: Manifest,
         scheduler: address of an existing Dask scheduler (instead of ``workers``).
         progress: called with each finished tile's result.
         retries: times a task is run again after a lost worker or an error.
+        function: what runs a task (tests wrap :func:`build_tile`).
 
     Returns:
         The results in order of completion.
@@ -72,7 +73,7 @@ def run_tiles(tasks: Iterable[TileTask], folder: str | Path, manifest: Manifest,
         return results
     if scheduler is None and workers <= 0:
         for task in tasks:
-            done(build_tile(task))
+            done(function(task))
         return results
     from dask.distributed import Client, LocalCluster, as_completed
 
@@ -86,7 +87,7 @@ def run_tiles(tasks: Iterable[TileTask], folder: str | Path, manifest: Manifest,
     try:
         # The largest tiles first: the last task to finish is a small one.
         order = sorted(tasks, key=lambda t: -sum(os.path.getsize(p) for p in t.parts))
-        futures = [client.submit(build_tile, task, key=f'tile-{task.tile_id}-{task.inputs[-12:]}', retries=retries,
+        futures = [client.submit(function, task, key=f'tile-{task.tile_id}-{task.inputs[-12:]}', retries=retries,
                                  pure=False) for task in order]
         for future in as_completed(futures):
             done(future.result())
