@@ -131,9 +131,9 @@ def _dying_build(task):
 def test_a_lost_worker_is_replaced_and_the_map_is_the_same(drives, built, tmp_path):
     import cloudpickle
 
-    from uncertain_facade_map.io.parameter_file import load_config
-    from uncertain_facade_map.io.npz import read_npz
     from uncertain_facade_map.io.inputs import select_building_points
+    from uncertain_facade_map.io.npz import read_npz
+    from uncertain_facade_map.io.parameter_file import load_config
     from uncertain_facade_map.params import map_params, map_params_record
     from uncertain_facade_map.tiling.build import Router
     from uncertain_facade_map.tiling.manifest import Manifest
