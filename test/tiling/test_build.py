@@ -11,9 +11,10 @@ import pytest
 from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.io.map_file import _facade_arrays, load_map
 from uncertain_facade_map.mapping.facade_map import build_map
-from uncertain_facade_map.params import MapParams
+from uncertain_facade_map.params import MapParams, map_params_record
 from uncertain_facade_map.pipeline.step1_facades import split_buildings
 from uncertain_facade_map.tiling.build import Router, build_tile, in_bounds, parse_bounds, read_parts
+from uncertain_facade_map.tiling.manifest import Manifest
 
 
 @pytest.fixture(scope='module')
@@ -120,3 +121,23 @@ def test_fingerprint_holds_parameters(tmp_path, street):
         runs.append([t.inputs for t in router.spill()])
     assert all(a != b for a, b in zip(*runs))
     json.dumps(runs)
+
+
+def test_a_resumed_build_labels_its_clustered_buildings_alike(tmp_path, street):
+    """The finished tiles of a killed build put its clustered labels into the manifest; the
+    resumed build must still give the same labels (same fingerprints, tiles skipped), while a
+    new drive's clusters are numbered past the map's buildings."""
+    xyz, _, origins, origin = street
+    router = Router(tmp_path, MapParams(), 20.0)
+    router.add(xyz, None, origins, origin)
+    first = router.spill()
+    placed = router._plan
+    manifest = Manifest(20.0, tuple(origin), map_params_record(MapParams()), {}, None, dict(placed))
+    again = Router(tmp_path, MapParams(), 20.0, existing=manifest)
+    again.add(xyz, None, origins, origin)
+    assert [t.inputs for t in again.spill()] == [t.inputs for t in first]
+    router.cleanup()  # the build completed: the next input is a new drive
+    drive = Router(tmp_path, MapParams(), 20.0, existing=manifest)
+    drive.add(xyz, None, origins, origin)
+    drive.plan()
+    assert min(b for b in drive._plan if b not in placed) > max(placed)

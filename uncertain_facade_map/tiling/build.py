@@ -52,6 +52,8 @@ from .manifest import Manifest, TileRecord, save_tile
 
 #: The build's work folder inside the tiled map's folder (spilled points; removed when done).
 WORK = '.work'
+#: The running build's record in the tiled map's folder: the first label of its clustered buildings.
+RUN = '.build_run.json'
 #: Separator of the per-run fingerprints in :attr:`TileRecord.inputs` (a tile built by two drives
 #: lists two).
 RUNS = '+'
@@ -302,7 +304,7 @@ class Router:
         grid = TileGrid(self.side)
         cells = np.concatenate(self._cells) if self._cells else np.empty(0, np.int64)
         known = [] if self.existing is None else list(self.existing.building_tiles)
-        base = max([*self._box, *known, -1]) + 1
+        base = self._base_label(cells, max([*self._box, *known, -1]) + 1)
         comp = np.empty(0, np.int64)
         boxes = dict(self._box)
         if len(cells):
@@ -325,6 +327,26 @@ class Router:
             self._index.update({t: tuple(r.index) for t, r in self.existing.tiles.items()})
         self._plan = placed
         return placed
+
+    def _base_label(self, cells: np.ndarray, base: int) -> int:
+        """The first label of the clustered buildings: ``base`` (past every given id and every
+        building of the existing map), unless this very input was planned before in this folder
+        (a resumed build, whose finished tiles have added this run's own labels to the map): then
+        the base it had, so that the points get the same labels and the finished tiles are skipped.
+        Kept in ``DIR/RUN`` until the build completes."""
+        h = hashlib.sha256(cells.tobytes())
+        for b in sorted(self._box):
+            h.update(np.r_[float(b), self._box[b]].tobytes())
+        survey = h.hexdigest()
+        path = self.folder / RUN
+        try:
+            saved = json.loads(path.read_text())
+            if saved.get('survey') == survey:
+                return int(saved['base'])
+        except (OSError, ValueError, KeyError, TypeError):
+            pass
+        path.write_text(json.dumps({'survey': survey, 'base': base}))
+        return base
 
     def labels(self, ids: np.ndarray, xyz: np.ndarray) -> np.ndarray:
         """(N,) building labels of a chunk's points (given ids, else their cell's component)."""
@@ -380,8 +402,9 @@ class Router:
         return tasks
 
     def cleanup(self) -> None:
-        """Remove the work folder (after a complete build)."""
+        """Remove the work folder and the run's record (after a complete build)."""
         shutil.rmtree(self.work, ignore_errors=True)
+        (self.folder / RUN).unlink(missing_ok=True)
 
 
 def run_fingerprint(task: TileTask) -> str:
