@@ -420,8 +420,8 @@ def _build_tiles(args: argparse.Namespace, config) -> int:
         per_worker.setdefault(r.pid, []).append(r)
     for pid, rs in sorted(per_worker.items()):
         big = max(rs, key=lambda r: r.points)
-        print(f'worker   pid {pid}: {len(rs)} tiles, peak RSS {max(r.max_rss_kb for r in rs) / 1024:.0f} MB, largest '
-              f'tile {big.record.id} ({big.points:,} points)')
+        print(f'worker   pid {pid}: {len(rs)} tiles in {sum(r.cpu_seconds for r in rs):.1f} s of CPU, peak RSS '
+              f'{max(r.max_rss_kb for r in rs) / 1024:.0f} MB, largest tile {big.record.id} ({big.points:,} points)')
     facades = sum(r.facades for r in manifest.tiles.values())
     print(f'tiles    {folder} ({len(manifest.tiles)} tiles, {facades} façades, '
           f'{sum(r.points for r in manifest.tiles.values()):,} points stored; {total_s:.1f} s in all)')

@@ -123,6 +123,8 @@ class TileResult:
         points: building points the task mapped.
         map_seconds: mapping (and calibrating) time, s.
         write_seconds: saving time, s.
+        cpu_seconds: the task's processor time (user and system, this process), s: its work,
+            whatever else shares the cores.
     """
 
     record: TileRecord
@@ -131,6 +133,7 @@ class TileResult:
     points: int
     map_seconds: float
     write_seconds: float
+    cpu_seconds: float = 0.0
 
 
 def read_parts(parts: tuple[str, ...] | list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -151,7 +154,7 @@ def build_tile(task: TileTask) -> TileResult:
     from ..io.map_file import load_map, remove_stale_temporaries
     from ..mapping.facade_map import FacadeMap
 
-    started = time.perf_counter()
+    started, cpu = time.perf_counter(), time.process_time()
     xyz, ids, origins = read_parts(task.parts)
     if task.previous is not None:
         fmap = load_map(Path(task.folder) / task.previous)
@@ -166,7 +169,7 @@ def build_tile(task: TileTask) -> TileResult:
     record = save_tile(task.folder, task.tile_id, task.index, task.bounds, fmap, task.inputs)
     written = time.perf_counter()
     return TileResult(record, os.getpid(), int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss), len(xyz),
-                      mapped - started, written - mapped)
+                      mapped - started, written - mapped, time.process_time() - cpu)
 
 
 def without_timings(fmap) -> None:
