@@ -96,8 +96,8 @@ class TileTask:
         map_origin: (3,) the map's georeference, m.
         inputs: the fingerprint the record gets (earlier runs' and this run's, :data:`RUNS`).
         previous: the tile's saved map to continue (a second drive), or None: a new map.
-        calibrate: voxel side of the occupancy's PLSC calibration (the tile's own, as ``build``
-            does for its map), or None: not calibrated.
+        calibrate: voxel side of a PLSC calibration of the tile's own, or None (the command
+            line: one for the whole map, :func:`city_occupancy`).
     """
 
     folder: str
@@ -170,6 +170,27 @@ def build_tile(task: TileTask) -> TileResult:
     written = time.perf_counter()
     return TileResult(record, os.getpid(), int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss), len(xyz),
                       mapped - started, written - mapped, time.process_time() - cpu)
+
+
+def city_occupancy(folder: str | Path, manifest: Manifest, resolution: float):
+    """One occupancy PLSC for the whole tiled map (``Manifest.occupancy``, what
+    :class:`~.tiled_map.TiledMap` answers every tile with), learnt as ``build`` learns a map's
+    (:meth:`~uncertain_facade_map.mapping.facade_map.FacadeMap.calibrate_occupancy`) on the tile
+    with the most stored points: one calibration (a map of at most ``calibration.max_points``
+    points) whatever the number of tiles, where one per tile would cost five times the mapping.
+
+    Returns:
+        (the PLSC, the tile's id), or None: no tile, or its points lack sensor origins.
+    """
+    from ..io.map_file import load_map
+
+    if not manifest.tiles:
+        return None
+    record = max(manifest.tiles.values(), key=lambda r: (r.points, r.id))
+    fmap = load_map(Path(folder) / record.file)
+    if not fmap.facades or not fmap._has_rays:
+        return None
+    return fmap.calibrate_occupancy(resolution), record.id
 
 
 def without_timings(fmap) -> None:
