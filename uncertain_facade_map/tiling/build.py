@@ -48,7 +48,7 @@ from ..errors import InputError
 from ..params import MapParams, map_params_record
 from ..pipeline.step1_facades import _grid_components, building_cells
 from .grid import TileGrid, tile_id
-from .manifest import Manifest, TileRecord, save_tile
+from .manifest import Manifest, TileRecord, save_tile, sha256_file
 
 #: The build's work folder inside the tiled map's folder (spilled points; removed when done).
 WORK = '.work'
@@ -202,19 +202,10 @@ def without_timings(fmap) -> None:
             fmap.facades[i] = replace(f, stats={k: v for k, v in f.stats.items() if k != 'seconds'})
 
 
-def file_sha256(path: str | Path) -> str:
-    """Hex sha256 of a file, read in 1 MiB blocks."""
-    h = hashlib.sha256()
-    with open(path, 'rb') as fh:
-        for block in iter(lambda: fh.read(1 << 20), b''):
-            h.update(block)
-    return h.hexdigest()
-
-
 def intact(folder: str | Path, record: TileRecord) -> bool:
     """Whether the tile's file exists and has the sha256 its record gives."""
     path = Path(folder) / record.file
-    return path.is_file() and file_sha256(path) == record.sha256
+    return path.is_file() and sha256_file(path) == record.sha256
 
 
 @dataclass
