@@ -350,7 +350,7 @@ def _build_tiles(args: argparse.Namespace, config) -> int:
     from uncertain_facade_map.io.map_file import remove_stale_temporaries
     from uncertain_facade_map.io.trajectory import read_trajectory
     from uncertain_facade_map.params import map_params, map_params_record
-    from uncertain_facade_map.tiling.build import Router, check_params, city_occupancy, done_already, parse_bounds
+    from uncertain_facade_map.tiling.build import Router, check_params, done_already, parse_bounds
     from uncertain_facade_map.tiling.manifest import MANIFEST, Manifest, is_tiled_map, read_manifest, write_manifest
 
     from .cluster import run_tiles
@@ -404,18 +404,12 @@ def _build_tiles(args: argparse.Namespace, config) -> int:
     with _counter('tiles', 'tile', args.quiet, total=len(todo)) as update:
         count = iter(range(1, len(todo) + 1))
         results = run_tiles(todo, folder, manifest, workers=args.workers or 0, scheduler=args.scheduler,
-                            progress=lambda _r: update(next(count)))
+                            progress=lambda _r: update(next(count)),
+                            resolution=config.query.resolution if router.has_origins else None)
     map_s = time.perf_counter() - started - read_s - route_s
-    occupancy = 'kept' if not results and manifest.occupancy else 'the fixed formula (no sensor origins to learn from)'
-    if results or not manifest.occupancy:
-        learnt = city_occupancy(folder, manifest, config.query.resolution) if router.has_origins else None
-        if learnt is not None:
-            plsc, where = learnt
-            manifest.occupancy = plsc.as_dict() if plsc.learnt else None
-            write_manifest(folder, manifest)
-            occupancy = (f'scale {plsc.scale:.3g}, spread {plsc.spread * 100:.1f} cm, learnt on tile {where} for all'
-                         if plsc.learnt else 'the fixed formula (too few labelled voxels near a façade)')
-    plsc_s = time.perf_counter() - started - read_s - route_s - map_s
+    plsc = manifest.occupancy
+    occupancy = ('the fixed formula' if plsc is None else
+                 f'scale {plsc["scale"]:.3g}, spread {plsc["spread"] * 100:.1f} cm, learnt on the largest tile built')
     router.cleanup()
     total_s = time.perf_counter() - started
     n_building = router.points
@@ -431,7 +425,7 @@ def _build_tiles(args: argparse.Namespace, config) -> int:
         big = max(rs, key=lambda r: r.points)
         print(f'worker   pid {pid}: {len(rs)} tiles in {sum(r.cpu_seconds for r in rs):.1f} s of CPU, peak RSS '
               f'{max(r.max_rss_kb for r in rs) / 1024:.0f} MB, largest tile {big.record.id} ({big.points:,} points)')
-    print(f'plsc     {occupancy} ({plsc_s:.1f} s)')
+    print(f'plsc     {occupancy} (for all tiles)')
     facades = sum(r.facades for r in manifest.tiles.values())
     print(f'tiles    {folder} ({len(manifest.tiles)} tiles, {facades} façades, '
           f'{sum(r.points for r in manifest.tiles.values()):,} points stored; {total_s:.1f} s in all)')

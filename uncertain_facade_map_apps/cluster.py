@@ -23,7 +23,7 @@ import os
 from pathlib import Path
 from typing import Callable, Iterable
 
-from uncertain_facade_map.tiling.build import TileResult, TileTask, build_tile
+from uncertain_facade_map.tiling.build import TileResult, TileTask, build_tile, calibrate_tile
 from uncertain_facade_map.tiling.manifest import Manifest, write_manifest
 
 #: Environment of the worker processes: one thread for BLAS, OpenMP and numba.
@@ -44,8 +44,13 @@ def record_tile(folder: str | Path, manifest: Manifest, result: TileResult) -> N
 
 def run_tiles(tasks: Iterable[TileTask], folder: str | Path, manifest: Manifest, workers: int = 0,
               scheduler: str | None = None, progress: Callable[[TileResult], None] | None = None,
-              retries: int = RETRIES, function: Callable[[TileTask], TileResult] = build_tile) -> list[TileResult]:
+              retries: int = RETRIES, function: Callable[[TileTask], TileResult] = build_tile,
+              resolution: float | None = None) -> list[TileResult]:
     """Run the tile tasks and record each finished tile in the manifest (written after each).
+
+    With ``resolution``, the map's occupancy PLSC is learnt too (:func:`calibrate_tile` on the
+    task with the most points, as one more task once that tile is written: on a cluster it runs
+    beside the remaining tiles, which go largest first) and put into ``manifest.occupancy``.
 
     Args:
         tasks: the tiles to build.
@@ -56,12 +61,15 @@ def run_tiles(tasks: Iterable[TileTask], folder: str | Path, manifest: Manifest,
         progress: called with each finished tile's result.
         retries: times a task is run again after a lost worker or an error.
         function: what runs a task (tests wrap :func:`build_tile`).
+        resolution: voxel side of the occupancy's calibration, m; None: not learnt.
 
     Returns:
         The results in order of completion.
     """
-    tasks = list(tasks)
+    # The largest tiles first: the last task to finish is a small one.
+    tasks = sorted(tasks, key=lambda t: -sum(os.path.getsize(p) for p in t.parts))
     results: list[TileResult] = []
+    learn_on = tasks[0].tile_id if tasks and resolution is not None else None
 
     def done(result: TileResult) -> None:
         record_tile(folder, manifest, result)
@@ -69,29 +77,42 @@ def run_tiles(tasks: Iterable[TileTask], folder: str | Path, manifest: Manifest,
         if progress is not None:
             progress(result)
 
+    def learnt(occupancy: dict | None) -> None:
+        manifest.occupancy = occupancy
+        write_manifest(folder, manifest)
+
     if not tasks:
         return results
     if scheduler is None and workers <= 0:
         for task in tasks:
             done(function(task))
+        if learn_on is not None:
+            learnt(calibrate_tile(str(folder), manifest.tiles[learn_on].file, resolution))
         return results
     from dask.distributed import Client, LocalCluster, as_completed
 
     cluster = None
     if scheduler is None:
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=':0',
                                env=dict(ONE_THREAD), silence_logs=40)
         client = Client(cluster)
     else:
         client = Client(scheduler)
     try:
-        # The largest tiles first: the last task to finish is a small one.
-        order = sorted(tasks, key=lambda t: -sum(os.path.getsize(p) for p in t.parts))
-        futures = [client.submit(function, task, key=f'tile-{task.tile_id}-{task.inputs[-12:]}', retries=retries,
-                                 pure=False) for task in order]
-        for future in as_completed(futures):
-            done(future.result())
+        futures = as_completed([client.submit(function, task, key=f'tile-{task.tile_id}-{task.inputs[-12:]}',
+                                              retries=retries, pure=False) for task in tasks])
+        calibration = None
+        for future in futures:
+            result = future.result()
             future.release()
+            if isinstance(result, TileResult):
+                done(result)
+                if result.record.id == learn_on:
+                    calibration = client.submit(calibrate_tile, str(folder), result.record.file, resolution,
+                                                key=f'calibrate-{learn_on}', retries=retries, pure=False)
+                    futures.add(calibration)
+            else:
+                learnt(result)
     finally:
         client.close()
         if cluster is not None:

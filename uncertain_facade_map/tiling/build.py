@@ -172,25 +172,29 @@ def build_tile(task: TileTask) -> TileResult:
                       mapped - started, written - mapped, time.process_time() - cpu)
 
 
-def city_occupancy(folder: str | Path, manifest: Manifest, resolution: float):
+def calibrate_tile(folder: str, file: str, resolution: float) -> dict | None:
     """One occupancy PLSC for the whole tiled map (``Manifest.occupancy``, what
     :class:`~.tiled_map.TiledMap` answers every tile with), learnt as ``build`` learns a map's
-    (:meth:`~uncertain_facade_map.mapping.facade_map.FacadeMap.calibrate_occupancy`) on the tile
-    with the most stored points: one calibration (a map of at most ``calibration.max_points``
-    points) whatever the number of tiles, where one per tile would cost five times the mapping.
+    (:meth:`~uncertain_facade_map.mapping.facade_map.FacadeMap.calibrate_occupancy`) on one
+    tile, the build's largest: one calibration (a map of at most ``calibration.max_points``
+    points) whatever the number of tiles, where one per tile cost five times the mapping.
+
+    Args:
+        folder: the tiled map's folder.
+        file: the tile's file, relative to ``folder``.
+        resolution: voxel side of the labels, m.
 
     Returns:
-        (the PLSC, the tile's id), or None: no tile, or its points lack sensor origins.
+        ``PLSC.as_dict()``, or None: its points lack sensor
+        origins, or too few labelled voxels (the fixed formula).
     """
     from ..io.map_file import load_map
 
-    if not manifest.tiles:
-        return None
-    record = max(manifest.tiles.values(), key=lambda r: (r.points, r.id))
-    fmap = load_map(Path(folder) / record.file)
+    fmap = load_map(Path(folder) / file)
     if not fmap.facades or not fmap._has_rays:
         return None
-    return fmap.calibrate_occupancy(resolution), record.id
+    plsc = fmap.calibrate_occupancy(resolution)
+    return plsc.as_dict() if plsc.learnt else None
 
 
 def without_timings(fmap) -> None:
