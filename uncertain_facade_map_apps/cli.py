@@ -350,7 +350,7 @@ def _build_tiles(args: argparse.Namespace, config) -> int:
     from uncertain_facade_map.io.map_file import remove_stale_temporaries
     from uncertain_facade_map.io.trajectory import read_trajectory
     from uncertain_facade_map.params import map_params, map_params_record
-    from uncertain_facade_map.tiling.build import Router, check_params, done_already, parse_bounds
+    from uncertain_facade_map.tiling.build import Router, calibration_tile, check_params, done_already, parse_bounds
     from uncertain_facade_map.tiling.manifest import MANIFEST, Manifest, is_tiled_map, read_manifest, write_manifest
 
     from .cluster import run_tiles
@@ -405,7 +405,8 @@ def _build_tiles(args: argparse.Namespace, config) -> int:
         count = iter(range(1, len(todo) + 1))
         results = run_tiles(todo, folder, manifest, workers=args.workers or 0, scheduler=args.scheduler,
                             progress=lambda _r: update(next(count)),
-                            resolution=config.query.resolution if router.has_origins else None)
+                            calibrate=None if not router.has_origins or (not todo and manifest.occupancy) else
+                            (calibration_tile(tasks), config.query.resolution))
     map_s = time.perf_counter() - started - read_s - route_s
     plsc = manifest.occupancy
     occupancy = ('the fixed formula' if plsc is None else

@@ -45,11 +45,11 @@ def record_tile(folder: str | Path, manifest: Manifest, result: TileResult) -> N
 def run_tiles(tasks: Iterable[TileTask], folder: str | Path, manifest: Manifest, workers: int = 0,
               scheduler: str | None = None, progress: Callable[[TileResult], None] | None = None,
               retries: int = RETRIES, function: Callable[[TileTask], TileResult] = build_tile,
-              resolution: float | None = None) -> list[TileResult]:
+              calibrate: tuple[str, float] | None = None) -> list[TileResult]:
     """Run the tile tasks and record each finished tile in the manifest (written after each).
 
-    With ``resolution``, the map's occupancy PLSC is learnt too (:func:`calibrate_tile` on the
-    task with the most points, as one more task once that tile is written: on a cluster it runs
+    With ``calibrate``, the map's occupancy PLSC is learnt too (:func:`calibrate_tile`, as one more
+    task once that tile is written, or at once if it is not among the tasks: on a cluster it runs
     beside the remaining tiles, which go largest first) and put into ``manifest.occupancy``.
 
     Args:
@@ -61,7 +61,8 @@ def run_tiles(tasks: Iterable[TileTask], folder: str | Path, manifest: Manifest,
         progress: called with each finished tile's result.
         retries: times a task is run again after a lost worker or an error.
         function: what runs a task (tests wrap :func:`build_tile`).
-        resolution: voxel side of the occupancy's calibration, m; None: not learnt.
+        calibrate: (the tile to learn the occupancy on, the voxel side of its labels in m), or
+            None: not learnt (:func:`~uncertain_facade_map.tiling.build.calibration_tile` chooses).
 
     Returns:
         The results in order of completion.
@@ -69,7 +70,7 @@ def run_tiles(tasks: Iterable[TileTask], folder: str | Path, manifest: Manifest,
     # The largest tiles first: the last task to finish is a small one.
     tasks = sorted(tasks, key=lambda t: -sum(os.path.getsize(p) for p in t.parts))
     results: list[TileResult] = []
-    learn_on = tasks[0].tile_id if tasks and resolution is not None else None
+    learn_on, resolution = calibrate or (None, None)
 
     def done(result: TileResult) -> None:
         record_tile(folder, manifest, result)
@@ -81,7 +82,7 @@ def run_tiles(tasks: Iterable[TileTask], folder: str | Path, manifest: Manifest,
         manifest.occupancy = occupancy
         write_manifest(folder, manifest)
 
-    if not tasks:
+    if not tasks and learn_on is None:
         return results
     if scheduler is None and workers <= 0:
         for task in tasks:
@@ -101,16 +102,20 @@ def run_tiles(tasks: Iterable[TileTask], folder: str | Path, manifest: Manifest,
     try:
         futures = as_completed([client.submit(function, task, key=f'tile-{task.tile_id}-{task.inputs[-12:]}',
                                               retries=retries, pure=False) for task in tasks])
-        calibration = None
+
+        def learn() -> None:
+            futures.add(client.submit(calibrate_tile, str(folder), manifest.tiles[learn_on].file, resolution,
+                                      key=f'calibrate-{learn_on}', retries=retries, pure=False))
+
+        if learn_on is not None and learn_on not in {t.tile_id for t in tasks}:
+            learn()  # built already (a resumed build)
         for future in futures:
             result = future.result()
             future.release()
             if isinstance(result, TileResult):
                 done(result)
                 if result.record.id == learn_on:
-                    calibration = client.submit(calibrate_tile, str(folder), result.record.file, resolution,
-                                                key=f'calibrate-{learn_on}', retries=retries, pure=False)
-                    futures.add(calibration)
+                    learn()
             else:
                 learnt(result)
     finally:

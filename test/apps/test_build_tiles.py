@@ -89,6 +89,7 @@ def test_a_killed_build_resumes_to_the_same_tiles(drives, built, tmp_path, capsy
     assert not stale.exists()
     assert _hashes(out) == _hashes(built)
     assert read_manifest(out).tiles == read_manifest(built).tiles
+    assert read_manifest(out).occupancy == read_manifest(built).occupancy is not None
 
 
 def test_a_second_drive_updates_only_the_tiles_it_saw(drives, built, tmp_path, capsys):
@@ -135,7 +136,7 @@ def test_a_lost_worker_is_replaced_and_the_map_is_the_same(drives, built, tmp_pa
     from uncertain_facade_map.io.npz import read_npz
     from uncertain_facade_map.io.parameter_file import load_config
     from uncertain_facade_map.params import map_params, map_params_record
-    from uncertain_facade_map.tiling.build import Router
+    from uncertain_facade_map.tiling.build import Router, calibration_tile
     from uncertain_facade_map.tiling.manifest import Manifest
     from uncertain_facade_map_apps.cluster import run_tiles
 
@@ -147,10 +148,12 @@ def test_a_lost_worker_is_replaced_and_the_map_is_the_same(drives, built, tmp_pa
     router = Router(out, params, 20.0)
     pts = select_building_points(read_npz(drives / 'drive1.npz'), config.input)
     router.add(pts.xyz, pts.building_id, pts.sensor_origins, pts.map_origin)
-    tasks = router.spill(config.query.resolution)
+    tasks = router.spill()
     manifest = Manifest(20.0, tuple(router.map_origin), map_params_record(params), {}, None, {})
-    results = run_tiles(tasks, out, manifest, workers=2, function=_dying_build)
+    results = run_tiles(tasks, out, manifest, workers=2, function=_dying_build,
+                        calibrate=(calibration_tile(tasks), config.query.resolution))
     assert (out / 'killed_once').exists()
     assert len(results) == len(tasks) == 2 * COPIES
     assert len({r.pid for r in results}) >= 2
     assert _hashes(out) == _hashes(built)
+    assert manifest.occupancy == read_manifest(built).occupancy is not None

@@ -197,6 +197,15 @@ def calibrate_tile(folder: str, file: str, resolution: float) -> dict | None:
     return plsc.as_dict() if plsc.learnt else None
 
 
+def calibration_tile(tasks: list[TileTask]) -> str | None:
+    """The tile the run learns the occupancy on: the one with the most routed points (by the
+    size of its spilled parts; ties to the first id), chosen among all the run's tiles, built
+    already or not, so that a resumed build learns on the one the uninterrupted build would."""
+    if not tasks:
+        return None
+    return max(tasks, key=lambda t: (sum(os.path.getsize(p) for p in t.parts), [-ord(c) for c in t.tile_id])).tile_id
+
+
 def without_timings(fmap) -> None:
     """Drop the fits' timings (``stats['seconds']``) from the map's façade models, so that a
     tile's bytes depend on its content only: a resumed or repeated build writes the same file
