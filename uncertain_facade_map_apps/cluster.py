@@ -33,6 +33,16 @@ ONE_THREAD = dict.fromkeys(('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_
 RETRIES = 3
 
 
+def in_one_thread(function: Callable, *args):
+    """``function(*args)`` with numba's parallel kernels at one thread: a worker process reads
+    ``NUMBA_NUM_THREADS`` too late (numba's configuration is loaded before the nanny's environment
+    reaches it, so it had 2 threads per worker on this 2-core machine, oversubscribing it)."""
+    import numba
+
+    numba.set_num_threads(1)
+    return function(*args)
+
+
 def record_tile(folder: str | Path, manifest: Manifest, result: TileResult) -> None:
     """Put a finished tile into the manifest (its buildings placed in it) and write the manifest."""
     record = result.record
@@ -100,11 +110,12 @@ def run_tiles(tasks: Iterable[TileTask], folder: str | Path, manifest: Manifest,
     else:
         client = Client(scheduler)
     try:
-        futures = as_completed([client.submit(function, task, key=f'tile-{task.tile_id}-{task.inputs[-12:]}',
-                                              retries=retries, pure=False) for task in tasks])
+        futures = as_completed([client.submit(in_one_thread, function, task,
+                                              key=f'tile-{task.tile_id}-{task.inputs[-12:]}', retries=retries,
+                                              pure=False) for task in tasks])
 
         def learn() -> None:
-            futures.add(client.submit(calibrate_tile, str(folder), manifest.tiles[learn_on].file, resolution,
+            futures.add(client.submit(in_one_thread, calibrate_tile, str(folder), manifest.tiles[learn_on].file, resolution,
                                       key=f'calibrate-{learn_on}', retries=retries, pure=False))
 
         if learn_on is not None and learn_on not in {t.tile_id for t in tasks}:
