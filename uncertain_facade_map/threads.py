@@ -20,3 +20,25 @@ def one_blas_thread() -> AbstractContextManager:
     except ImportError:  # pragma: no cover - depends on the environment
         return nullcontext()
     return threadpool_limits(limits=1, user_api='blas')
+
+
+#: Threads of the map's own parallel parts in this process (k-d tree queries, the GP block
+#: kernel); None: their defaults (all cores for the k-d trees, two for the blocks).
+_THREADS: int | None = None
+
+
+def set_threads(n: int | None) -> None:
+    """Run the map's own parallel parts in ``n`` threads in this process (None: the defaults).
+    A worker of a tiled build (one process per core) sets 1: its parallelism is the tiles'."""
+    global _THREADS
+    _THREADS = None if n is None else max(1, int(n))
+
+
+def threads(default: int) -> int:
+    """Threads a parallel part whose own default is ``default`` uses (see :func:`set_threads`)."""
+    return default if _THREADS is None else _THREADS
+
+
+def kdtree_workers() -> int:
+    """The ``workers`` of scipy's k-d tree queries: -1 (all cores) unless :func:`set_threads` set a number."""
+    return -1 if _THREADS is None else _THREADS

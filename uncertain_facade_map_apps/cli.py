@@ -287,6 +287,13 @@ def cmd_build(args: argparse.Namespace) -> int:
     from uncertain_facade_map.params import map_params
 
     config = load_config(args.config)
+    if (args.out is None) == (args.tiles is None):
+        raise CliError('give --out MAP (one map file) or --tiles DIR (a tiled map), one of them')
+    if args.tiles is not None:
+        return _build_tiles(args, config)
+    for name in ('side', 'workers', 'scheduler', 'bounds'):
+        if getattr(args, name) is not None:
+            raise CliError(f'--{name} goes with --tiles DIR')
     out = Path(args.out)
     if not out.parent.exists():
         raise CliError(f'output folder {out.parent} does not exist')
@@ -333,6 +340,97 @@ def cmd_build(args: argparse.Namespace) -> int:
         print(f'surface  median std {np.sqrt(np.median(var)) * 100:.1f} cm where observed')
     print(f'plsc     {occupancy} ({calibrate_s:.1f} s)')
     print(f'map      {out} ({out.stat().st_size / 1e6:.1f} MB, {total_s:.1f} s in all)')
+    return 0
+
+
+def _build_tiles(args: argparse.Namespace, config) -> int:
+    """``build --tiles DIR``: route the inputs' building points to tiles, map the tiles (in this
+    process or on Dask), write the tiles and the manifest; resume or update an existing one."""
+    from msg_adapters.bag_io import load_inputs
+    from uncertain_facade_map.io.inputs import select_building_points
+    from uncertain_facade_map.io.map_file import remove_stale_temporaries
+    from uncertain_facade_map.io.trajectory import read_trajectory
+    from uncertain_facade_map.params import map_params, map_params_record
+    from uncertain_facade_map.tiling.build import Router, calibration_tile, check_params, done_already, parse_bounds
+    from uncertain_facade_map.tiling.manifest import MANIFEST, Manifest, is_tiled_map, read_manifest, write_manifest
+
+    from .cluster import run_tiles
+    from .las_chunks import input_chunks
+
+    if args.sensor is not None and args.trajectory is not None:
+        raise CliError('give --sensor or --trajectory, not both')
+    if args.workers is not None and args.workers < 0:
+        raise CliError(f'--workers must be 0 or more, got {args.workers}')
+    if args.workers and args.scheduler:
+        raise CliError('give --workers N (a local cluster) or --scheduler ADDRESS (an existing one), not both')
+    folder = Path(args.tiles)
+    if not folder.parent.exists():
+        raise CliError(f'output folder {folder.parent} does not exist')
+    folder.mkdir(exist_ok=True)
+    params = map_params(config)
+    existing = read_manifest(folder) if is_tiled_map(folder) else None
+    side = float(args.side if args.side is not None else (existing.side if existing else config.tiles.side))
+    if existing is not None:
+        check_params(existing, params, side)
+    tiles = {folder / 'tiles' / (p.name[1:].split('.npz.')[0] + '.npz') for p in (folder / 'tiles').glob('.*.npz.*.tmp')}
+    for stale in [folder / MANIFEST, *sorted(tiles)]:
+        remove_stale_temporaries(stale)  # of writes a killed build left
+    bounds = None if args.bounds is None else parse_bounds(args.bounds)
+    trajectory = None if args.trajectory is None else read_trajectory(args.trajectory)
+    selection = config.selection if args.select is None else dataclasses.replace(config.selection, mode=args.select)
+    router = Router(folder, params, side, bounds, existing)
+    started = time.perf_counter()
+    n_read = 0
+    for path in args.inputs:
+        for cloud in input_chunks(path, bounds, lambda p: load_inputs([p], topic=args.topic,
+                                                                     max_distance=config.input.max_distance,
+                                                                     warn=print, config=config)):
+            n_read += len(cloud)
+            if not len(cloud):
+                continue
+            points = select_building_points(cloud, config.input, selection, sensor=args.sensor, trajectory=trajectory)
+            router.add(points.xyz, points.building_id, points.sensor_origins, points.map_origin)
+    if not router.points:
+        raise CliError('no building points in the inputs' + ('' if bounds is None else ' within --bounds'))
+    read_s = time.perf_counter() - started
+    router.plan()
+    tasks = router.spill()
+    route_s = time.perf_counter() - started - read_s
+    manifest = existing or Manifest(side, tuple(float(v) for v in router.map_origin), map_params_record(params), {},
+                                    None, {})
+    todo = [t for t in tasks if not done_already(folder, existing, t)]
+    skipped = len(tasks) - len(todo)
+    if existing is None:
+        write_manifest(folder, manifest)
+    with _counter('tiles', 'tile', args.quiet, total=len(todo)) as update:
+        count = iter(range(1, len(todo) + 1))
+        results = run_tiles(todo, folder, manifest, workers=args.workers or 0, scheduler=args.scheduler,
+                            progress=lambda _r: update(next(count)),
+                            calibrate=None if not router.has_origins or (not todo and manifest.occupancy) else
+                            (calibration_tile(tasks), config.query.resolution))
+    map_s = time.perf_counter() - started - read_s - route_s
+    plsc = manifest.occupancy
+    occupancy = ('the fixed formula' if plsc is None else
+                 f'scale {plsc["scale"]:.3g}, spread {plsc["spread"] * 100:.1f} cm, learnt on the largest tile built')
+    router.cleanup()
+    total_s = time.perf_counter() - started
+    n_building = router.points
+    print(f'read     {n_read:,} points ({n_building:,} building) from {len(args.inputs)} input(s) in {read_s:.1f} s')
+    print(f'route    {len(tasks)} tiles, {len(router._plan):,} buildings in {route_s:.1f} s')
+    print(f'map      {len(results)} tiles written, {skipped} skipped (built already) in {map_s:.1f} s '
+          f'({sum(r.points for r in results) / max(map_s, 1e-9):,.0f} building points/s; tasks: '
+          f'{sum(r.map_seconds for r in results):.1f} s mapping, {sum(r.write_seconds for r in results):.1f} s writing)')
+    per_worker: dict[int, list] = {}
+    for r in results:
+        per_worker.setdefault(r.pid, []).append(r)
+    for pid, rs in sorted(per_worker.items()):
+        big = max(rs, key=lambda r: r.points)
+        print(f'worker   pid {pid}: {len(rs)} tiles in {sum(r.cpu_seconds for r in rs):.1f} s of CPU, peak RSS '
+              f'{max(r.max_rss_kb for r in rs) / 1024:.0f} MB, largest tile {big.record.id} ({big.points:,} points)')
+    print(f'plsc     {occupancy} (for all tiles)')
+    facades = sum(r.facades for r in manifest.tiles.values())
+    print(f'tiles    {folder} ({len(manifest.tiles)} tiles, {facades} façades, '
+          f'{sum(r.points for r in manifest.tiles.values()):,} points stored; {total_s:.1f} s in all)')
     return 0
 
 
@@ -1076,7 +1174,22 @@ def build_parser() -> argparse.ArgumentParser:
                                        'class field the building points are selected: ground removed (Patchwork++), '
                                        'points on tall vertical planes kept (--select).')
     build.add_argument('inputs', nargs='+', metavar='INPUT', help='point clouds or bags')
-    build.add_argument('--out', required=True, metavar='MAP', help='map file to write (.npz)')
+    build.add_argument('--out', metavar='MAP', help='map file to write (.npz)')
+    build.add_argument('--tiles', metavar='DIR',
+                       help='write a tiled map into folder DIR instead (a manifest and one map file per tile; '
+                            'created if missing): an existing tiled map there is resumed (tiles already built from '
+                            'the same points are skipped) or, given new drives, its tiles whose buildings received '
+                            'points are updated')
+    build.add_argument('--side', type=float, metavar='M', help='--tiles: tile side, metres (default tiles.side)')
+    build.add_argument('--workers', type=int, metavar='N',
+                       help='--tiles: map the tiles on a local Dask cluster of N processes of one thread '
+                            '(default 0: in this process)')
+    build.add_argument('--scheduler', metavar='ADDRESS',
+                       help='--tiles: map the tiles on an existing Dask cluster (e.g. tcp://host:8786); its workers '
+                            'need this package installed and DIR shared at the same path')
+    build.add_argument('--bounds', metavar='MIN_X,MIN_Y,MAX_X,MAX_Y',
+                       help='--tiles: build only the points in this area (the inputs\' georeferenced x, y, metres; '
+                            'COPC files are read by area)')
     build.add_argument('--config', metavar='YAML', help='ROS 2 parameter file (default: config/facade_mapper.yaml)')
     build.add_argument('--topic', help='PointCloud2 topic of bag inputs (default: the only one)')
     build.add_argument('--select', choices=('auto', 'on', 'off'),

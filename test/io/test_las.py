@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.io.cloud import Cloud, simulated_dtype
 from uncertain_facade_map.io.clouds import read_cloud, write_cloud
-from uncertain_facade_map.io.las import LAS_SCALE, read_las, write_las
+from uncertain_facade_map.io.las import LAS_SCALE, iter_las, read_las, write_las
 
 LAS_FIELD_NAMES = ['building_id', 'gt_facade', 'ring', 'r', 'g', 'b', 'origin_x', 'a_1', 'Z2',
                    'class', 'time']
@@ -239,3 +239,19 @@ def test_laz_with_absurd_chunk_size_does_not_abort(tmp_path: Path) -> None:
             assert 'cannot read LAS file' in str(err) and '\n' not in str(err)
         else:
             assert len(back) == 20
+
+
+@settings(SETTINGS, max_examples=15)
+@given(cloud=las_clouds(), suffix=st.sampled_from(['.las', '.laz']), chunk=st.integers(1, 40))
+def test_las_in_chunks_is_the_whole_file(tmp_path: Path, cloud: Cloud, suffix: str, chunk: int) -> None:
+    """iter_las (the tiled build's reader): the chunks joined are read_las's cloud, bit for bit."""
+    path = tmp_path / ('c' + suffix)
+    write_cloud(path, cloud)
+    whole = read_las(path)
+    parts = list(iter_las(path, chunk))
+    assert all(0 < len(p) <= chunk for p in parts)
+    assert sum(len(p) for p in parts) == len(whole)
+    if parts:
+        joined = np.concatenate([p.points for p in parts])
+        assert joined.dtype == whole.points.dtype and joined.tobytes() == whole.points.tobytes()
+        assert all(p.map_origin.tobytes() == whole.map_origin.tobytes() for p in parts)

@@ -25,7 +25,7 @@ from __future__ import annotations
 import os
 import struct
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -213,6 +213,53 @@ def read_las(path: PathLike) -> Cloud:
     if n != announced:
         raise InputError(f'cannot read LAS file {name}: header announces {announced} points, '
                          f'the file holds {n}')
+    return _las_cloud(name, columns, dims, scales, offsets)
+
+
+def iter_las(path: PathLike, chunk_points: int = _LAS_CHUNK_POINTS,
+             bounds: tuple[float, float, float, float] | None = None) -> Iterator[Cloud]:
+    """A LAS or LAZ file as clouds of at most ``chunk_points`` points each, in file order (the
+    fields and map origin of :func:`read_las`); a COPC file (``.copc.laz``) with ``bounds``
+    (min_x, min_y, max_x, max_y, georeferenced metres) yields only the points of the octree
+    nodes that meet them (laspy's ``CopcReader.query``; points just outside may come too).
+
+    Raises:
+        InputError: as :func:`read_las`.
+    """
+    name = _existing_file(path)
+    laspy = _import_laspy(name)
+    _check_las_header(name)
+    try:
+        if bounds is not None and name.lower().endswith('.copc.laz'):
+            from laspy.copc import Bounds, CopcReader
+
+            with CopcReader.open(name) as reader:
+                header = reader.header
+                dims = list(header.point_format.dimension_names)
+                record = reader.query(bounds=Bounds(mins=np.array(bounds[:2]), maxs=np.array(bounds[2:])))
+                columns = {dim: np.asarray(record[dim]) for dim in dims}
+                yield _las_cloud(name, columns, dims, np.array(header.scales, np.float64),
+                                 np.array(header.offsets, np.float64))
+            return
+        with laspy.open(name, laz_backend=laspy.LazBackend.Lazrs) as reader:
+            scales = np.array(reader.header.scales, dtype=np.float64)
+            offsets = np.array(reader.header.offsets, dtype=np.float64)
+            dims = list(reader.header.point_format.dimension_names)
+            for record in reader.chunk_iterator(chunk_points):
+                if len(record) == 0:
+                    break
+                columns = {dim: np.asarray(record[dim]) for dim in dims}
+                yield _las_cloud(name, columns, dims, scales, offsets)
+    except BaseException as exc:  # noqa: B036 - lazrs panics raise pyo3's PanicException
+        if not isinstance(exc, _las_errors(laspy)) and type(exc).__name__ != 'PanicException':
+            raise
+        raise InputError(f'cannot read LAS file {name}: {_one_line(exc)}') from exc
+
+
+def _las_cloud(name: str, columns: dict[str, np.ndarray], dims: list[str], scales: np.ndarray,
+               offsets: np.ndarray) -> Cloud:
+    """The cloud of LAS columns (see :func:`read_las`)."""
+    n = int(columns['X'].shape[0])
     fields: list[tuple[str, np.ndarray]] = [
         (c, _las_unscale(columns[c.upper()], scales[i])) for i, c in enumerate(_COORDINATES)
     ]

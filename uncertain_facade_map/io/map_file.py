@@ -116,6 +116,17 @@ def remove_stale_temporaries(path: str | Path) -> list[Path]:
     return removed
 
 
+def _write_npz(fh, arrays: dict[str, np.ndarray]) -> None:
+    """``np.savez`` with fixed zip timestamps: the same map gives the same bytes whenever it is
+    saved (a tiled map's content hashes, and a resumed build's tiles, compare files)."""
+    with zipfile.ZipFile(fh, mode='w', compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
+        for name, value in arrays.items():
+            info = zipfile.ZipInfo(name + '.npy', date_time=(1980, 1, 1, 0, 0, 0))
+            info.external_attr = 0o600 << 16
+            with zf.open(info, 'w', force_zip64=True) as out:
+                np.lib.format.write_array(out, np.asanyarray(value), allow_pickle=False)
+
+
 def save_map(fmap: FacadeMap, path: str | Path) -> Path:
     """Write the map atomically to ``path`` (conventionally ``*.npz``): into a temporary
     file next to it, then renamed; the file gets the permissions the process's umask
@@ -173,7 +184,7 @@ def save_map(fmap: FacadeMap, path: str | Path) -> Path:
     try:
         with os.fdopen(fd, 'wb') as fh:
             os.fchmod(fh.fileno(), 0o666 & ~_umask())
-            np.savez(fh, **arrays)
+            _write_npz(fh, arrays)
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, path)

@@ -615,7 +615,7 @@ class FacadeMap:
                 if target is None:
                     fid = len(self.facades)
                     model = fit_facade(self._extracted(b, index, e.frame, e.plane_extent), params,
-                                       np.random.default_rng([params.seed, b, fid, len(index)]), fid, b)
+                                       self._rng(b, fid, len(index)), fid, b)
                     self.facades.append(model)
                     owner[index] = fid
                     self.last_update['facades_new'].append(fid)
@@ -645,19 +645,27 @@ class FacadeMap:
             if model.fitted_points < up.refit_max_points and len(index) >= (1.0 + up.refit_growth) * model.fitted_points:
                 updated = self._refit_whole(b, fid, index, plane)
             else:
-                rng = np.random.default_rng([params.seed, b, fid, len(index)])
+                rng = self._rng(b, fid, len(index))
                 updated = update_facade(model, self._extracted(b, index, model.frame, plane), fresh, params, rng)
                 self.facades[fid] = updated
             key = 'facades_refitted' if updated.fitted_points == len(index) else 'facades_updated'
             self.last_update[key].append(fid)
             self.last_update['updated_cells'] += int(updated.stats.get('updated_cells', updated.surface.mean.size))
 
+    def _rng(self, b: int, fid: int, n: int) -> np.random.Generator:
+        """The draws of fitting façade ``fid`` of building ``b`` on ``n`` points: seeded by the
+        façade's ordinal within its building (0 for the building's first façade), not its id in
+        the map, so that a building's façades do not depend on which other buildings the map
+        holds (a tile of a tiled map, or the whole city, builds them bit for bit alike)."""
+        ordinal = sum(1 for f in self.facades[:fid] if f.building == b)
+        return np.random.default_rng([self.params.seed, b, ordinal, n])
+
     def _refit_whole(self, b: int, fid: int, index: np.ndarray, plane: tuple[float, float, float, float]
                      ) -> FacadeModel:
         """Fit façade ``fid`` whole on the points ``index``, its frame estimated again (the
         first came from a part of the wall, and a small tilt smears the depth layers)."""
         ex, pts, model = self.params.extraction, self.points[b], self.facades[fid]
-        rng = np.random.default_rng([self.params.seed, b, fid, len(index)])
+        rng = self._rng(b, fid, len(index))
         frame = _final_frame(pts[index], self.normals[b][index], model.frame, ex) or model.frame
         uvd = frame.to_local(pts[index])
         wall = uvd[np.abs(uvd[:, 2]) <= ex.ransac_threshold]

@@ -119,6 +119,7 @@ from scipy.spatial import cKDTree
 from ..datatypes import ExtractedFacade, FacadeFrame
 from ..errors import InputError
 from ..params import ExtractionParams
+from ..threads import kdtree_workers
 
 #: Points on which all hypotheses are scored before the best few are scored on the pool.
 _PREEMPTIVE_POINTS = 2000
@@ -302,7 +303,7 @@ def _point_normals(xyz: np.ndarray, k: int, rows: np.ndarray | None = None) -> n
     normals = np.empty((n, 3), dtype=np.float64)
     for start in range(0, len(order), _NORMAL_CHUNK):
         sel = order[start:start + _NORMAL_CHUNK]
-        _, nb = tree.query(xyz[sel], k=k, workers=-1)
+        _, nb = tree.query(xyz[sel], k=k, workers=kdtree_workers())
         # Column 0 is the point itself (relative position 0); the others as (k - 1, c)
         # rows, relative to the query point (no cancellation in the covariance).
         others = np.ascontiguousarray(nb[:, 1:].T)

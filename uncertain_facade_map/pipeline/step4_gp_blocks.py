@@ -39,6 +39,7 @@ from scipy.optimize import minimize
 from scipy.spatial import cKDTree
 
 from ..params import GPParams
+from ..threads import kdtree_workers, threads
 
 LOG_2PI = float(np.log(2.0 * np.pi))
 
@@ -105,7 +106,7 @@ def _nearest(uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     the same for points moved by any rounding of the same transform.
     """
     k = min(_TIE_CANDIDATES, len(uv))
-    dist, idx = cKDTree(uv).query(uv, k=k, workers=-1)
+    dist, idx = cKDTree(uv).query(uv, k=k, workers=kdtree_workers())
     dist, idx = dist[:, 1:], idx[:, 1:]
     tied = dist <= dist[:, :1] * (1.0 + TIE_TOLERANCE) + 1e-12
     pick = np.argmin(np.where(tied, idx, np.iinfo(np.int64).max), axis=1)
@@ -465,10 +466,11 @@ def _run_blocks(data: BlockData, blocks: np.ndarray, tests: np.ndarray, test_sta
     # Two ranges of blocks of about equal work (n^2 (n + m) per block), one per thread.
     n = np.diff(member_start).astype(np.float64)
     work = np.cumsum(n * n * (n + np.diff(test_start)))
-    if THREADS <= 1 or len(blocks) < 2 or work[-1] < 1e6:
+    n_threads = threads(THREADS)
+    if n_threads <= 1 or len(blocks) < 2 or work[-1] < 1e6:
         solve_predict_blocks(0, len(blocks), *args)
     else:
-        cuts = np.r_[0, np.searchsorted(work, work[-1] * np.arange(1, THREADS) / THREADS), len(blocks)]
+        cuts = np.r_[0, np.searchsorted(work, work[-1] * np.arange(1, n_threads) / n_threads), len(blocks)]
         list(_pool().map(lambda r: solve_predict_blocks(int(r[0]), int(r[1]), *args), zip(cuts[:-1], cuts[1:])))
     return mean, var, solved, point, block, loo
 

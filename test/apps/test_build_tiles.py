@@ -1,0 +1,159 @@
+"""``build --tiles``: a tiled build resumes after a kill (same tiles, bit for bit), a second drive
+updates only the tiles whose buildings it saw, and a worker killed during a task on Dask leaves
+the same map. Input: three copies of the `small` scene, 60 m apart in x (6 buildings, 6 tiles).
+
+About 60 s (four in-process builds of 6 tiles, one Dask build with a cluster of 2 workers)."""
+
+import hashlib
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from uncertain_facade_map.io.cloud import Cloud
+from uncertain_facade_map.io.map_file import load_map
+from uncertain_facade_map.io.npz import write_npz
+from uncertain_facade_map.tiling.manifest import MANIFEST, read_manifest
+from uncertain_facade_map_apps.cli import main
+
+COPIES = 3
+SHIFT = 60.0
+
+
+def _copies(cloud, copies):
+    parts = []
+    for k in range(copies):
+        p = cloud.points.copy()
+        p['x'] += SHIFT * k
+        p['origin_x'] += SHIFT * k
+        p['building_id'] = np.where(p['building_id'] >= 0, p['building_id'] + 2 * k, p['building_id'])
+        parts.append(p)
+    return Cloud(np.concatenate(parts), cloud.map_origin)
+
+
+@pytest.fixture(scope='module')
+def drives(scenes, tmp_path_factory):
+    folder = tmp_path_factory.mktemp('drives')
+    write_npz(folder / 'drive1.npz', _copies(scenes.campaign('small', 0), COPIES))
+    write_npz(folder / 'drive2.npz', _copies(scenes.campaign('small', 1), 1))  # the first copy's street only
+    return folder
+
+
+def _hashes(folder):
+    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted((Path(folder) / 'tiles').glob('*.npz'))}
+
+
+@pytest.fixture(scope='module')
+def built(drives, tmp_path_factory):
+    out = tmp_path_factory.mktemp('built') / 'map'
+    assert main(['build', str(drives / 'drive1.npz'), '--tiles', str(out), '--side', '20', '--quiet']) == 0
+    return out
+
+
+def test_a_build_lists_its_tiles(built):
+    manifest = read_manifest(built)
+    assert len(manifest.tiles) == 2 * COPIES
+    assert sorted(manifest.building_tiles) == list(range(2 * COPIES))
+    assert not (built / '.work').exists()
+    for record in manifest.tiles.values():
+        assert load_map(built / record.file).buildings == record.buildings
+
+
+def test_a_killed_build_resumes_to_the_same_tiles(drives, built, tmp_path, capsys):
+    out = tmp_path / 'map'
+    cmd = [sys.executable, '-m', 'uncertain_facade_map_apps.cli', 'build', str(drives / 'drive1.npz'), '--tiles',
+           str(out), '--side', '20', '--quiet']
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    try:
+        while time.monotonic() < deadline:
+            if (out / MANIFEST).exists() and read_manifest(out).tiles:
+                break
+            time.sleep(0.05)
+        os.kill(proc.pid, signal.SIGKILL)
+    finally:
+        proc.wait()
+    listed = len(read_manifest(out).tiles)
+    assert 1 <= listed < 2 * COPIES, 'killed while the tiles were written'
+    stale = out / 'tiles' / '.tile_2_0.npz.deadbeef.tmp'  # what a write killed midway leaves
+    stale.write_bytes(b'partial')
+    assert main(['build', str(drives / 'drive1.npz'), '--tiles', str(out), '--quiet']) == 0
+    printed = capsys.readouterr().out
+    assert f'{2 * COPIES - listed} tiles written, {listed} skipped' in printed
+    assert not stale.exists()
+    assert _hashes(out) == _hashes(built)
+    assert read_manifest(out).tiles == read_manifest(built).tiles
+    assert read_manifest(out).occupancy == read_manifest(built).occupancy is not None
+
+
+def test_a_second_drive_updates_only_the_tiles_it_saw(drives, built, tmp_path, capsys):
+    out = tmp_path / 'map'
+    shutil.copytree(built, out)  # copy2: bytes and mtimes kept
+    before = {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in (out / 'tiles').glob('*.npz')}
+    first = read_manifest(out)
+    assert main(['build', str(drives / 'drive2.npz'), '--tiles', str(out), '--quiet']) == 0
+    after = read_manifest(out)
+    seen = {first.building_tiles[0], first.building_tiles[1]}
+    assert len(seen) == 2
+    for name, (data, mtime) in before.items():
+        tid = name[:-4]
+        path = out / 'tiles' / name
+        if tid in seen:
+            assert path.read_bytes() != data
+            assert after.tiles[tid].inputs.startswith(first.tiles[tid].inputs + '+')
+            old, new = load_map(built / 'tiles' / name), load_map(path)
+            assert new.n_points > old.n_points and new.buildings == old.buildings
+        else:
+            assert path.read_bytes() == data and path.stat().st_mtime_ns == mtime, name
+            assert after.tiles[tid] == first.tiles[tid]
+    # Again: nothing to do (the run's points are in those tiles already).
+    capsys.readouterr()
+    assert main(['build', str(drives / 'drive2.npz'), '--tiles', str(out), '--quiet']) == 0
+    assert '0 tiles written, 2 skipped' in capsys.readouterr().out
+
+
+def _dying_build(task):
+    """build_tile, but the first attempt at tile_0_0 kills its worker process."""
+    from uncertain_facade_map.tiling.build import build_tile
+
+    marker = Path(task.folder) / 'killed_once'
+    if task.tile_id == 'tile_0_0' and not marker.exists():
+        marker.write_text(str(os.getpid()))
+        os.kill(os.getpid(), signal.SIGKILL)
+    return build_tile(task)
+
+
+def test_a_lost_worker_is_replaced_and_the_map_is_the_same(drives, built, tmp_path):
+    import cloudpickle
+
+    from uncertain_facade_map.io.inputs import select_building_points
+    from uncertain_facade_map.io.npz import read_npz
+    from uncertain_facade_map.io.parameter_file import load_config
+    from uncertain_facade_map.params import map_params, map_params_record
+    from uncertain_facade_map.tiling.build import Router, calibration_tile
+    from uncertain_facade_map.tiling.manifest import Manifest
+    from uncertain_facade_map_apps.cluster import run_tiles
+
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    config = load_config(None)
+    params = map_params(config)
+    out = tmp_path / 'map'
+    out.mkdir()
+    router = Router(out, params, 20.0)
+    pts = select_building_points(read_npz(drives / 'drive1.npz'), config.input)
+    router.add(pts.xyz, pts.building_id, pts.sensor_origins, pts.map_origin)
+    tasks = router.spill()
+    manifest = Manifest(20.0, tuple(router.map_origin), map_params_record(params), {}, None, {})
+    results = run_tiles(tasks, out, manifest, workers=2, function=_dying_build,
+                        calibrate=(calibration_tile(tasks), config.query.resolution))
+    assert (out / 'killed_once').exists()
+    assert len(results) == len(tasks) == 2 * COPIES
+    assert len({r.pid for r in results}) >= 2
+    assert _hashes(out) == _hashes(built)
+    assert manifest.occupancy == read_manifest(built).occupancy is not None

@@ -1,0 +1,143 @@
+"""The tiled build's routing and tile tasks (issue 29): with sensor origins, the tiles' buildings
+are those of one map of the whole input, bit for bit, however the input is cut.
+
+About 6 s (the `small` scene: 2 buildings, 14,000 points, mapped three times)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from uncertain_facade_map.errors import InputError
+from uncertain_facade_map.io.map_file import _facade_arrays, load_map
+from uncertain_facade_map.mapping.facade_map import build_map
+from uncertain_facade_map.params import MapParams, map_params_record
+from uncertain_facade_map.pipeline.step1_facades import split_buildings
+from uncertain_facade_map.tiling.build import Router, build_tile, in_bounds, parse_bounds, read_parts
+from uncertain_facade_map.tiling.manifest import Manifest
+
+
+@pytest.fixture(scope='module')
+def street(scenes):
+    cloud = scenes.campaign('small', 0)
+    pts = cloud.points[cloud.points['class'] == 1]
+    xyz = np.stack([pts['x'], pts['y'], pts['z']], 1)
+    origins = np.stack([pts['origin_x'], pts['origin_y'], pts['origin_z']], 1)
+    return xyz, pts['building_id'].astype(np.int64), origins, cloud.map_origin
+
+
+@pytest.fixture(scope='module')
+def whole(street):
+    xyz, ids, origins, origin = street
+    return build_map(xyz, ids, origins, MapParams(), origin)
+
+
+def _route(folder, street, cuts, ids=True, side=20.0):
+    xyz, given, origins, origin = street
+    router = Router(folder, MapParams(), side)
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        router.add(xyz[a:b], given[a:b] if ids else None, origins[a:b], origin)
+    return router, router.spill()
+
+
+def assert_same_buildings(whole, tile):
+    """Every building of ``tile`` is in ``whole`` with the same points, normals, sensor
+    origins and façade models (arrays bit for bit, façades in the building's order)."""
+    for b in tile.buildings:
+        for name in ('points', 'normals', 'sensor_origins'):
+            x, y = getattr(whole, name)[b], getattr(tile, name)[b]
+            assert x.dtype == y.dtype and x.tobytes() == y.tobytes(), (b, name)
+        mine = [f for f in whole.facades if f.building == b]
+        theirs = [f for f in tile.facades if f.building == b]
+        assert len(mine) == len(theirs)
+        for f, g in zip(mine, theirs):
+            fa, ga = _facade_arrays(f), _facade_arrays(g)
+            assert len(fa) == len(ga)
+            for (ka, va), (kb, vb) in zip(sorted(fa.items()), sorted(ga.items())):
+                assert ka.split('/')[-1] == kb.split('/')[-1]
+                assert va.dtype == vb.dtype and va.tobytes() == vb.tobytes(), (b, f.facade_id, ka)
+            assert (f.layers.main_, f.global_mean_, f.global_var_, f.noise_var, f.fitted_points) == \
+                (g.layers.main_, g.global_mean_, g.global_var_, g.noise_var, g.fitted_points)
+
+
+def test_tiles_hold_the_whole_maps_buildings_bit_for_bit(tmp_path, street, whole):
+    router, tasks = _route(tmp_path, street, [0, 5000, len(street[0])])
+    assert [t.tile_id for t in tasks] == ['tile_0_0', 'tile_1_0']
+    seen = []
+    for task in tasks:
+        result = build_tile(task)
+        tile = load_map(tmp_path / result.record.file)
+        assert result.record.buildings == tile.buildings
+        assert_same_buildings(whole, tile)
+        seen += tile.buildings
+    assert sorted(seen) == whole.buildings == [0, 1]
+    assert all(any(f.building == b for f in whole.facades) for b in seen)
+
+
+def test_routing_does_not_depend_on_the_cut(tmp_path, street):
+    n = len(street[0])
+    _, a = _route(tmp_path / 'a', street, [0, n])
+    _, b = _route(tmp_path / 'b', street, [0, 7, 3000, 3001, 9000, n])
+    assert [t.inputs for t in a] == [t.inputs for t in b]
+    for ta, tb in zip(a, b):
+        for x, y in zip(read_parts(ta.parts), read_parts(tb.parts)):
+            assert x.tobytes() == y.tobytes()
+
+
+def test_points_without_ids_are_clustered_over_the_whole_input(tmp_path, street):
+    """Without ids the labels are split_buildings' over the joined input (whatever the cut), so
+    the tiles still hold the whole map's buildings bit for bit."""
+    xyz, _, origins, origin = street
+    n = len(xyz)
+    labels = split_buildings(xyz, None, MapParams().extraction.building_cell)
+    assert len(np.unique(labels)) > 2  # the two buildings and a few stray points
+    _, tasks = _route(tmp_path, street, [0, 4000, 11000, n], ids=False)
+    routed = np.concatenate([read_parts(t.parts)[1] for t in tasks])
+    assert sorted(routed.tolist()) == sorted(labels.tolist())
+    whole = build_map(xyz, None, origins, MapParams(), origin)
+    for task in tasks:
+        assert_same_buildings(whole, load_map(tmp_path / build_tile(task).record.file))
+
+
+def test_bounds(tmp_path, street):
+    xyz, ids, origins, origin = street
+    box = (origin[0] - 1, origin[1] - 100, origin[0] + 20, origin[1] + 100)
+    router = Router(tmp_path, MapParams(), 20.0, box)
+    kept = router.add(xyz, ids, origins, origin)
+    assert kept == int(((xyz[:, 0] < 20)).sum()) and 0 < kept < len(xyz)
+    assert parse_bounds('0,1,2,3.5') == (0.0, 1.0, 2.0, 3.5)
+    assert in_bounds(np.array([[0.0, 1.0], [2.0, 2.0]]), (0.0, 1.0, 2.0, 3.5)).tolist() == [True, False]
+    for bad in ('0,1,2', '0,1,0,3', 'a,b,c,d', '0,1,nan,3'):
+        with pytest.raises(InputError, match='MIN_X'):
+            parse_bounds(bad)
+
+
+def test_fingerprint_holds_parameters(tmp_path, street):
+    xyz, ids, origins, origin = street
+    runs = []
+    for seed in (0, 1):
+        router = Router(tmp_path / str(seed), MapParams(seed=seed), 20.0)
+        router.add(xyz, ids, origins, origin)
+        runs.append([t.inputs for t in router.spill()])
+    assert all(a != b for a, b in zip(*runs))
+    json.dumps(runs)
+
+
+def test_a_resumed_build_labels_its_clustered_buildings_alike(tmp_path, street):
+    """The finished tiles of a killed build put its clustered labels into the manifest; the
+    resumed build must still give the same labels (same fingerprints, tiles skipped), while a
+    new drive's clusters are numbered past the map's buildings."""
+    xyz, _, origins, origin = street
+    router = Router(tmp_path, MapParams(), 20.0)
+    router.add(xyz, None, origins, origin)
+    first = router.spill()
+    placed = router._plan
+    manifest = Manifest(20.0, tuple(origin), map_params_record(MapParams()), {}, None, dict(placed))
+    again = Router(tmp_path, MapParams(), 20.0, existing=manifest)
+    again.add(xyz, None, origins, origin)
+    assert [t.inputs for t in again.spill()] == [t.inputs for t in first]
+    router.cleanup()  # the build completed: the next input is a new drive
+    drive = Router(tmp_path, MapParams(), 20.0, existing=manifest)
+    drive.add(xyz, None, origins, origin)
+    drive.plan()
+    assert min(b for b in drive._plan if b not in placed) > max(placed)

@@ -1,0 +1,495 @@
+"""The tiled build's plain pieces (issue 29): routing points to tiles by area, and one tile's task.
+
+No Dask here (the core imports numpy, scipy, sklearn only): ``uncertain_facade_map_apps.cluster``
+runs :func:`build_tile` on Dask's workers, or in this process, and owns the manifest.
+
+The build goes in three steps:
+
+1. **Survey** (:meth:`Router.add`, one chunk of building points at a time, in input order):
+   each chunk is shifted into the build's map frame, limited to ``bounds``, spilled to
+   ``DIR/.work/chunks/`` and its buildings measured: per given building id its (x, y) bounding
+   box; points without an id add their ``extraction.building_cell`` cells (in order of first
+   point) with each cell's bounding box. The client holds cells and boxes, never the points.
+2. **Plan** (:meth:`Router.plan`): the cells are clustered over the whole input (8-connected
+   components, numbered in order of first point from ``max(id) + 1``: the labels
+   :func:`~uncertain_facade_map.pipeline.step1_facades.split_buildings` gives the joined input,
+   whatever the cut into inputs and chunks); each building goes to the tile of the centre of its
+   bounding box (``tiles.side``), or stays in the tile an existing tiled map gives it
+   (``building_tiles``).
+3. **Spill** (:meth:`Router.spill`): the chunks are read back one at a time and each tile's
+   points (xyz, building label, sensor origins; input order) appended to
+   ``DIR/.work/tiles/<id>/part_<k>.npy`` files, hashed as they go (the tile's fingerprint).
+
+A task (:class:`TileTask`, picklable) then maps one tile's buildings in one
+:class:`~uncertain_facade_map.mapping.facade_map.FacadeMap` (or continues the tile's saved map:
+a second drive) and writes the tile with :func:`~.manifest.save_tile` (:func:`build_tile`).
+
+With sensor origins a building's façades depend on its own points only (the façade seeds are
+building-local), so a tile's buildings are bit for bit those of a single-process build of the
+whole input. Without sensor origins, walls are turned by the other buildings' points
+(``FacadeMap._context``): a tile uses its own buildings as that context, so a building near a
+tile's edge may differ from the single-process build.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import resource
+import shutil
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..params import MapParams, map_params_record
+from ..pipeline.step1_facades import _grid_components, building_cells
+from .grid import TileGrid, tile_id
+from .manifest import Manifest, TileRecord, save_tile, sha256_file
+
+#: The build's work folder inside the tiled map's folder (spilled points; removed when done).
+WORK = '.work'
+#: The running build's record in the tiled map's folder: the first label of its clustered buildings.
+RUN = '.build_run.json'
+#: Separator of the per-run fingerprints in :attr:`TileRecord.inputs` (a tile built by two drives
+#: lists two).
+RUNS = '+'
+
+
+def parse_bounds(text: str) -> tuple[float, float, float, float]:
+    """``MIN_X,MIN_Y,MAX_X,MAX_Y`` (metres, the inputs' georeferenced coordinates) as four floats.
+
+    Raises:
+        InputError: not four finite numbers with min < max.
+    """
+    try:
+        values = tuple(float(v) for v in text.split(','))
+    except ValueError as err:
+        raise InputError(f'bounds must be MIN_X,MIN_Y,MAX_X,MAX_Y in metres, got {text!r}') from err
+    if len(values) != 4 or not np.isfinite(values).all() or values[0] >= values[2] or values[1] >= values[3]:
+        raise InputError(f'bounds must be four finite numbers MIN_X,MIN_Y,MAX_X,MAX_Y with MIN < MAX, got {text!r}')
+    return values  # type: ignore[return-value]
+
+
+def in_bounds(xy: np.ndarray, bounds: tuple[float, float, float, float] | None) -> np.ndarray:
+    """(N,) bool: which (N, 2+) georeferenced x, y lie in ``[min_x, max_x) x [min_y, max_y)``."""
+    if bounds is None:
+        return np.ones(len(xy), dtype=bool)
+    return (xy[:, 0] >= bounds[0]) & (xy[:, 0] < bounds[2]) & (xy[:, 1] >= bounds[1]) & (xy[:, 1] < bounds[3])
+
+
+@dataclass(frozen=True)
+class TileTask:
+    """One tile's work: everything :func:`build_tile` needs, picklable.
+
+    Attributes:
+        folder: the tiled map's folder (shared with the workers).
+        tile_id: e.g. ``'tile_3_m1'``.
+        index: (ix, iy) of the tile in the grid.
+        bounds: the tile square (min_x, min_y, max_x, max_y), map frame, m.
+        parts: the tile's spilled point files, in input order (``.npz``: xyz, building_id,
+            sensor_origins if known).
+        params: the map's parameters.
+        map_origin: (3,) the map's georeference, m.
+        inputs: the fingerprint the record gets (earlier runs' and this run's, :data:`RUNS`).
+        previous: the tile's saved map to continue (a second drive), or None: a new map.
+        calibrate: voxel side of a PLSC calibration of the tile's own, or None (the command
+            line: one for the whole map, :func:`city_occupancy`).
+    """
+
+    folder: str
+    tile_id: str
+    index: tuple[int, int]
+    bounds: tuple[float, float, float, float]
+    parts: tuple[str, ...]
+    params: MapParams
+    map_origin: tuple[float, float, float]
+    inputs: str
+    previous: str | None = None
+    calibrate: float | None = None
+
+
+@dataclass(frozen=True)
+class TileResult:
+    """What a task gives back: the tile's record and how the worker fared.
+
+    Attributes:
+        record: the tile's manifest record (the file is written).
+        pid: the worker process.
+        max_rss_kb: its peak resident memory so far (``ru_maxrss``, KiB on Linux).
+        points: building points the task mapped.
+        map_seconds: mapping (and calibrating) time, s.
+        write_seconds: saving time, s.
+        cpu_seconds: the task's processor time (user and system, this process), s: its work,
+            whatever else shares the cores.
+    """
+
+    record: TileRecord
+    pid: int
+    max_rss_kb: int
+    points: int
+    map_seconds: float
+    write_seconds: float
+    cpu_seconds: float = 0.0
+
+
+def read_parts(parts: tuple[str, ...] | list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """A tile's spilled points: (N, 3) xyz, (N,) int64 labels, (N, 3) sensor origins or None."""
+    xyz, ids, origins = [], [], []
+    for part in parts:
+        with np.load(part) as z:
+            xyz.append(z['xyz'])
+            ids.append(z['building_id'])
+            origins.append(z['sensor_origins'] if 'sensor_origins' in z.files else None)
+    so = None if any(o is None for o in origins) else np.vstack(origins)
+    return np.vstack(xyz), np.concatenate(ids), so
+
+
+def build_tile(task: TileTask) -> TileResult:
+    """Map one tile's buildings and write the tile (:func:`~.manifest.save_tile`); the manifest
+    is the caller's. A second drive continues the saved tile (``add_points``, as a live map)."""
+    from ..io.map_file import load_map, remove_stale_temporaries
+    from ..mapping.facade_map import FacadeMap
+
+    started, cpu = time.perf_counter(), time.process_time()
+    xyz, ids, origins = read_parts(task.parts)
+    if task.previous is not None:
+        fmap = load_map(Path(task.folder) / task.previous)
+    else:
+        fmap = FacadeMap(task.params, np.asarray(task.map_origin, dtype=np.float64))
+    fmap.add_points(xyz, ids, origins)
+    if task.calibrate is not None and fmap.facades and fmap._has_rays:
+        fmap.calibrate_occupancy(task.calibrate)
+    mapped = time.perf_counter()
+    without_timings(fmap)
+    remove_stale_temporaries(Path(task.folder) / 'tiles' / f'{task.tile_id}.npz')
+    record = save_tile(task.folder, task.tile_id, task.index, task.bounds, fmap, task.inputs)
+    written = time.perf_counter()
+    return TileResult(record, os.getpid(), int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss), len(xyz),
+                      mapped - started, written - mapped, time.process_time() - cpu)
+
+
+def calibrate_tile(folder: str, file: str, resolution: float) -> dict | None:
+    """One occupancy PLSC for the whole tiled map (``Manifest.occupancy``, what
+    :class:`~.tiled_map.TiledMap` answers every tile with), learnt as ``build`` learns a map's
+    (:meth:`~uncertain_facade_map.mapping.facade_map.FacadeMap.calibrate_occupancy`) on one
+    tile, the build's largest: one calibration (a map of at most ``calibration.max_points``
+    points) whatever the number of tiles, where one per tile cost five times the mapping.
+
+    Args:
+        folder: the tiled map's folder.
+        file: the tile's file, relative to ``folder``.
+        resolution: voxel side of the labels, m.
+
+    Returns:
+        ``PLSC.as_dict()``, or None: its points lack sensor
+        origins, or too few labelled voxels (the fixed formula).
+    """
+    from ..io.map_file import load_map
+
+    fmap = load_map(Path(folder) / file)
+    if not fmap.facades or not fmap._has_rays:
+        return None
+    plsc = fmap.calibrate_occupancy(resolution)
+    return plsc.as_dict() if plsc.learnt else None
+
+
+def calibration_tile(tasks: list[TileTask]) -> str | None:
+    """The tile the run learns the occupancy on: the one with the most routed points (by the
+    size of its spilled parts; ties to the first id), chosen among all the run's tiles, built
+    already or not, so that a resumed build learns on the one the uninterrupted build would."""
+    if not tasks:
+        return None
+    return max(tasks, key=lambda t: (sum(os.path.getsize(p) for p in t.parts), [-ord(c) for c in t.tile_id])).tile_id
+
+
+def without_timings(fmap) -> None:
+    """Drop the fits' timings (``stats['seconds']``) from the map's façade models, so that a
+    tile's bytes depend on its content only: a resumed or repeated build writes the same file
+    (the same sha256) as an uninterrupted one."""
+    for i, f in enumerate(fmap.facades):
+        if 'seconds' in f.stats:
+            fmap.facades[i] = replace(f, stats={k: v for k, v in f.stats.items() if k != 'seconds'})
+
+
+def intact(folder: str | Path, record: TileRecord) -> bool:
+    """Whether the tile's file exists and has the sha256 its record gives."""
+    path = Path(folder) / record.file
+    return path.is_file() and sha256_file(path) == record.sha256
+
+
+@dataclass
+class Router:
+    """Routes building points to tiles by area, spilling them to the work folder
+    (see the module's description). One router per build.
+
+    Args:
+        folder: the tiled map's folder (created by the caller).
+        params: the map's parameters (``extraction.building_cell`` clusters points without ids).
+        side: the tile side, m.
+        bounds: (min_x, min_y, max_x, max_y) of the area to build, georeferenced m, or None.
+        existing: the folder's manifest (a second drive, or a resumed build), or None.
+    """
+
+    folder: Path
+    params: MapParams
+    side: float
+    bounds: tuple[float, float, float, float] | None = None
+    existing: Manifest | None = None
+    map_origin: np.ndarray | None = None
+    chunks: list[Path] = field(default_factory=list)
+    points: int = 0
+    has_origins: bool = True
+    _box: dict[int, np.ndarray] = field(default_factory=dict)  # id -> (4,) min x, min y, max x, max y
+    _cells: list[np.ndarray] = field(default_factory=list)  # new cell keys per chunk, order of first point
+    _cell_keys: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))  # sorted
+    _cell_order: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))  # rank of each sorted key
+    _cell_box: np.ndarray = field(default_factory=lambda: np.empty((0, 4)))  # per rank
+    _plan: dict | None = None
+
+    def __post_init__(self) -> None:
+        self.folder = Path(self.folder)
+        self.work = self.folder / WORK
+        shutil.rmtree(self.work, ignore_errors=True)  # a killed build's spill: routing starts again
+        (self.work / 'chunks').mkdir(parents=True)
+        if self.existing is not None:
+            self.map_origin = np.asarray(self.existing.map_origin, dtype=np.float64)
+
+    # -- 1. survey -----------------------------------------------------------------------
+    def add(self, xyz: np.ndarray, building_id: np.ndarray | None, sensor_origins: np.ndarray | None,
+            map_origin: np.ndarray) -> int:
+        """Take one chunk of building points (in input order): (N, 3) xyz (metres, the chunk's
+        map frame), (N,) ids (negative: none) or None, (N, 3) sensor origins or None, (3,) the
+        chunk's map origin. Returns the points kept (inside ``bounds``)."""
+        map_origin = np.asarray(map_origin, dtype=np.float64)
+        if self.map_origin is None:
+            self.map_origin = map_origin.copy()
+        xyz = np.asarray(xyz, dtype=np.float64)
+        shift = map_origin - self.map_origin
+        keep = in_bounds(xyz[:, :2] + map_origin[:2], self.bounds)
+        if not keep.all():
+            xyz = xyz[keep]
+        if shift.any():
+            xyz = xyz + shift
+        n = len(xyz)
+        ids = np.full(n, -1, np.int64) if building_id is None else np.asarray(building_id, np.int64)[keep]
+        so = None
+        if sensor_origins is None:
+            self.has_origins = False
+        else:
+            so = np.asarray(sensor_origins, dtype=np.float64)[keep] + shift
+        if not n:
+            return 0
+        path = self.work / 'chunks' / f'chunk_{len(self.chunks):06d}.npz'
+        arrays = {'xyz': xyz, 'building_id': ids}
+        if so is not None:
+            arrays['sensor_origins'] = so
+        np.savez(path, **arrays)
+        self.chunks.append(path)
+        self.points += n
+        self._survey(xyz, ids)
+        return n
+
+    def _survey(self, xyz: np.ndarray, ids: np.ndarray) -> None:
+        given = ids >= 0
+        if given.any():
+            labels, inverse = np.unique(ids[given], return_inverse=True)
+            box = _boxes(xyz[given, :2], inverse, len(labels))
+            for b, bx in zip(labels.tolist(), box):
+                old = self._box.get(b)
+                self._box[b] = bx if old is None else np.r_[np.minimum(old[:2], bx[:2]), np.maximum(old[2:], bx[2:])]
+        free = ~given
+        if not free.any():
+            return
+        keys = building_cells(xyz[free], self.params.extraction.building_cell)
+        uniq, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+        box = _boxes(xyz[free, :2], inverse.reshape(-1), len(uniq))
+        pos = np.searchsorted(self._cell_keys, uniq)
+        known = np.zeros(len(uniq), dtype=bool)
+        if len(self._cell_keys):
+            known = self._cell_keys[np.minimum(pos, len(self._cell_keys) - 1)] == uniq
+        rank = self._cell_order[pos[known]]
+        old = self._cell_box[rank]
+        self._cell_box[rank] = np.c_[np.minimum(old[:, :2], box[known, :2]), np.maximum(old[:, 2:], box[known, 2:])]
+        new = np.flatnonzero(~known)
+        new = new[np.argsort(first[new], kind='stable')]  # order of first point
+        if len(new):
+            ranks = len(self._cell_box) + np.arange(len(new))
+            self._cells.append(uniq[new])
+            self._cell_box = np.vstack([self._cell_box, box[new]])
+            at = np.searchsorted(self._cell_keys, uniq[new])
+            order = np.argsort(uniq[new])
+            self._cell_keys = np.insert(self._cell_keys, at[order], uniq[new][order])
+            self._cell_order = np.insert(self._cell_order, at[order], ranks[order])
+
+    # -- 2. plan -------------------------------------------------------------------------
+    def plan(self) -> dict[int, str]:
+        """Label the points without ids and give every building its tile; returns
+        building label -> tile id (the new ones and the existing map's)."""
+        grid = TileGrid(self.side)
+        cells = np.concatenate(self._cells) if self._cells else np.empty(0, np.int64)
+        known = [] if self.existing is None else list(self.existing.building_tiles)
+        base = self._base_label(cells, max([*self._box, *known, -1]) + 1)
+        comp = np.empty(0, np.int64)
+        boxes = dict(self._box)
+        if len(cells):
+            comp = _grid_components(np.stack([cells >> 32, cells & 0xFFFFFFFF], axis=1))
+            cbox = _merge_boxes(self._cell_box, comp, int(comp.max()) + 1)
+            boxes.update({base + c: cbox[c] for c in range(len(cbox))})
+        self._comp, self._base = comp, base
+        placed = {} if self.existing is None else dict(self.existing.building_tiles)
+        labels = sorted(boxes)
+        if labels:
+            centres = np.array([[(boxes[b][0] + boxes[b][2]) / 2, (boxes[b][1] + boxes[b][3]) / 2] for b in labels])
+            index = grid.index(centres)
+            for b, (ix, iy) in zip(labels, index.tolist()):
+                if b not in placed:
+                    placed[b] = tile_id(ix, iy)
+            self._index = {tile_id(ix, iy): (ix, iy) for ix, iy in index.tolist()}
+        else:
+            self._index = {}
+        if self.existing is not None:
+            self._index.update({t: tuple(r.index) for t, r in self.existing.tiles.items()})
+        self._plan = placed
+        return placed
+
+    def _base_label(self, cells: np.ndarray, base: int) -> int:
+        """The first label of the clustered buildings: ``base`` (past every given id and every
+        building of the existing map), unless this very input was planned before in this folder
+        (a resumed build, whose finished tiles have added this run's own labels to the map): then
+        the base it had, so that the points get the same labels and the finished tiles are skipped.
+        Kept in ``DIR/RUN`` until the build completes."""
+        h = hashlib.sha256(cells.tobytes())
+        for b in sorted(self._box):
+            h.update(np.r_[float(b), self._box[b]].tobytes())
+        survey = h.hexdigest()
+        path = self.folder / RUN
+        try:
+            saved = json.loads(path.read_text())
+            if saved.get('survey') == survey:
+                return int(saved['base'])
+        except (OSError, ValueError, KeyError, TypeError):
+            pass
+        path.write_text(json.dumps({'survey': survey, 'base': base}))
+        return base
+
+    def labels(self, ids: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+        """(N,) building labels of a chunk's points (given ids, else their cell's component)."""
+        free = ids < 0
+        if not free.any():
+            return ids
+        out = ids.copy()
+        keys = building_cells(xyz[free], self.params.extraction.building_cell)
+        out[free] = self._base + self._comp[self._cell_order[np.searchsorted(self._cell_keys, keys)]]
+        return out
+
+    # -- 3. spill ------------------------------------------------------------------------
+    def spill(self, calibrate: float | None = None) -> list[TileTask]:
+        """Write each tile's points to its part files (chunk by chunk, input order) and return
+        the tasks, one per tile that received points, in tile id order."""
+        if self._plan is None:
+            self.plan()
+        placed = self._plan
+        params_record = json.dumps(map_params_record(self.params), sort_keys=True).encode()
+        hashes: dict[str, hashlib._Hash] = {}
+        parts: dict[str, list[str]] = {}
+        for k, path in enumerate(self.chunks):
+            with np.load(path) as z:
+                xyz, ids = z['xyz'], z['building_id']
+                so = z['sensor_origins'] if self.has_origins else None
+            labels = self.labels(ids, xyz)
+            uniq, inverse = np.unique(labels, return_inverse=True)
+            tiles = np.array([placed[b] for b in uniq.tolist()])[inverse.reshape(-1)]
+            for t in np.unique(tiles).tolist():
+                sel = np.flatnonzero(tiles == t)
+                folder = self.work / 'tiles' / t
+                folder.mkdir(parents=True, exist_ok=True)
+                out = folder / f'part_{k:06d}.npz'
+                arrays = {'xyz': xyz[sel], 'building_id': labels[sel]}
+                if so is not None:
+                    arrays['sensor_origins'] = so[sel]
+                np.savez(out, **arrays)
+                if t not in hashes:
+                    hashes[t] = hashlib.sha256(params_record + np.asarray(self.map_origin).tobytes())
+                hashes[t].update(_rows(arrays))
+                parts.setdefault(t, []).append(str(out))
+            path.unlink()
+        grid = TileGrid(self.side)
+        tasks = []
+        for t in sorted(parts):
+            run = hashes[t].hexdigest()
+            old = None if self.existing is None else self.existing.tiles.get(t)
+            inputs = run if old is None else old.inputs + RUNS + run
+            ix, iy = self._index[t]
+            tasks.append(TileTask(str(self.folder), t, (ix, iy), grid.bounds(ix, iy), tuple(parts[t]), self.params,
+                                  tuple(float(v) for v in self.map_origin), inputs,
+                                  None if old is None else old.file, calibrate))
+        return tasks
+
+    def cleanup(self) -> None:
+        """Remove the work folder and the run's record (after a complete build)."""
+        shutil.rmtree(self.work, ignore_errors=True)
+        (self.folder / RUN).unlink(missing_ok=True)
+
+
+def run_fingerprint(task: TileTask) -> str:
+    """This run's fingerprint of the tile's routed points (the last of :attr:`TileTask.inputs`)."""
+    return task.inputs.rsplit(RUNS, 1)[-1]
+
+
+def done_already(folder: str | Path, manifest: Manifest | None, task: TileTask) -> bool:
+    """Whether the folder's manifest lists the tile built from this run's points already (a
+    resumed build) with an intact file: the task is skipped."""
+    if manifest is None or task.tile_id not in manifest.tiles:
+        return False
+    record = manifest.tiles[task.tile_id]
+    return run_fingerprint(task) in record.inputs.split(RUNS) and intact(folder, record)
+
+
+def check_params(manifest: Manifest, params: MapParams, side: float) -> None:
+    """Refuse to add to a tiled map built with other parameters or another tile side.
+
+    Raises:
+        InputError: they differ.
+    """
+    if json.dumps(manifest.params, sort_keys=True) != json.dumps(map_params_record(params), sort_keys=True):
+        raise InputError('the tiled map was built with other map parameters than the configuration\'s: build into '
+                         'a new folder, or use the configuration it was built with')
+    if float(manifest.side) != float(side):
+        raise InputError(f'the tiled map has tiles of {manifest.side:g} m, not {side:g} m: drop --side or build into '
+                         'a new folder')
+
+
+def _rows(arrays: dict[str, np.ndarray]) -> bytes:
+    """The points' bytes row by row (x, y, z, label, sensor origin of each point in turn): the
+    hash of the rows of a tile does not depend on how they are cut into parts."""
+    fields = [(name, a.dtype, a.shape[1:]) for name, a in arrays.items()]
+    rows = np.empty(len(arrays['xyz']), dtype=np.dtype(fields))
+    for name, a in arrays.items():
+        rows[name] = a
+    return rows.tobytes()
+
+
+def _boxes(xy: np.ndarray, group: np.ndarray, n: int) -> np.ndarray:
+    """(n, 4) min x, min y, max x, max y of the (N, 2) points of each of n groups."""
+    out = np.empty((n, 4))
+    out[:, :2] = np.inf
+    out[:, 2:] = -np.inf
+    for d in range(2):
+        np.minimum.at(out[:, d], group, xy[:, d])
+        np.maximum.at(out[:, 2 + d], group, xy[:, d])
+    return out
+
+
+def _merge_boxes(box: np.ndarray, group: np.ndarray, n: int) -> np.ndarray:
+    """(n, 4) union of the (M, 4) boxes of each of n groups."""
+    out = np.empty((n, 4))
+    out[:, :2] = np.inf
+    out[:, 2:] = -np.inf
+    for d in range(2):
+        np.minimum.at(out[:, d], group, box[:, d])
+        np.maximum.at(out[:, 2 + d], group, box[:, 2 + d])
+    return out
