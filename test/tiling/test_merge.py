@@ -7,19 +7,14 @@ import numpy as np
 import pytest
 
 from uncertain_facade_map.errors import InputError
-from uncertain_facade_map.mapping.facade_map import build_map
 from uncertain_facade_map.params import MapParams, QueryConfig
 from uncertain_facade_map.pipeline.step7_queries import ANSWER_FIELDS
 from uncertain_facade_map.tiling.tiled_map import merge_maps, subset_map
 
 
 @pytest.fixture(scope='module')
-def whole(scenes):
-    cloud = scenes.campaign('small', 0)
-    pts = cloud.points[cloud.points['class'] == 1]
-    xyz = np.stack([pts['x'], pts['y'], pts['z']], 1)
-    origins = np.stack([pts['origin_x'], pts['origin_y'], pts['origin_z']], 1)
-    return build_map(xyz, pts['building_id'], origins, map_origin=cloud.map_origin)
+def whole(small_whole):
+    return small_whole
 
 
 def facade_map_of(merged, whole):
