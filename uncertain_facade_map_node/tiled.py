@@ -126,6 +126,7 @@ class TileFollower:
         self.max_seconds = 0.0
         self.total_seconds = 0.0
         self.last_xy: np.ndarray | None = None
+        self.near = (0, 0)  # (tiles the last preload holds, tiles within the radius of its pose)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -158,6 +159,12 @@ class TileFollower:
         started = time.perf_counter()
         ids = list(self.tiled.preload(xy, self.config.radius))
         seconds = time.perf_counter() - started
+        near = len(self.tiled.tiles_near(xy, self.config.radius))
+        if len(ids) < near:
+            self.log(f'tiles.cache_mb = {self.config.cache_mb:g} MB holds {len(ids)} of the {near} tiles within '
+                     f'tiles.radius = {self.config.radius:g} m of the pose: queries there load and evict tiles '
+                     'in turn (slow); raise tiles.cache_mb or lower tiles.radius')
+        self.near = (len(ids), near)
         self.last_xy = xy
         self.preloads += 1
         self.tiles_preloaded += len(ids)
@@ -173,6 +180,7 @@ class TileFollower:
                 'tiles_preload_last_seconds': round(self.last_seconds, 4),
                 'tiles_preload_max_seconds': round(self.max_seconds, 4),
                 'tiles_preload_mean_seconds': round(self.total_seconds / self.preloads, 4) if self.preloads else 0.0,
+                'tiles_near_pose': self.near[1], 'tiles_near_pose_loaded': self.near[0],
                 'tiles_follow_x': round(float(xy[0]), 2) if xy is not None else '',
                 'tiles_follow_y': round(float(xy[1]), 2) if xy is not None else ''}
 
