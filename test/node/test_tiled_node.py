@@ -111,6 +111,16 @@ def test_queries_equal_the_tiled_map_and_the_one_file_map(running, maps):
     one = whole.query(xyz, QueryConfig())
     assert same_facades(got['facade'], whole) == same_facades(one.facade, whole)
     assert (got['facade'] >= 0).sum() > 500
+    # get_facades of a building: its tile's models, numbered as the tiled answers number them
+    from uncertain_facade_map.srv import GetFacades
+
+    merged = TiledMap(folder).merged()
+    for b in whole.buildings:
+        response = client.call(GetFacades, 'get_facades', GetFacades.Request(building=int(b)))
+        assert response.success and {f.building for f in response.facades} == {b}
+        assert sorted(f.facade_id for f in response.facades) == [f.facade_id for f in merged.facades if f.building == b]
+        hit = got['facade'][np.isin(got['facade'], [f.facade_id for f in response.facades])]
+        assert len(hit) > 100  # the answers name these ids
     for key in ANSWER_FIELDS[1:]:
         np.testing.assert_array_equal(got[key], getattr(one, key), err_msg=key)
 
