@@ -17,7 +17,9 @@ Prints, per run: queries, points per query, the latency of ``query_points`` as t
 sees it (median, p95, max; ms), the node's own query p95 (its diagnostics), tiles loaded at
 the end and at most, the cache's MB, preloads and their time, and the node process's peak
 resident memory (``VmHWM`` of /proc/PID/status) with its resident memory before the drive.
-``--json PATH`` writes the figures. Works on any tiled map; the lead runs it on the city.
+``--json PATH`` writes the figures. ``--one-file MAP_FILE`` drives again, same route and
+query points, with the node serving a one-file map (the tiled map's source) and prints the
+two side by side. Works on any tiled map; the lead runs it on the city.
 """
 
 from __future__ import annotations
@@ -149,11 +151,15 @@ def sample_near(tiled: Any, xy: np.ndarray, radius: float, n: int, rng: np.rando
     return np.column_stack([xy + rng.uniform(-radius, radius, (n, 2)), rng.uniform(0.0, 10.0, n)])
 
 
-def run(args: argparse.Namespace) -> dict[str, Any]:
+def run(args: argparse.Namespace, served: str | None = None) -> dict[str, Any]:
+    """One drive of the node serving ``served`` (default: the tiled map ``args.map``; a one-file
+    map for the comparison) along the tiled map's route, with the same query points."""
     from uncertain_facade_map.srv import ListTiles, QueryPoints
     from uncertain_facade_map.tiling.tiled_map import TiledMap
 
     folder = str(Path(args.map).resolve())
+    tiled = served is None
+    served = folder if tiled else str(Path(served).resolve())
     # This process's own reader (for the route and the query points): a small cache of its own.
     reader = TiledMap(folder, cache_mb=args.reader_cache_mb)
     path = route(reader.records, args.step, args.route_tiles)
@@ -163,7 +169,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
     work = Path(tempfile.mkdtemp(prefix='bench_tiles_'))
     log = work / 'node.log'
-    params = node_params(work / 'params.yaml', folder, args)
+    params = node_params(work / 'params.yaml', served, args)
     rng = np.random.default_rng(args.seed)
     robot = Robot(domain)
     proc = subprocess.Popen([sys.executable, '-m', 'uncertain_facade_map_node.node', '--ros-args', '--params-file',
@@ -176,8 +182,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 raise RuntimeError(f'the node did not start:\n{log.read_text()[-3000:]}')
             time.sleep(0.2)
         first = robot.call(ListTiles, 'list_tiles', list_tiles_request(*path[0], 1.0))
-        if not first.success:
-            raise RuntimeError(f'the node serves no tiled map: {first.message}')
+        if first.success != tiled:
+            raise RuntimeError(f'the node serves {"no" if tiled else "a"} tiled map: {first.message}')
         rss_start = vm_kb(proc.pid, 'VmRSS')
         stamp = time.time_ns()
         began = time.monotonic()
@@ -199,7 +205,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                       f'{robot.diag.get("tiles_loaded", "?")} tiles loaded, RSS {rss_samples[-1] / 1024:.0f} MB',
                       flush=True)
         time.sleep(1.5 * max(0.5, args.follow_period))
-        near = tiles_of(robot.call(ListTiles, 'list_tiles', list_tiles_request(*path[-1], 0.0)))
+        near = tiles_of(robot.call(ListTiles, 'list_tiles', list_tiles_request(*path[-1], 0.0))) if tiled \
+            else {'ids': [], 'loaded': np.zeros(0, bool)}
         peak_kb = vm_kb(proc.pid, 'VmHWM')
         diag = dict(robot.diag)
     finally:
@@ -212,7 +219,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 proc.kill()
     ms = 1e3 * np.array(latencies)
     return {
-        'map': folder, 'tiles': len(reader.records), 'cache_mb': args.cache_mb, 'radius_m': args.radius,
+        'map': served, 'tiles': len(reader.records), 'cache_mb': args.cache_mb, 'radius_m': args.radius,
         'follow_period_s': args.follow_period, 'route_m': float(np.sum(np.hypot(*np.diff(path, axis=0).T))),
         'steps': len(path), 'points_per_query': args.points,
         'share_on_a_facade': round(answered / max(1, args.points * len(path)), 3),
@@ -251,12 +258,23 @@ def main(argv: list[str] | None = None) -> int:
                         help="this process's own reader's cache (for the query points), MB")
     parser.add_argument('--domain', type=int, default=-1, help='ROS_DOMAIN_ID (default: 100 + pid % 100)')
     parser.add_argument('--seed', type=int, default=0)
+    parser.add_argument('--one-file', metavar='MAP_FILE',
+                        help='then drive the same route with the same queries against the node serving this one-file '
+                             'map (the tiled map\'s source, say) and print both')
     parser.add_argument('--json', type=Path, help='write the figures here')
     parser.add_argument('--verbose', action='store_true', help='a line every 5 % of the route')
     args = parser.parse_args(argv)
     figures = run(args)
-    for key, value in figures.items():
-        print(f'{key}: {value}')
+    if args.one_file:
+        one = run(args, args.one_file)
+        figures = {'tiled': figures, 'one_file': one}
+        width = max(map(len, one))
+        print(f'{"":{width}}  tiled map | one-file map')
+        for key in one:
+            print(f'{key:{width}}  {figures["tiled"][key]} | {one[key]}')
+    else:
+        for key, value in figures.items():
+            print(f'{key}: {value}')
     if args.json:
         args.json.write_text(json.dumps(figures, indent=1) + '\n')
     return 0

@@ -1,5 +1,5 @@
 """bench_tiles: its route through a tiled map's tiles, and a short run on the small scene cut
-into two tiles (the node in its own process; about 15 s)."""
+into two tiles, then the one-file map (the node in its own process; about 25 s)."""
 
 from __future__ import annotations
 
@@ -27,6 +27,7 @@ def test_the_route_visits_the_tiles_nearest_first_in_steps():
 def test_a_short_drive_prints_latency_tiles_and_memory(scenes, tmp_path, capsys):
     pytest.importorskip('rclpy')
     pytest.importorskip('uncertain_facade_map.srv')
+    from uncertain_facade_map.io.map_file import save_map
     from uncertain_facade_map.mapping.facade_map import build_map
     from uncertain_facade_map.tiling.cut import cut_map
 
@@ -35,12 +36,17 @@ def test_a_short_drive_prints_latency_tiles_and_memory(scenes, tmp_path, capsys)
     whole = build_map(np.stack([pts['x'], pts['y'], pts['z']], 1), pts['building_id'], None,
                       map_origin=cloud.map_origin)
     cut_map(whole, tmp_path / 'tiled', 20.0)
+    save_map(whole, tmp_path / 'whole.npz')
     out = tmp_path / 'figures.json'
     assert main([str(tmp_path / 'tiled'), '--cache-mb', '64', '--radius', '10', '--follow-period', '0.2',
-                 '--speed', '20', '--step', '5', '--points', '500', '--json', str(out)]) == 0
-    figures = json.loads(out.read_text())
+                 '--speed', '20', '--step', '5', '--points', '500', '--json', str(out),
+                 '--one-file', str(tmp_path / 'whole.npz')]) == 0
+    both = json.loads(out.read_text())
+    figures, one = both['tiled'], both['one_file']
+    assert one['map'].endswith('whole.npz') and one['tiles_loaded_end'] == 0 and one['steps'] == figures['steps']
+    assert one['share_on_a_facade'] == figures['share_on_a_facade']  # the same points, the same answers
     assert figures['tiles'] == 2 and figures['steps'] == 5 and figures['route_m'] == pytest.approx(20.0)
     assert 0 < figures['latency_ms_median'] <= figures['latency_ms_p95'] <= figures['latency_ms_max']
     assert figures['share_on_a_facade'] > 0.5 and figures['tiles_loaded_end'] >= 1
     assert figures['preloads'] >= 1 and figures['node_peak_rss_mb'] >= figures['node_rss_mb_start'] > 50
-    assert 'latency_ms_p95:' in capsys.readouterr().out
+    assert 'tiled map | one-file map' in capsys.readouterr().out
