@@ -239,10 +239,11 @@ def cmd_query(args: argparse.Namespace) -> int:
     """Answer point queries (see ``query --help``)."""
     import numpy as np
 
-    from uncertain_facade_map.io.map_file import load_map
     from uncertain_facade_map.io.parameter_file import load_config
+    from uncertain_facade_map.tiling.tiled_map import open_map
 
-    fmap = load_map(args.map)
+    config = load_config(args.config)
+    fmap = open_map(args.map, config.tiles.cache_mb)
     path = Path(args.points)
     if not path.exists():
         raise CliError(f'no such file: {path}')
@@ -252,7 +253,7 @@ def cmd_query(args: argparse.Namespace) -> int:
         raise CliError(f'{path}: not a .npy array ({exc})') from None
     if xyz.dtype != np.float64 or xyz.ndim != 2 or xyz.shape[1] != 3:
         raise CliError(f'{path}: expected a float64 (N, 3) array, got {xyz.dtype} {xyz.shape}')
-    query = load_config(args.config).query
+    query = config.query
     resolution = args.resolution if args.resolution is not None else query.resolution
     started = time.perf_counter()
     result = fmap.query(xyz, query, resolution)
@@ -549,10 +550,10 @@ def cmd_localise(args: argparse.Namespace) -> int:
     import numpy as np
 
     from uncertain_facade_map.io.clouds import read_cloud
-    from uncertain_facade_map.io.map_file import load_map
     from uncertain_facade_map.io.parameter_file import load_config
     from uncertain_facade_map.localisation import covariance_from_std, localise, map_query, xyzrpy_from_pose
     from uncertain_facade_map.params import LOCALIZER_NAME
+    from uncertain_facade_map.tiling.tiled_map import open_map
 
     config = load_config(args.config, LOCALIZER_NAME)
     params = config.localise
@@ -568,7 +569,7 @@ def cmd_localise(args: argparse.Namespace) -> int:
         raise CliError(f'--prior-std: every standard deviation must be > 0, got {args.prior_std!r}')
     priors = _prior_poses(args, len(args.scans))
     prior_cov = covariance_from_std([*std[:3], *np.deg2rad(std[3:])])
-    fmap = load_map(args.map)
+    fmap = open_map(args.map, config.tiles.cache_mb)  # a tiled map loads the tiles near each scan
     origin = np.asarray(fmap.map_origin, dtype=np.float64)
     if args.georeferenced:
         for prior in priors:
@@ -610,14 +611,20 @@ def cmd_localise(args: argparse.Namespace) -> int:
 
 def cmd_plot(args: argparse.Namespace) -> int:
     """Draw a map's façades and an overview (see ``plot --help``)."""
-    from uncertain_facade_map.io.map_file import load_map
+    from uncertain_facade_map.tiling.tiled_map import TiledMap, open_map
 
     from .plots import DPI_RANGE, output_folder, plot_map, select_facades
 
     if not DPI_RANGE[0] <= args.dpi <= DPI_RANGE[1]:
         raise CliError(f'--dpi must be from {DPI_RANGE[0]} to {DPI_RANGE[1]}, got {args.dpi}')
     ids = None if args.facades is None else _facade_ids(args.facades)
-    fmap = load_map(args.map)
+    fmap = open_map(args.map)
+    if isinstance(fmap, TiledMap):  # one map of its tiles (those meeting --bounds)
+        fmap = fmap.merged(bounds=args.bounds)
+        if not fmap.buildings and args.bounds is not None:
+            raise CliError(f'no tile of {args.map} meets --bounds {",".join(f"{b:g}" for b in args.bounds)}')
+    elif args.bounds is not None:
+        raise CliError('--bounds is for tiled maps (a map file is plotted whole)')
     ids = select_facades(fmap, ids)
     output_folder(args.out)
     if not fmap.facades:
@@ -630,6 +637,36 @@ def cmd_plot(args: argparse.Namespace) -> int:
     if not args.quiet:
         print(f'plotted  {len(paths) - 1} façades and the overview in {time.perf_counter() - started:.1f} s',
               file=sys.stderr)
+    return 0
+
+
+def _bounds(text: str) -> tuple[float, float, float, float]:
+    try:
+        values = tuple(float(x) for x in text.split(','))
+    except ValueError:
+        values = ()
+    if len(values) != 4 or not all(math.isfinite(v) for v in values) or values[0] > values[2] \
+            or values[1] > values[3]:
+        raise argparse.ArgumentTypeError(f'expected MIN_X,MIN_Y,MAX_X,MAX_Y in metres (min <= max), got {text!r}')
+    return values  # type: ignore[return-value]
+
+
+def cmd_tile(args: argparse.Namespace) -> int:
+    """Cut a map file into a tiled map (see ``tile --help``)."""
+    from uncertain_facade_map.io.map_file import load_map
+    from uncertain_facade_map.io.parameter_file import load_config
+    from uncertain_facade_map.tiling.cut import cut_map
+
+    config = load_config(args.config)
+    side = config.tiles.side if args.side is None else args.side
+    fmap = load_map(args.map)
+    started = time.perf_counter()
+    with _counter('tiles', 'tile', args.quiet) as update:
+        manifest = cut_map(fmap, args.out, side, (config.query,), overwrite=args.force,
+                           progress=lambda done, total: update(done, total))
+    print(f'tiled    {len(fmap.buildings)} buildings, {len(fmap.facades)} façades into {len(manifest.tiles)} tiles '
+          f'of {manifest.side:g} m in {time.perf_counter() - started:.1f} s')
+    print(f'map      {Path(args.out) / "manifest.json"}')
     return 0
 
 
@@ -926,7 +963,7 @@ def build_parser() -> argparse.ArgumentParser:
                            description='For each point of P.npy (float64 (N, 3), map frame) write to R.npz: facade '
                                        '(-1 for none), mean_depth, variance, noise_variance, signed_distance '
                                        '(positive outside the building) and p_occupied.')
-    query.add_argument('map', metavar='MAP', help='map file from build')
+    query.add_argument('map', metavar='MAP', help='map file from build, or a tiled map (its folder or its manifest.json)')
     query.add_argument('--points', required=True, metavar='P.npy', help='float64 (N, 3) points, map frame')
     query.add_argument('--out', required=True, metavar='R.npz', help='answers to write')
     query.add_argument('--resolution', type=float, metavar='R', help='voxel side for p_occupied, metres (default 0.1)')
@@ -1001,7 +1038,7 @@ def build_parser() -> argparse.ArgumentParser:
      a straight street without cross walls, the position along it) to the prior, and the
      covariance says so.
   Parameters: the localise section of the parameter file (--config), docs/parameters.md.""")
-    loc.add_argument('map', metavar='MAP', help='map file from build')
+    loc.add_argument('map', metavar='MAP', help='map file from build, or a tiled map (its folder or its manifest.json): its tiles load as the scans need them')
     loc.add_argument('scans', nargs='+', metavar='SCAN', help='scans (PLY, PCD, NPZ, LAS/LAZ), points in the sensor frame')
     loc.add_argument('--prior', metavar='POSE',
                      help='prior pose of one scan: X,Y,Z,ROLL,PITCH,YAW (metres, degrees) or a 4x4 .npy/.txt file')
@@ -1026,7 +1063,10 @@ def build_parser() -> argparse.ArgumentParser:
                                       'histogram with the GMM) and overview.png (the map from above and in 3D, '
                                       'coloured by standard deviation); print their paths. A map without façades '
                                       'gives only the overview.')
-    plot.add_argument('map', metavar='MAP', help='map file from build')
+    plot.add_argument('map', metavar='MAP', help='map file from build, or a tiled map (its folder or its manifest.json)')
+    plot.add_argument('--bounds', type=_bounds, metavar='MIN_X,MIN_Y,MAX_X,MAX_Y',
+                      help='tiled map: plot the tiles whose content meets this box (map frame, metres; default all; '
+                           "the façades are then numbered within those tiles; negative values: --bounds=-10,...)")
     plot.add_argument('--out', required=True, metavar='DIR', help='output folder (created if its parent exists)')
     plot.add_argument('--facades', metavar='IDS', help='façade ids to draw, e.g. 0,3,5-7 (default: all)')
     plot.add_argument('--dpi', type=int, default=100, help='resolution of the PNG files (default 100)')
@@ -1063,6 +1103,19 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument('--config', metavar='YAML', help='ROS 2 parameter file (input and selection sections)')
     ev.add_argument('--quiet', action='store_true', help='no progress lines')
     ev.set_defaults(func=cmd_evaluate)
+
+    tile = sub.add_parser('tile', help='cut a map file into a tiled map (a manifest and one map file per tile)',
+                          description='Write MAP as a tiled map in DIR: DIR/manifest.json and DIR/tiles/<id>.npz, '
+                                      'one ordinary map file per square tile of the map frame; each building goes '
+                                      'whole to the tile of the centre of its points\' bounding box. Every command '
+                                      'that takes a MAP reads the folder too, loading tiles as they are needed.')
+    tile.add_argument('map', metavar='MAP', help='map file from build')
+    tile.add_argument('--out', required=True, metavar='DIR', help='folder of the tiled map')
+    tile.add_argument('--side', type=float, metavar='M', help='tile side, metres (default: tiles.side of the config)')
+    tile.add_argument('--config', metavar='YAML', help='ROS 2 parameter file (default: config/facade_mapper.yaml)')
+    tile.add_argument('--force', action='store_true', help='replace a tiled map already in DIR')
+    tile.add_argument('--quiet', action='store_true', help='no progress bar')
+    tile.set_defaults(func=cmd_tile)
 
     bm = sub.add_parser('benchmark', help='hold points out of a cloud, map the rest, score the held-out points',
                         description='For each INPUT (or a simulated --scene): take its building points (the class '

@@ -55,9 +55,11 @@ def manifests(draw):
                                                                   'n_positive': st.integers(0, 10**6),
                                                                   'n_negative': st.integers(0, 10**6)})))
     calibration = draw(st.dictionaries(st.text(min_size=1, max_size=20), st.floats(0.01, 100.0), max_size=3))
+    registration = draw(st.one_of(st.none(), st.fixed_dictionaries({'var': st.floats(0.0, 1.0),
+                                                                     'sums': st.lists(finite, min_size=3, max_size=3)})))
     return Manifest(side=draw(st.floats(0.1, 1e5)), map_origin=tuple(draw(st.lists(finite, min_size=3, max_size=3))),
                     params=map_params_record(MapParams()), tiles=tiles, occupancy=occupancy,
-                    building_tiles=building_tiles, local_calibration=calibration)
+                    building_tiles=building_tiles, local_calibration=calibration, registration=registration)
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
@@ -119,6 +121,7 @@ def edit(change):
     (edit(lambda d: d['tiles'].append(d['tiles'][0])), 'listed twice'),
     (edit(lambda d: d.update(building_tiles={'3': 'tile_9_9'})), 'not listed'),
     (edit(lambda d: d.update(map_origin=[0, 0, None])), 'damaged manifest'),
+    (edit(lambda d: d.update(registration={'var': 0.1})), "missing field 'sums'"),
 ])
 def test_bad_manifests_are_refused_in_one_line(tmp_path, doc, message):
     write_doc(tmp_path, doc)

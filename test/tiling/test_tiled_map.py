@@ -63,6 +63,7 @@ def test_the_cut_spreads_buildings_over_tiles(tiled, small_whole):
     m = read_manifest(tiled)
     assert len(m.tiles) == 2 and set(m.building_tiles) == set(small_whole.buildings)
     assert m.occupancy == small_whole.occupancy_.as_dict()
+    assert m.registration == {'var': small_whole.registration_var_, 'sums': small_whole.registration_sums_.tolist()}
     assert reading_id(QueryConfig()) in m.local_calibration
     where = building_tiles(small_whole, TileGrid(SIDE))
     for b, ij in where.items():
@@ -71,9 +72,9 @@ def test_the_cut_spreads_buildings_over_tiles(tiled, small_whole):
 
 @pytest.mark.parametrize('config, resolution', [(QueryConfig(), 0.1), (QueryConfig(surface='raster'), 0.2),
                                                 (QueryConfig(occupancy_event='solid', local_radius=0.8), 0.1)])
-@pytest.mark.parametrize('cache_mb', [2048.0, 1e-6])
-def test_tiled_answers_equal_the_one_file_map(tiled, small_whole, config, resolution, cache_mb):
-    tmap = TiledMap(tiled, cache_mb=cache_mb)
+@pytest.mark.parametrize('cache_mb, union', [(2048.0, 4), (2048.0, 0), (1e-6, 0)])
+def test_tiled_answers_equal_the_one_file_map(tiled, small_whole, config, resolution, cache_mb, union):
+    tmap = TiledMap(tiled, cache_mb=cache_mb, union_tiles=union)
     ids = whole_ids(tmap, small_whole)
     xyz = probes(small_whole)
     if config.local_radius != 0.5:  # a reading the manifest has no calibration for: the merged maps' own
@@ -101,7 +102,7 @@ def _check_uncalibrated(tmap, whole, xyz, config, resolution, ids):
 
 
 def test_queries_from_several_threads(tiled, small_whole):
-    tmap = TiledMap(tiled, cache_mb=1e-6)  # evicting while the others query
+    tmap = TiledMap(tiled, cache_mb=1e-6, union_tiles=0)  # evicting while the others query
     ids = whole_ids(tmap, small_whole)
     xyz = probes(small_whole, 6000, seed=3)
     # The one-file map's answers per batch (FacadeMap.query may differ in the last bit for a
@@ -179,3 +180,20 @@ def test_damaged_tiles_and_parameters_are_refused(tiled, tmp_path):
     write_manifest(copy, m)
     with pytest.raises(InputError, match='cache_mb'):
         TiledMap(copy, cache_mb=0)
+
+
+def test_map_wide_quantities_come_from_the_manifest(tiled, small_whole, tmp_path):
+    import shutil
+
+    copy = tmp_path / 'copy'
+    shutil.copytree(tiled, copy)
+    m = read_manifest(copy)
+    m.registration = {'var': small_whole.registration_var_ + 0.01, 'sums': [0.0, 0.0, 0.0]}
+    write_manifest(copy, m)
+    xyz = probes(small_whole, 3000, seed=5)
+    raster = QueryConfig(surface='raster')
+    a, b = TiledMap(copy).query(xyz, raster), small_whole.query(xyz, raster)
+    on = b.facade >= 0
+    assert on.sum() > 100
+    np.testing.assert_allclose(a.variance[on], b.variance[on] + 0.01, rtol=0, atol=1e-12)
+    assert TiledMap(copy).merged().registration_var_ == small_whole.registration_var_ + 0.01

@@ -81,6 +81,8 @@ def cut_map(fmap: FacadeMap, folder: str | os.PathLike, side: float,
     manifest = Manifest(side=grid.side, map_origin=tuple(float(x) for x in fmap.map_origin),
                         params=map_params_record(fmap.params), tiles=tiles, occupancy=occupancy,
                         building_tiles={b: tid for tid, rec in tiles.items() for b in rec.buildings},
-                        local_calibration=local_calibration(fmap, configs))
+                        local_calibration=local_calibration(fmap, configs),
+                        registration={'var': float(fmap.registration_var_),
+                                      'sums': [float(x) for x in fmap.registration_sums_]})
     write_manifest(folder, manifest)
     return manifest

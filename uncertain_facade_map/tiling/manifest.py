@@ -12,6 +12,7 @@ The manifest is JSON::
      "occupancy": {"scale": ..., "spread": ..., "n_positive": ..., "n_negative": ...} or null,
      "building_tiles": {"<label>": "<tile id>", ...},
      "local_calibration": {"<reading key>": factor, ...},
+     "registration": {"var": m^2, "sums": [n, cross, within]} or null,
      "tiles": [{"id": "tile_0_m1", "index": [0, -1], "bounds": [min_x, min_y, max_x, max_y],
                 "extent": [min_x, min_y, min_z, max_x, max_y, max_z], "file": "tiles/tile_0_m1.npz",
                 "sha256": "<hex>", "buildings": [..], "facades": F, "points": N,
@@ -106,6 +107,9 @@ class Manifest:
         local_calibration: the map-wide leave-one-out factor of the local reading
             (``LocalSurface.calibration_``) per reading key (:func:`reading_id`), when known
             (a map cut from one file knows it; a reader without it uses the merged tiles' own).
+        registration: the map-wide scan-to-scan variance (``{'var': m^2, 'sums': [3 floats]}``,
+            ``FacadeMap.registration_var_`` and ``registration_sums_``; a build sums its tiles'
+            sums), or None (merged tiles: their own, :func:`~.tiled_map.merge_maps`).
     """
 
     side: float
@@ -115,6 +119,7 @@ class Manifest:
     occupancy: dict | None = None
     building_tiles: dict[int, str] = field(default_factory=dict)
     local_calibration: dict[str, float] = field(default_factory=dict)
+    registration: dict | None = None
 
     def as_dict(self) -> dict[str, Any]:
         """The JSON document."""
@@ -123,6 +128,7 @@ class Manifest:
                 'occupancy': self.occupancy,
                 'building_tiles': {str(int(b)): t for b, t in sorted(self.building_tiles.items())},
                 'local_calibration': {str(k): float(v) for k, v in sorted(self.local_calibration.items())},
+                'registration': self.registration,
                 'tiles': [self.tiles[k].as_dict() for k in sorted(self.tiles)]}
 
 
@@ -274,9 +280,15 @@ def _from_dict(doc: dict) -> Manifest:
     calibration = doc.get('local_calibration', {})
     if not isinstance(calibration, dict):
         raise ValueError('local_calibration must be an object')
+    registration = doc.get('registration')
+    if registration is not None:
+        if not isinstance(registration, dict):
+            raise ValueError('registration must be an object or null')
+        registration = {'var': _floats([registration['var']], 1, 'registration var')[0],
+                        'sums': list(_floats(registration['sums'], 3, 'registration sums'))}
     return Manifest(side=side, map_origin=_floats(doc['map_origin'], 3, 'map_origin'), params=params, tiles=tiles,
                     occupancy=occupancy, building_tiles=building_tiles,
-                    local_calibration={str(k): float(v) for k, v in calibration.items()})
+                    local_calibration={str(k): float(v) for k, v in calibration.items()}, registration=registration)
 
 
 def read_manifest(path: str | os.PathLike) -> Manifest:

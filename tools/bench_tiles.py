@@ -1,0 +1,80 @@
+"""Queries per second of a tiled map (cache warm) against the one-file map it was cut from (issue 29).
+
+The query points: a drive's points in scans of ``--scan`` seconds (by its time field), as a
+localiser asks them (``--scans`` of them, spread over the drive), and every other point of the
+drive in one batch. Prints the median of ``--repeats`` runs of each map, alternated.
+
+    .venv/bin/uncertain-facade-map simulate --scene street --out /tmp/street --formats npz
+    .venv/bin/uncertain-facade-map build /tmp/street/campaign0.npz --out /tmp/street.npz
+    .venv/bin/uncertain-facade-map tile /tmp/street.npz --out /tmp/street_tiles --side 50
+    .venv/bin/python tools/bench_tiles.py /tmp/street.npz /tmp/street_tiles /tmp/street/campaign0.npz
+
+``--union 0`` groups each batch's points by their own candidate tiles (``tiles.union_tiles``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import numpy as np
+
+from uncertain_facade_map.io.map_file import load_map
+from uncertain_facade_map.io.npz import read_npz
+from uncertain_facade_map.params import QueryConfig, TilesConfig
+from uncertain_facade_map.tiling.tiled_map import TiledMap
+
+
+def _run(fmap, batches, config) -> float:
+    t0 = time.perf_counter()
+    for b in batches:
+        fmap.query(b, config)
+    return time.perf_counter() - t0
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap.add_argument('map', help='the one-file map')
+    ap.add_argument('tiled', help='the tiled map cut from it')
+    ap.add_argument('cloud', help='a drive (NPZ with x, y, z, time)')
+    ap.add_argument('--scan', type=float, default=0.1, help='seconds of drive per scan (default 0.1)')
+    ap.add_argument('--scans', type=int, default=200, help='scans timed, spread over the drive (default 200)')
+    ap.add_argument('--repeats', type=int, default=5, help='runs of each map (default 5)')
+    ap.add_argument('--surface', default='local', choices=('local', 'raster'), help='query.surface')
+    ap.add_argument('--union', type=int, default=TilesConfig.union_tiles, help='tiles.union_tiles')
+    ap.add_argument('--cache-mb', type=float, default=TilesConfig.cache_mb, help='tiles.cache_mb')
+    args = ap.parse_args()
+    config = QueryConfig(surface=args.surface)
+    p = read_npz(args.cloud).points
+    xyz = np.stack([p['x'], p['y'], p['z']], 1).astype(np.float64)
+    scan = np.floor((p['time'] - p['time'].min()) / args.scan).astype(np.int64)
+    order = np.argsort(scan, kind='stable')
+    parts = np.split(order, np.flatnonzero(np.diff(scan[order])) + 1)
+    pick = np.linspace(0, len(parts) - 1, min(args.scans, len(parts))).astype(int)
+    scans = [xyz[parts[i]] for i in pick]
+    n_scan = sum(len(s) for s in scans)
+    print(f'{len(xyz):,} points; {len(scans)} scans of {args.scan} s timed ({n_scan:,} points, median '
+          f'{int(np.median([len(s) for s in scans])):,} a scan); query.surface {args.surface}; union_tiles {args.union}')
+    one = load_map(args.map)
+    tiled = TiledMap(args.tiled, args.cache_mb, args.union)
+    for name, fmap in (('one-file', one), ('tiled', tiled)):
+        t0 = time.perf_counter()
+        _run(fmap, scans, config)  # warm: every structure built, every tile loaded
+        print(f'{name} warm-up {time.perf_counter() - t0:.1f} s')
+    info = tiled.cache_info()
+    print(f'cache: {len(info["tiles"])} tiles ({info["tile_bytes"] / 1e6:.0f} MB), {len(info["groups"])} merged maps, '
+          f'{info["bytes"] / 1e6:.0f} MB in all; {info["misses"]} loads in {info["load_seconds"]:.2f} s')
+    batch = [xyz[::2]]
+    for name, batches, n in (('scans', scans, n_scan), ('one batch', batch, len(batch[0]))):
+        a, b = [], []
+        for _ in range(args.repeats):
+            a.append(_run(one, batches, config))
+            b.append(_run(tiled, batches, config))
+        ma, mb = statistics.median(a), statistics.median(b)
+        print(f'{name:9s}  one-file {n / ma:10,.0f} points/s ({ma:.2f} s)  tiled {n / mb:10,.0f} points/s '
+              f'({mb:.2f} s)  tiled / one-file {ma / mb:.2f}  (medians of {args.repeats})')
+
+
+if __name__ == '__main__':
+    main()
