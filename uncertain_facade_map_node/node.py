@@ -329,7 +329,7 @@ class FacadeMapperNode(Node):
         path = cfg.persistence.map_path
         if path and Path(path).exists():
             # A damaged file (or a folder that is no tiled map) stops the node: better than mapping over it.
-            opened = open_map(path, cfg.tiles.cache_mb)
+            opened = self._open_map(path)
             if isinstance(opened, TiledMap):
                 self._tiled, self._tiled_path = opened, str(path)
                 self.get_logger().info(f'serving the tiled map {path} read-only: {len(opened.manifest_.tiles)} tiles, '
@@ -341,6 +341,15 @@ class FacadeMapperNode(Node):
         if path:
             self.get_logger().info(f'{path} does not exist yet; starting an empty map')
         return FacadeMap(self.params, np.asarray(cfg.input.map_origin, dtype=np.float64))
+
+    def _open_map(self, path: str) -> FacadeMap | TiledMap:
+        """A map file, or a tiled map read through ``tiles.cache_mb`` and ``tiles.union_tiles``.
+
+        Raises:
+            InputError: a damaged file or manifest, a folder without a manifest (one line each).
+        """
+        t = self.config.tiles
+        return TiledMap(path, t.cache_mb, t.union_tiles) if is_tiled_map(path) else open_map(path, t.cache_mb)
 
     @staticmethod
     def _live_map_for(tiled: TiledMap) -> FacadeMap:
@@ -1057,7 +1066,7 @@ class FacadeMapperNode(Node):
         empty beside it); a bad file or a folder without a manifest leaves everything as it is."""
         try:
             path = self._path(request.path)
-            opened = open_map(path, self.config.tiles.cache_mb)
+            opened = self._open_map(path)
             if isinstance(opened, TiledMap):
                 self.worker.call(functools.partial(replace_with, self._live_map_for(opened), None), COMMAND_TIMEOUT)
                 self._serve_tiled(opened, path)
