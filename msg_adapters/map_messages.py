@@ -466,6 +466,74 @@ def fill_query_response(response: Any, answers: Any, message: str = '', *,
     return response
 
 
+def fill_list_tiles_response(response: Any, ids: Sequence[str], bounds: Any, files: Sequence[str],
+                             loaded: Sequence[bool], message: str = '', *, msg_types: Any = None) -> Any:
+    """Fill a ``ListTiles`` response with the tiles of a tiled map near a position.
+
+    Args:
+        response: ``ListTiles.Response`` (or anything with its fields); modified in place.
+        ids: (K,) tile ids (``'tile_<ix>_<iy>'``).
+        bounds: (K, 4) the tiles' squares, ``min_x, min_y, max_x, max_y``, metres, map frame
+            (written 4 numbers per tile).
+        files: (K,) the tiles' map files, absolute paths.
+        loaded: (K,) whether the node holds each tile loaded.
+        message: the response's ``message``.
+        msg_types: optional namespace whose ``encode_array(values, typecode)`` encodes
+            ``bounds``; without it, ``array.array('d')`` unless ``response`` is a dataclass
+            (then a numpy array). ``ids``, ``files`` are lists of ``str``, ``loaded`` of ``bool``.
+
+    Returns:
+        ``response``, with ``success = True``.
+
+    Raises:
+        InputError: lengths that differ, bounds not (K, 4), not finite or with a min above
+            its max, or an id or file that is not text.
+    """
+    ids, files, loaded = list(ids), list(files), list(loaded)
+    box = np.asarray(bounds, dtype=np.float64)
+    if box.size == 0 and not ids:
+        box = box.reshape(0, 4)
+    if box.ndim != 2 or box.shape[1] != 4:
+        raise InputError(f'tile bounds must be (K, 4) min_x, min_y, max_x, max_y, got shape {box.shape}')
+    if not len(ids) == len(box) == len(files) == len(loaded):
+        raise InputError(f'tile lists of different lengths: {len(ids)} ids, {len(box)} bounds, {len(files)} files, '
+                         f'{len(loaded)} loaded flags')
+    if not np.isfinite(box).all() or (box[:, 2:] < box[:, :2]).any():
+        raise InputError('tile bounds must be finite with min_x <= max_x and min_y <= max_y')
+    for name, values in (('id', ids), ('file', files)):
+        bad = [v for v in values if not isinstance(v, str)]
+        if bad:
+            raise InputError(f'a tile {name} must be text, got {bad[0]!r}')
+    encoder = msg_types if msg_types is not None else SimpleNamespace()
+    response.ids = ids
+    response.bounds = _encode(encoder, type(response), box.reshape(-1), 'd')
+    response.files = files
+    response.loaded = [bool(v) for v in loaded]
+    response.success = True
+    response.message = str(message)
+    return response
+
+
+def tiles_of_response(response: Any) -> dict[str, Any]:
+    """The tiles of a ``ListTiles`` response: ``ids`` (list of str), ``bounds`` (K, 4) float64
+    (min_x, min_y, max_x, max_y, metres, map frame), ``files`` (list of str) and ``loaded``
+    (K,) bool.
+
+    Raises:
+        InputError: ``bounds`` not 4 numbers per id, or lists of different lengths.
+    """
+    ids = [str(v) for v in response.ids]
+    box = np.asarray(response.bounds, dtype=np.float64).reshape(-1)
+    if box.size != 4 * len(ids):
+        raise InputError(f'ListTiles bounds hold {box.size} numbers for {len(ids)} tiles (4 per tile expected)')
+    files = [str(v) for v in response.files]
+    loaded = np.asarray(list(response.loaded), dtype=bool)
+    if not len(files) == len(loaded) == len(ids):
+        raise InputError(f'ListTiles lists of different lengths: {len(ids)} ids, {len(files)} files, '
+                         f'{len(loaded)} loaded flags')
+    return {'ids': ids, 'bounds': box.reshape(-1, 4), 'files': files, 'loaded': loaded}
+
+
 # --------------------------------------------------------------------------------------
 # façade models and rasters
 # --------------------------------------------------------------------------------------

@@ -33,7 +33,7 @@ PACKAGE_FILES = ['CMakeLists.txt', 'package.xml', 'cmake', 'msg', 'srv', 'script
 #: In a clone but not built by colcon: the nested tf2_msgs package (make venv builds it).
 NESTED_FILES = ['interfaces']
 MESSAGES = ['Facade', 'FacadeGrid', 'FacadeGridArray']
-SERVICES = ['QueryPoints', 'GetFacades', 'SaveMap', 'LoadMap']
+SERVICES = ['QueryPoints', 'GetFacades', 'SaveMap', 'LoadMap', 'ListTiles']
 
 
 def clean_env(**extra: str) -> dict[str, str]:
@@ -60,7 +60,7 @@ import numpy as np
 import uncertain_facade_map, uncertain_facade_map.mapping.facade_map
 from geometry_msgs.msg import Point, Pose
 from uncertain_facade_map.msg import Facade, FacadeGrid, FacadeGridArray
-from uncertain_facade_map.srv import GetFacades, LoadMap, QueryPoints, SaveMap
+from uncertain_facade_map.srv import GetFacades, ListTiles, LoadMap, QueryPoints, SaveMap
 
 request = QueryPoints.Request(points=[Point(x=1.0 * i, y=2.0, z=-0.5 * i) for i in range(4)],
                               resolution=0.1)
@@ -86,7 +86,7 @@ print(json.dumps({
     'layer_means': list(facade.layer_means),
     'grid_variance': [float(v) for v in grids.grids[1].variance],
     'source': list(grids.grids[0].source),
-    'services': [s.__name__ for s in (GetFacades, LoadMap, QueryPoints, SaveMap)],
+    'services': [s.__name__ for s in (GetFacades, ListTiles, LoadMap, QueryPoints, SaveMap)],
     'env': {k: os.environ.get(k) for k in ('PYTHONPATH', 'AMENT_PREFIX_PATH')},
 }))
 '''
@@ -174,7 +174,7 @@ def test_interfaces_import_in_a_clean_environment(tmp_path):
     assert out['layer_means'] == [0.0, 0.25]
     assert out['grid_variance'] == pytest.approx([1e-4, 2e-4], rel=1e-6)
     assert out['source'] == [2, 0]
-    assert out['services'] == ['GetFacades', 'LoadMap', 'QueryPoints', 'SaveMap']
+    assert out['services'] == ['GetFacades', 'ListTiles', 'LoadMap', 'QueryPoints', 'SaveMap']
 
 
 @pytest.mark.ros

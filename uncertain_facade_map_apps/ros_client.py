@@ -14,7 +14,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-__all__ = ['ANSWER_KEYS', 'SpinningClient', 'answers_of', 'query_request']
+__all__ = ['ANSWER_KEYS', 'SpinningClient', 'answers_of', 'list_tiles_request', 'query_request', 'tiles_of']
 
 #: The per-point answers of ``query_points``, in the response's order.
 ANSWER_KEYS = ('facade', 'mean_depth', 'variance', 'noise_variance', 'signed_distance', 'p_occupied')
@@ -112,3 +112,20 @@ def answers_of(response: Any) -> dict[str, np.ndarray]:
     if normal is not None and len(normal) == 3 * len(out['facade']):
         out['normal'] = np.asarray(normal, dtype=np.float64).reshape(-1, 3)
     return out
+
+
+def list_tiles_request(x: float, y: float, radius: float = 0.0) -> Any:
+    """A ``ListTiles`` request: the tiles of the node's tiled map within ``radius`` metres
+    (0: the node's ``tiles.radius``) of the map-frame position (``x``, ``y``), metres."""
+    from uncertain_facade_map.srv import ListTiles
+
+    return ListTiles.Request(x=float(x), y=float(y), radius=float(radius))
+
+
+def tiles_of(response: Any) -> dict[str, Any]:
+    """The tiles of a ``ListTiles`` response: ``ids``, ``bounds`` (K, 4: min_x, min_y, max_x,
+    max_y, metres, map frame), ``files`` (absolute paths) and ``loaded`` (K,) bool
+    (:func:`msg_adapters.map_messages.tiles_of_response`)."""
+    from msg_adapters.map_messages import tiles_of_response
+
+    return tiles_of_response(response)

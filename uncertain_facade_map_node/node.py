@@ -21,8 +21,12 @@ Topics (names relative, remap with ``--ros-args -r``):
 
 Services: ``query_points`` (uncertain_facade_map/QueryPoints), ``get_facades``
 (uncertain_facade_map/GetFacades), ``save_map`` / ``load_map``
-(uncertain_facade_map/SaveMap, LoadMap), ``reset`` (std_srvs/Trigger) and ``get_map``
-(nav_msgs/GetMap, the 2D grid). Their names are relative: two mappers in one domain need
+(uncertain_facade_map/SaveMap, LoadMap), ``reset`` (std_srvs/Trigger), ``get_map``
+(nav_msgs/GetMap, the 2D grid) and ``list_tiles`` (uncertain_facade_map/ListTiles).
+
+A tiled map (a folder with ``manifest.json``, or the manifest; ``persistence.map_path`` or
+``load_map``) is served read-only beside the live map, its tiles loaded on demand and near
+the node's pose (``tiles.*``): see :mod:`uncertain_facade_map_node.tiled`. Their names are relative: two mappers in one domain need
 namespaces (``--ros-args -r __ns:=/robot1``); the node warns when another node already
 offers one of its services under the same name. No exception escapes a callback: a
 failure is logged, counted (``callback_errors``) and answered as a failure.
@@ -72,7 +76,7 @@ from msg_adapters import transforms as mt
 from msg_adapters.published_maps import published_map_messages
 from uncertain_facade_map.datatypes import array_bytes
 from uncertain_facade_map.errors import FacadeMapError, InputError, TransformError
-from uncertain_facade_map.io.map_file import load_map, remove_stale_temporaries, save_map
+from uncertain_facade_map.io.map_file import remove_stale_temporaries, save_map
 from uncertain_facade_map.io.scans import Scan, ScanPoints
 from uncertain_facade_map.mapping import products as mp
 from uncertain_facade_map.mapping.allocator import limit_heap_growth, release_free_memory
@@ -90,8 +94,11 @@ from uncertain_facade_map.params import (
 )
 from uncertain_facade_map.pipeline.step7_local_surface import LocalSurface
 from uncertain_facade_map.pipeline.step8_occupancy import PLSC, occupancy_model
-from uncertain_facade_map.srv import GetFacades, LoadMap, QueryPoints, SaveMap
+from uncertain_facade_map.srv import GetFacades, ListTiles, LoadMap, QueryPoints, SaveMap
+from uncertain_facade_map.tiling.manifest import is_tiled_map
+from uncertain_facade_map.tiling.tiled_map import TiledMap, open_map
 from uncertain_facade_map.transforms import Placement, TransformBuffer
+from uncertain_facade_map_node import tiled as nt
 from uncertain_facade_map_node.replay import dds_profile_hint
 
 #: Seconds a service waits for the map worker (load, reset) before answering "busy".
@@ -227,7 +234,17 @@ class FacadeMapperNode(Node):
         self._publish_lock = threading.Lock()
         self._save_lock = threading.Lock()
 
-        for stale in remove_stale_temporaries(cfg.persistence.map_path) if cfg.persistence.map_path else ():
+        # The tiled map served read-only (None: none), the path it was opened from, and the
+        # thread keeping the tiles near the pose loaded; replaced together under _tiled_lock.
+        self._tiled: TiledMap | None = None
+        self._tiled_path = ''
+        self._follower: nt.TileFollower | None = None
+        self._tiled_lock = threading.Lock()
+        self._follow_frame = ''  # the frame whose pose the follower takes (latest sensor_pose / odometry child)
+        self._cloud_frame = ''  # the frame of the latest cloud (the follower's fallback)
+        tiled_start = bool(cfg.persistence.map_path) and is_tiled_map(cfg.persistence.map_path)
+        for stale in remove_stale_temporaries(cfg.persistence.map_path) if cfg.persistence.map_path \
+                and not tiled_start else ():
             self.get_logger().warning(f'removed {stale}, the temporary file of a save that did not finish')
         fmap = self._initial_map()
         # The published maps are computed in a helper process too: their numpy work would
@@ -278,6 +295,7 @@ class FacadeMapperNode(Node):
         self.create_service(LoadMap, 'load_map', self.load_callback, callback_group=services)
         self.create_service(Trigger, 'reset', self.reset_callback, callback_group=services)
         self.create_service(GetMap, 'get_map', self.get_map_callback, callback_group=services)
+        self.create_service(ListTiles, 'list_tiles', self.list_tiles_callback, callback_group=services)
         # Each timer in a group of its own: a long publication must not hold up diagnostics.
         self.create_timer(max(0.05, min(cfg.publish.period, 1.0) or 0.1), self.publish_callback,
                           callback_group=MutuallyExclusiveCallbackGroup())
@@ -286,12 +304,14 @@ class FacadeMapperNode(Node):
         if cfg.persistence.autosave_period > 0:
             self.create_timer(cfg.persistence.autosave_period, self.autosave_callback,
                               callback_group=MutuallyExclusiveCallbackGroup())
-        self._service_names = ('query_points', 'get_facades', 'save_map', 'load_map', 'reset', 'get_map')
+        self._service_names = ('query_points', 'get_facades', 'save_map', 'load_map', 'reset', 'get_map', 'list_tiles')
         self._service_checks = 0
         self._service_check = self.create_timer(SERVICE_CHECK_DELAY, self.service_check_callback,
                                                 callback_group=MutuallyExclusiveCallbackGroup())
         snap = self.worker.snapshot
         self._summary_version = snap.version
+        if self._tiled is not None:
+            self._start_follower()
         self.get_logger().info(f'mapping clouds on "{self.resolve_topic_name("points")}" into frame "{self.frame_id}" '
                                f'with the transforms of {", ".join(self._pose_sources)}; '
                                f'{len(snap.facades)} façades, {snap.points} points to start with')
@@ -308,12 +328,69 @@ class FacadeMapperNode(Node):
         cfg = self.config
         path = cfg.persistence.map_path
         if path and Path(path).exists():
-            fmap = load_map(path)  # a damaged file stops the node: better than mapping over it
-            self.get_logger().info(f'loaded {path}: {len(fmap.facades)} façades, {fmap.n_points} points')
-            return fmap
+            # A damaged file (or a folder that is no tiled map) stops the node: better than mapping over it.
+            opened = self._open_map(path)
+            if isinstance(opened, TiledMap):
+                self._tiled, self._tiled_path = opened, str(path)
+                self.get_logger().info(f'serving the tiled map {path} read-only: {len(opened.manifest_.tiles)} tiles, '
+                                       f'at most {cfg.tiles.cache_mb:g} MB loaded; persistence.map_path is not '
+                                       'autosaved, save_map needs a path; clouds map into a live map')
+                return self._live_map_for(opened)
+            self.get_logger().info(f'loaded {path}: {len(opened.facades)} façades, {opened.n_points} points')
+            return opened
         if path:
             self.get_logger().info(f'{path} does not exist yet; starting an empty map')
         return FacadeMap(self.params, np.asarray(cfg.input.map_origin, dtype=np.float64))
+
+    def _open_map(self, path: str) -> FacadeMap | TiledMap:
+        """A map file, or a tiled map read through ``tiles.cache_mb`` and ``tiles.union_tiles``.
+
+        Raises:
+            InputError: a damaged file or manifest, a folder without a manifest (one line each).
+        """
+        t = self.config.tiles
+        return TiledMap(path, t.cache_mb, t.union_tiles) if is_tiled_map(path) else open_map(path, t.cache_mb)
+
+    @staticmethod
+    def _live_map_for(tiled: TiledMap) -> FacadeMap:
+        """The empty live map beside a served tiled map: its parameters and map origin."""
+        return FacadeMap(tiled.params, np.asarray(tiled.map_origin, dtype=np.float64).copy())
+
+    def _start_follower(self) -> None:
+        """Follow the pose for the served tiled map (``tiles.follow_period`` > 0)."""
+        if self._tiled is None:
+            return
+        follower = nt.TileFollower(self._tiled, self.config.tiles, self._pose_xy,
+                                   lambda text: self._warn(text, 'tile follower', period=30.0))
+        self._follower = follower
+        follower.start()
+
+    def _serve_tiled(self, tiled: TiledMap | None, path: str = '') -> None:
+        """Serve ``tiled`` (None: no tiled map) from now on, stopping the previous follower."""
+        with self._tiled_lock:
+            old = self._follower
+            self._tiled, self._tiled_path, self._follower = tiled, str(path), None
+            if old is not None:
+                old.stop()
+            if tiled is not None:
+                self._start_follower()
+
+    def _pose_xy(self) -> np.ndarray | None:
+        """The latest map-frame (x, y) of the frame the tiles follow: the child frame of the
+        latest ``sensor_pose`` or odometry message, else the frame of the latest cloud; None
+        while the transform buffer cannot put it in the map frame."""
+        for frame in (self._follow_frame, self._cloud_frame):
+            if not frame or frame == self.frame_id:
+                continue
+            try:
+                return np.asarray(self.transforms.lookup(self.frame_id, frame, 0).translation, dtype=np.float64)[:2]
+            except TransformError:
+                continue
+        return None
+
+    def _tiled_target(self, path: str) -> bool:
+        """True when ``path`` is the served tiled map or a tiled map (never saved over)."""
+        return is_tiled_map(path) or (bool(self._tiled_path) and Path(path).resolve() == Path(self._tiled_path).resolve())
 
     # -- input ------------------------------------------------------------------------
     def _warn(self, text: str, key: str, period: float = 5.0) -> None:
@@ -404,6 +481,8 @@ class FacadeMapperNode(Node):
                 continue
             with self._pose_count_lock:
                 self.pose_counters['transforms_received'] += 1
+            if source != '/tf' and not static:
+                self._follow_frame = t.child  # sensor_pose and odometry: the sensor's pose
 
     @_guarded
     def pose_callback(self, msg: Any) -> None:
@@ -445,6 +524,7 @@ class FacadeMapperNode(Node):
             self.counters['points_received'] += n
             self._interval['in'] += 1
             self._count_gap(msg.header.frame_id, _stamp_ns(msg.header), len(msg.data))
+            self._cloud_frame = str(msg.header.frame_id)
             why = self._receive(msg, n)
             if why is not None:
                 self._reject(why, n)
@@ -815,12 +895,30 @@ class FacadeMapperNode(Node):
             'last_error': recent[-1][2] if recent else '',
             'last_error_age_seconds': round(now - recent[-1][0], 1) if recent else -1,
         })
+        values.update(self._tiles_values())
         level = 1 if recent else 0
         message = ('mapping' if not recent else
                    f'{len(recent)} drops, rejections or failures in the last {window:g} s (see values)')
         self.pub_diag.publish(mm.diagnostic_array(f'{NODE_NAME}: map', level, message, values, NODE_NAME,
                                                   self.get_clock().now().nanoseconds, self.types))
         release_free_memory()  # the dropped clouds' and answered queries' buffers, back to the system
+
+    def _tiles_values(self) -> dict[str, Any]:
+        """The diagnostics of the served tiled map: tiles loaded, cache MB, preloads and their time."""
+        tiled, follower = self._tiled, self._follower
+        if tiled is None:
+            return {'tiled_map': ''}
+        info = tiled.cache_info()
+        values = {'tiled_map': self._tiled_path, 'tiles': len(tiled.manifest_.tiles),
+                  'tiles_loaded': len(info['tiles']),
+                  'tiles_cache_mb': round(info['bytes'] / 2**20, 1),
+                  'tiles_cache_limit_mb': round(info['limit_bytes'] / 2**20, 1),
+                  'tiles_merged_maps': len(info['groups']),
+                  'tiles_hits': info['hits'], 'tiles_misses': info['misses'], 'tiles_evictions': info['evictions'],
+                  'tiles_load_seconds': round(info['load_seconds'], 3)}
+        if follower is not None:
+            values.update(follower.values())
+        return values
 
     def _facades_mb(self, snap: MapSnapshot) -> float:
         """MB of the arrays of the snapshot's façade models held here (cached per version)."""
@@ -841,10 +939,14 @@ class FacadeMapperNode(Node):
             if not np.isfinite(resolution) or resolution <= 0:
                 raise InputError(f'resolution must be a positive number of metres, got {request.resolution}')
             snap = self.worker.snapshot
-            # Its own bands (a loaded map keeps its own); the local reading as _local_surface says.
-            answers = snap.query(xyz, self.config.query, resolution, local=self._local_surface(snap))
-            mm.fill_query_response(response, answers, f'{len(xyz)} points, map version {snap.version}',
-                                   msg_types=self.types)
+            tiled = self._tiled
+            if tiled is None:
+                # Its own bands (a loaded map keeps its own); the local reading as _local_surface says.
+                answers = snap.query(xyz, self.config.query, resolution, local=self._local_surface(snap))
+                message = f'{len(xyz)} points, map version {snap.version}'
+            else:
+                answers, message = self._tiled_query(tiled, snap, xyz, resolution)
+            mm.fill_query_response(response, answers, message, msg_types=self.types)
             self._query_seconds.append(time.perf_counter() - started)
         except FacadeMapError as exc:
             with self._count_lock:
@@ -853,20 +955,78 @@ class FacadeMapperNode(Node):
             response.message = str(exc)
         return response
 
+    def _tiled_query(self, tiled: TiledMap, snap: MapSnapshot, xyz: np.ndarray,
+                     resolution: float) -> tuple[dict[str, np.ndarray], str]:
+        """Answers from the served tiled map; the points it leaves on no façade from the live
+        map when that has façades (ids plus :data:`~.tiled.LIVE_FACADE_OFFSET`)."""
+        answers = tiled.query(xyz, self.config.query, resolution)
+        asked = np.flatnonzero(np.asarray(answers.facade) < 0) if snap.facades else np.zeros(0, np.int64)
+        live = (snap.query(xyz[asked], self.config.query, resolution, local=self._local_surface(snap))
+                if len(asked) else None)
+        out = nt.combine_answers(answers, live, asked)
+        by_live = int((np.asarray(live.facade) >= 0).sum()) if live is not None else 0
+        return out, (f'{len(xyz)} points, tiled map {self._tiled_path}'
+                     + (f'; {by_live} answered by the live map (version {snap.version})' if by_live else ''))
+
     @_guarded
     def get_facades_callback(self, request: Any, response: Any) -> Any:
-        """The façade models of one building (or all, building = -1)."""
+        """The façade models of one building (or all, building = -1). With a tiled map
+        served: the building's tile's (or, for -1, those of the tiles loaded now), ids the tiled
+        map's as its queries answer them, then the live map's (ids plus LIVE_FACADE_OFFSET)."""
         snap = self.worker.snapshot
-        models = [f for f in snap.facades if request.building < 0 or f.building == request.building]
+        building = int(request.building)
+        models = [f for f in snap.facades if building < 0 or f.building == building]
+        note = ''
+        tiled = self._tiled
+        if tiled is not None:
+            import dataclasses
+
+            models = [dataclasses.replace(f, facade_id=f.facade_id + nt.LIVE_FACADE_OFFSET) for f in models]
+            if building >= 0:
+                tile_ids = [tiled.manifest_.building_tiles[building]] if building in tiled.manifest_.building_tiles \
+                    else []
+            else:
+                tile_ids = nt.loaded_ids(tiled)
+            from_tiles = nt.tile_facades(tiled, tile_ids, building)
+            models = from_tiles + models
+            note = f' ({len(from_tiles)} of the tiled map\'s tiles {", ".join(tile_ids) or "(none loaded)"})'
         response.facades = [mm.facade_msg(f, self.types) for f in models]
         response.success = True
-        response.message = f'{len(models)} façades'
+        response.message = f'{len(models)} façades{note}'
+        return response
+
+    @_guarded
+    def list_tiles_callback(self, request: Any, response: Any) -> Any:
+        """The served tiled map's tiles near a map-frame position (ids, squares, files, loaded)."""
+        tiled, path = self._tiled, self._tiled_path
+        try:
+            if tiled is None:
+                raise InputError('no tiled map is served: load one with load_map (a folder with manifest.json) '
+                                 'or start with persistence.map_path naming one')
+            xy = np.array([request.x, request.y], dtype=np.float64)
+            if not np.isfinite(xy).all():
+                raise InputError(f'x and y must be finite, got {request.x}, {request.y}')
+            radius = nt.check_radius(request.radius, self.config.tiles.radius)
+            ids, bounds, files, loaded = nt.tiles_near_listing(tiled, path, xy, radius)
+            mm.fill_list_tiles_response(response, ids, bounds, files, loaded,
+                                        f'{len(ids)} tiles within {radius:g} m of ({xy[0]:g}, {xy[1]:g}), '
+                                        f'{sum(loaded)} loaded', msg_types=self.types)
+        except FacadeMapError as exc:
+            response.success, response.message = False, str(exc)
         return response
 
     def _path(self, given: str) -> str:
         path = given or self.config.persistence.map_path
         if not path:
             raise InputError('no path given and the parameter persistence.map_path is empty')
+        return path
+
+    def _save_path(self, given: str) -> str:
+        """Where save_map writes the live map: never into a tiled map (served read-only)."""
+        path = self._path(given)
+        if self._tiled_target(path):
+            raise InputError(f'{path} is a tiled map, served read-only: save_map writes the live map to a map '
+                             'file; give it another path')
         return path
 
     def _save(self, path: str) -> tuple[int, int]:
@@ -889,7 +1049,7 @@ class FacadeMapperNode(Node):
         """Save the map atomically, at once: the clouds mapped so far and the points held
         back; the message says how many received clouds still wait and are not in it."""
         try:
-            path = self._path(request.path)
+            path = self._save_path(request.path)
             if not Path(path).parent.exists():
                 raise InputError(f'folder {Path(path).parent} does not exist')
             version, waiting = self._save(path)
@@ -902,21 +1062,34 @@ class FacadeMapperNode(Node):
 
     @_guarded
     def load_callback(self, request: Any, response: Any) -> Any:
-        """Replace the map by a map file; a bad file leaves the current map as it is."""
+        """Replace the map by a map file, or serve a tiled map (read-only; the live map starts
+        empty beside it); a bad file or a folder without a manifest leaves everything as it is."""
         try:
             path = self._path(request.path)
-            loaded = load_map(path)
-            self.worker.call(functools.partial(replace_with, loaded, None), COMMAND_TIMEOUT)
-            response.success, response.facades = True, len(loaded.facades)
-            response.message = f'loaded {path}: {len(loaded.facades)} façades, {loaded.n_points} points'
+            opened = self._open_map(path)
+            if isinstance(opened, TiledMap):
+                self.worker.call(functools.partial(replace_with, self._live_map_for(opened), None), COMMAND_TIMEOUT)
+                self._serve_tiled(opened, path)
+                facades = sum(t.facades for t in opened.manifest_.tiles.values())
+                response.success, response.facades = True, min(facades, 2**32 - 1)
+                response.message = (f'serving the tiled map {path} read-only: {len(opened.manifest_.tiles)} tiles, '
+                                     f'{facades} façades; the live map starts empty')
+            else:
+                self.worker.call(functools.partial(replace_with, opened, None), COMMAND_TIMEOUT)
+                self._serve_tiled(None)
+                response.success, response.facades = True, len(opened.facades)
+                response.message = f'loaded {path}: {len(opened.facades)} façades, {opened.n_points} points'
         except (FacadeMapError, OSError, TimeoutError) as exc:
             response.success, response.message = False, f'not loaded: {exc}'
         return response
 
     @_guarded
     def reset_callback(self, request: Any, response: Any) -> Any:
-        """Start an empty map (clouds queued before the call are mapped first, then cleared)."""
-        empty = FacadeMap(self.params, np.asarray(self.config.input.map_origin, dtype=np.float64))
+        """Start an empty map (clouds queued before the call are mapped first, then cleared);
+        a served tiled map stays (read-only), the live map restarts with its parameters."""
+        tiled = self._tiled
+        empty = FacadeMap(self.params, np.asarray(self.config.input.map_origin, dtype=np.float64)) if tiled is None \
+            else self._live_map_for(tiled)
         try:
             self.worker.call(functools.partial(replace_with, empty, None), COMMAND_TIMEOUT)
             response.success, response.message = True, 'map cleared'
@@ -936,6 +1109,8 @@ class FacadeMapperNode(Node):
         """Save to persistence.map_path when the map changed since the last save."""
         if not self.config.persistence.map_path or self.worker.committed_version == self._saved_version:
             return
+        if self._tiled_target(self.config.persistence.map_path):
+            return  # a tiled map is served read-only, never saved over
         try:
             self._save(self.config.persistence.map_path)
         except (FacadeMapError, OSError) as exc:
@@ -946,6 +1121,7 @@ class FacadeMapperNode(Node):
         waiting = self.worker.accounts()['clouds_waiting']
         if waiting:
             self.get_logger().warning(f'stopping: {waiting} received clouds were still waiting and are not mapped')
+        self._serve_tiled(None)
         self.worker.stop()
         if self._helper is not None:
             self._helper.close()

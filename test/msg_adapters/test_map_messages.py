@@ -32,6 +32,7 @@ from msg_adapters.map_messages import (
     facade_grid_array,
     facade_grid_msg,
     facade_msg,
+    fill_list_tiles_response,
     fill_query_response,
     matrix_from_quaternion,
     occupancy_grid_msg,
@@ -40,6 +41,7 @@ from msg_adapters.map_messages import (
     quaternion_from_matrix,
     rclpy_map_types,
     rigid_from_pose,
+    tiles_of_response,
     transform_points,
     triangle_marker_array,
 )
@@ -391,6 +393,74 @@ def test_fill_query_response_from_point_query():
     with pytest.raises(InputError, match='lack p_occupied'):
         fill_query_response(SimpleNamespace(), {k: v for k, v in answers.as_dict().items()
                                                 if k != 'p_occupied'})
+
+
+# --------------------------------------------------------------------------------------
+# ListTiles
+
+
+@st.composite
+def tile_lists(draw: st.DrawFn) -> tuple[list[str], np.ndarray, list[str], list[bool]]:
+    """Tiles as a tiled map lists them: ids, (K, 4) squares (any side, any corner), files, flags."""
+    k = draw(st.integers(0, 12))
+    index = draw(hnp.arrays(np.int64, (k, 2), elements=st.integers(-10**6, 10**6)))
+    side = draw(st.floats(0.5, 500.0))
+    ids = [f'tile_{"m" if i < 0 else ""}{abs(i)}_{"m" if j < 0 else ""}{abs(j)}' for i, j in index.tolist()]
+    lo = index * side
+    bounds = np.hstack([lo, lo + side]).astype(np.float64)
+    files = [f'/maps/city/tiles/{t}.npz' for t in ids]
+    loaded = draw(st.lists(st.booleans(), min_size=k, max_size=k))
+    return ids, bounds, files, loaded
+
+
+@given(tile_lists())
+@SETTINGS
+def test_list_tiles_response_round_trip(tiles):
+    ids, bounds, files, loaded = tiles
+    # a stand-in (array.array), a dataclass (numpy, as rosbags) and rclpy's class, serialised
+    stand = fill_list_tiles_response(SimpleNamespace(), ids, bounds, files, loaded, f'{len(ids)} tiles')
+    assert stand.success and stand.message == f'{len(ids)} tiles'
+    assert isinstance(stand.bounds, array.array) and stand.bounds.typecode == 'd'
+    import dataclasses
+    Resp = dataclasses.make_dataclass('Resp', ['success', 'message', 'ids', 'bounds', 'files', 'loaded'])
+    data = fill_list_tiles_response(Resp(False, '', None, None, None, None), ids, bounds, files, loaded)
+    assert data.bounds.dtype == np.float64
+    responses = [stand, data]
+    try:
+        from uncertain_facade_map.srv import ListTiles
+    except ImportError:  # pragma: no cover - make venv builds the interfaces
+        ListTiles = None
+    if ListTiles is not None:
+        t = SimpleNamespace(Response=ListTiles.Response)
+        with field_checks(t):
+            msg = fill_list_tiles_response(ListTiles.Response(), ids, bounds, files, loaded, 'x',
+                                           msg_types=rclpy_map_types())
+        responses.append(rclpy_round_trip(msg))
+    for response in responses:
+        out = tiles_of_response(response)
+        assert out['ids'] == ids and out['files'] == files
+        np.testing.assert_array_equal(out['bounds'], bounds.reshape(-1, 4))
+        np.testing.assert_array_equal(out['loaded'], np.array(loaded, dtype=bool).reshape(-1))
+
+
+def test_list_tiles_response_errors():
+    box = np.array([[0.0, 0.0, 50.0, 50.0]])
+    with pytest.raises(InputError, match=r'\(K, 4\)'):
+        fill_list_tiles_response(SimpleNamespace(), ['tile_0_0'], box[:, :3], ['/a.npz'], [True])
+    with pytest.raises(InputError, match='different lengths'):
+        fill_list_tiles_response(SimpleNamespace(), ['tile_0_0', 'tile_1_0'], box, ['/a.npz'], [True])
+    with pytest.raises(InputError, match='min_x <= max_x'):
+        fill_list_tiles_response(SimpleNamespace(), ['tile_0_0'], box[:, [2, 1, 0, 3]], ['/a.npz'], [True])
+    with pytest.raises(InputError, match='finite'):
+        fill_list_tiles_response(SimpleNamespace(), ['tile_0_0'], box * np.nan, ['/a.npz'], [True])
+    with pytest.raises(InputError, match='must be text'):
+        fill_list_tiles_response(SimpleNamespace(), [3], box, ['/a.npz'], [True])
+    with pytest.raises(InputError, match='4 per tile'):
+        tiles_of_response(SimpleNamespace(ids=['a', 'b'], bounds=[0.0] * 4, files=['x', 'y'], loaded=[True, False]))
+    with pytest.raises(InputError, match='different lengths'):
+        tiles_of_response(SimpleNamespace(ids=['a'], bounds=[0.0] * 4, files=[], loaded=[True]))
+    empty = fill_list_tiles_response(SimpleNamespace(), [], [], [], [])
+    assert tiles_of_response(empty)['bounds'].shape == (0, 4)
 
 
 # --------------------------------------------------------------------------------------
