@@ -343,6 +343,27 @@ def cmd_build(args: argparse.Namespace) -> int:
     return 0
 
 
+def _write_build_report(folder: Path, args: argparse.Namespace, n_read: int, n_building: int, read_s: float,
+                        route_s: float, map_s: float, total_s: float, results: list) -> Path:
+    """Write ``DIR/build.json``: this run's figures, per tile task its building points, seconds,
+    processor seconds and its worker's peak memory (:mod:`uncertain_facade_map_apps.capacity` fits
+    the cost per point and per tile on them)."""
+    import json
+    import os
+
+    report = {
+        'inputs': [str(p) for p in args.inputs], 'workers': args.workers or 0, 'scheduler': args.scheduler,
+        'cpus': os.cpu_count(), 'input_points': n_read, 'building_points': n_building,
+        'read_seconds': read_s, 'route_seconds': route_s, 'map_seconds': map_s, 'total_seconds': total_s,
+        'tasks': [{'tile': r.record.id, 'points': r.points, 'seconds': r.map_seconds + r.write_seconds,
+                   'map_seconds': r.map_seconds, 'write_seconds': r.write_seconds, 'cpu_seconds': r.cpu_seconds,
+                   'pid': r.pid, 'peak_rss_mb': r.max_rss_kb / 1024} for r in results],
+    }
+    path = folder / 'build.json'
+    path.write_text(json.dumps(report, indent=1))
+    return path
+
+
 def _build_tiles(args: argparse.Namespace, config) -> int:
     """``build --tiles DIR``: route the inputs' building points to tiles, map the tiles (in this
     process or on Dask), write the tiles and the manifest; resume or update an existing one."""
@@ -428,6 +449,8 @@ def _build_tiles(args: argparse.Namespace, config) -> int:
         print(f'worker   pid {pid}: {len(rs)} tiles in {sum(r.cpu_seconds for r in rs):.1f} s of CPU, peak RSS '
               f'{max(r.max_rss_kb for r in rs) / 1024:.0f} MB, largest tile {big.record.id} ({big.points:,} points)')
     print(f'plsc     {occupancy} (for all tiles)')
+    report = _write_build_report(folder, args, n_read, n_building, read_s, route_s, map_s, total_s, results)
+    print(f'report   {report} (what uncertain-facade-map capacity plans from)')
     facades = sum(r.facades for r in manifest.tiles.values())
     print(f'tiles    {folder} ({len(manifest.tiles)} tiles, {facades} façades, '
           f'{sum(r.points for r in manifest.tiles.values()):,} points stored; {total_s:.1f} s in all)')
