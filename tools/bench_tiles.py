@@ -20,8 +20,8 @@ import time
 
 import numpy as np
 
+from uncertain_facade_map.io.clouds import read_cloud
 from uncertain_facade_map.io.map_file import load_map
-from uncertain_facade_map.io.npz import read_npz
 from uncertain_facade_map.params import QueryConfig, TilesConfig
 from uncertain_facade_map.tiling.tiled_map import TiledMap
 
@@ -37,7 +37,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     ap.add_argument('map', help='the one-file map')
     ap.add_argument('tiled', help='the tiled map cut from it')
-    ap.add_argument('cloud', help='a drive (NPZ with x, y, z, time)')
+    ap.add_argument('cloud', help='a drive (any cloud file with x, y, z, time: NPZ, PLY, ...)')
+    ap.add_argument('--tiled-clouds', nargs='+', metavar='CLOUD',
+                    help="another drive for the tiled map (the city's segment files), when the tiled map is not cut "
+                         'from MAP: each map is then timed on its own drive (issue 29: the tiled city against a '
+                         'one-file street)')
     ap.add_argument('--scan', type=float, default=0.1, help='seconds of drive per scan (default 0.1)')
     ap.add_argument('--scans', type=int, default=200, help='scans timed, spread over the drive (default 200)')
     ap.add_argument('--repeats', type=int, default=5, help='runs of each map (default 5)')
@@ -46,34 +50,47 @@ def main() -> None:
     ap.add_argument('--cache-mb', type=float, default=TilesConfig.cache_mb, help='tiles.cache_mb')
     args = ap.parse_args()
     config = QueryConfig(surface=args.surface)
-    p = read_npz(args.cloud).points
-    xyz = np.stack([p['x'], p['y'], p['z']], 1).astype(np.float64)
-    scan = np.floor((p['time'] - p['time'].min()) / args.scan).astype(np.int64)
-    order = np.argsort(scan, kind='stable')
-    parts = np.split(order, np.flatnonzero(np.diff(scan[order])) + 1)
-    pick = np.linspace(0, len(parts) - 1, min(args.scans, len(parts))).astype(int)
-    scans = [xyz[parts[i]] for i in pick]
-    n_scan = sum(len(s) for s in scans)
-    print(f'{len(xyz):,} points; {len(scans)} scans of {args.scan} s timed ({n_scan:,} points, median '
-          f'{int(np.median([len(s) for s in scans])):,} a scan); query.surface {args.surface}; union_tiles {args.union}')
+    xyz, scans = _scans([args.cloud], args)
+    if args.tiled_clouds:
+        xyz_t, scans_t = _scans(args.tiled_clouds, args)
+    else:
+        xyz_t, scans_t = xyz, scans
+    n_scan, n_scan_t = sum(len(s) for s in scans), sum(len(s) for s in scans_t)
+    for what, x, sc, n in (('one-file', xyz, scans, n_scan), ('tiled', xyz_t, scans_t, n_scan_t)):
+        print(f'{what}: {len(x):,} points; {len(sc)} scans of {args.scan} s timed ({n:,} points, median '
+              f'{int(np.median([len(s) for s in sc])):,} a scan); query.surface {args.surface}; union_tiles {args.union}')
     one = load_map(args.map)
     tiled = TiledMap(args.tiled, args.cache_mb, args.union)
-    for name, fmap in (('one-file', one), ('tiled', tiled)):
+    for name, fmap, sc in (('one-file', one, scans), ('tiled', tiled, scans_t)):
         t0 = time.perf_counter()
-        _run(fmap, scans, config)  # warm: every structure built, every tile loaded
+        _run(fmap, sc, config)  # warm: every structure built, every tile loaded
         print(f'{name} warm-up {time.perf_counter() - t0:.1f} s')
     info = tiled.cache_info()
     print(f'cache: {len(info["tiles"])} tiles ({info["tile_bytes"] / 1e6:.0f} MB), {len(info["groups"])} merged maps, '
           f'{info["bytes"] / 1e6:.0f} MB in all; {info["misses"]} loads in {info["load_seconds"]:.2f} s')
-    batch = [xyz[::2]]
-    for name, batches, n in (('scans', scans, n_scan), ('one batch', batch, len(batch[0]))):
+    work = (('scans', scans, n_scan, scans_t, n_scan_t),
+            ('one batch', [xyz[::2]], len(xyz[::2]), [xyz_t[::2]], len(xyz_t[::2])))
+    for name, batches, n, batches_t, n_t in work:
         a, b = [], []
         for _ in range(args.repeats):
             a.append(_run(one, batches, config))
-            b.append(_run(tiled, batches, config))
+            b.append(_run(tiled, batches_t, config))
         ma, mb = statistics.median(a), statistics.median(b)
-        print(f'{name:9s}  one-file {n / ma:10,.0f} points/s ({ma:.2f} s)  tiled {n / mb:10,.0f} points/s '
-              f'({mb:.2f} s)  tiled / one-file {ma / mb:.2f}  (medians of {args.repeats})')
+        ra, rb = n / ma, n_t / mb
+        print(f'{name:9s}  one-file {ra:10,.0f} points/s ({ma:.2f} s)  tiled {rb:10,.0f} points/s '
+              f'({mb:.2f} s)  tiled / one-file {rb / ra:.2f}  (medians of {args.repeats})')
+
+
+def _scans(paths: list[str], args: argparse.Namespace) -> tuple[np.ndarray, list[np.ndarray]]:
+    """(N, 3) points of the drive files and ``args.scans`` scans of ``args.scan`` s spread over them."""
+    clouds = [read_cloud(p) for p in paths]
+    xyz = np.vstack([c.xyz for c in clouds]).astype(np.float64)
+    t = np.concatenate([c.points['time'] for c in clouds])
+    scan = np.floor((t - t.min()) / args.scan).astype(np.int64)
+    order = np.argsort(scan, kind='stable')
+    parts = np.split(order, np.flatnonzero(np.diff(scan[order])) + 1)
+    pick = np.linspace(0, len(parts) - 1, min(args.scans, len(parts))).astype(int)
+    return xyz, [xyz[parts[i]] for i in pick]
 
 
 if __name__ == '__main__':

@@ -260,13 +260,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--max-steps', type=int, default=0, help='stop after this many queries (0: the whole route)')
     parser.add_argument('--reader-cache-mb', type=float, default=256.0,
                         help="this process's own reader's cache (for the query points), MB")
-    parser.add_argument('--domain', type=int, default=-1, help='ROS_DOMAIN_ID (default: 100 + pid % 100)')
+    parser.add_argument('--domain', type=int, default=-1, help='ROS_DOMAIN_ID (default: 100 + pid %% 100)')
     parser.add_argument('--seed', type=int, default=0)
     parser.add_argument('--one-file', metavar='MAP_FILE',
                         help='then drive the same route with the same queries against the node serving this one-file '
                              'map (the tiled map\'s source, say) and print both')
     parser.add_argument('--json', type=Path, help='write the figures here')
-    parser.add_argument('--verbose', action='store_true', help='a line every 5 % of the route')
+    parser.add_argument('--verbose', action='store_true', help='a line every 5 %% of the route')
     args = parser.parse_args(argv)
     figures = run(args)
     if args.one_file:

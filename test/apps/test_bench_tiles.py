@@ -50,3 +50,11 @@ def test_a_short_drive_prints_latency_tiles_and_memory(scenes, tmp_path, capsys)
     assert figures['share_on_a_facade'] > 0.5 and figures['tiles_loaded_end'] >= 1
     assert figures['preloads'] >= 1 and figures['node_peak_rss_mb'] >= figures['node_rss_mb_start'] > 50
     assert 'tiled map | one-file map' in capsys.readouterr().out
+
+
+def test_its_help_prints(capsys):
+    from uncertain_facade_map_apps.bench_tiles import main as bench_main
+
+    with pytest.raises(SystemExit) as stop:
+        bench_main(['--help'])
+    assert stop.value.code == 0 and '--cache-mb' in capsys.readouterr().out
