@@ -43,6 +43,8 @@ def main() -> None:
                          'from MAP: each map is then timed on its own drive (issue 29: the tiled city against a '
                          'one-file street)')
     ap.add_argument('--scan', type=float, default=0.1, help='seconds of drive per scan (default 0.1)')
+    ap.add_argument('--tiled-scan', type=float, help='seconds of drive per scan of the tiled map\'s own drive (default '
+                    '--scan; the city sensor gives fewer points a second than the street\'s)')
     ap.add_argument('--scans', type=int, default=200, help='scans timed, spread over the drive (default 200)')
     ap.add_argument('--repeats', type=int, default=5, help='runs of each map (default 5)')
     ap.add_argument('--surface', default='local', choices=('local', 'raster'), help='query.surface')
@@ -50,14 +52,14 @@ def main() -> None:
     ap.add_argument('--cache-mb', type=float, default=TilesConfig.cache_mb, help='tiles.cache_mb')
     args = ap.parse_args()
     config = QueryConfig(surface=args.surface)
-    xyz, scans = _scans([args.cloud], args)
+    xyz, scans = _scans([args.cloud], args, args.scan)
     if args.tiled_clouds:
-        xyz_t, scans_t = _scans(args.tiled_clouds, args)
+        xyz_t, scans_t = _scans(args.tiled_clouds, args, args.tiled_scan or args.scan)
     else:
         xyz_t, scans_t = xyz, scans
     n_scan, n_scan_t = sum(len(s) for s in scans), sum(len(s) for s in scans_t)
     for what, x, sc, n in (('one-file', xyz, scans, n_scan), ('tiled', xyz_t, scans_t, n_scan_t)):
-        print(f'{what}: {len(x):,} points; {len(sc)} scans of {args.scan} s timed ({n:,} points, median '
+        print(f'{what}: {len(x):,} points; {len(sc)} scans timed ({n:,} points, median '
               f'{int(np.median([len(s) for s in sc])):,} a scan); query.surface {args.surface}; union_tiles {args.union}')
     one = load_map(args.map)
     tiled = TiledMap(args.tiled, args.cache_mb, args.union)
@@ -81,12 +83,12 @@ def main() -> None:
               f'({mb:.2f} s)  tiled / one-file {rb / ra:.2f}  (medians of {args.repeats})')
 
 
-def _scans(paths: list[str], args: argparse.Namespace) -> tuple[np.ndarray, list[np.ndarray]]:
-    """(N, 3) points of the drive files and ``args.scans`` scans of ``args.scan`` s spread over them."""
+def _scans(paths: list[str], args: argparse.Namespace, seconds: float) -> tuple[np.ndarray, list[np.ndarray]]:
+    """(N, 3) points of the drive files and ``args.scans`` scans of ``seconds`` s spread over them."""
     clouds = [read_cloud(p) for p in paths]
     xyz = np.vstack([c.xyz for c in clouds]).astype(np.float64)
     t = np.concatenate([c.points['time'] for c in clouds])
-    scan = np.floor((t - t.min()) / args.scan).astype(np.int64)
+    scan = np.floor((t - t.min()) / seconds).astype(np.int64)
     order = np.argsort(scan, kind='stable')
     parts = np.split(order, np.flatnonzero(np.diff(scan[order])) + 1)
     pick = np.linspace(0, len(parts) - 1, min(args.scans, len(parts))).astype(int)

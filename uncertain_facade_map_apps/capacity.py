@@ -99,6 +99,10 @@ def build_costs(report: dict, street_km: float | None = None) -> BuildCosts:
                       max(float(t.get('peak_rss_mb', 0.0)) for t in tasks), int(points.max(initial=0)))
 
 
+def _hours(seconds: float) -> str:
+    return f'{seconds / 3600:,.2f} h ({seconds / 60:,.0f} min)'
+
+
 def plan(costs: BuildCosts, overhead: Overhead, km: float, points: float, workers: int) -> list[tuple[str, str]]:
     """The plan's rows (what, figure) for ``points`` input points over ``km`` of street on ``workers``."""
     building_share = costs.building_points / max(costs.input_points, 1)
@@ -106,20 +110,23 @@ def plan(costs: BuildCosts, overhead: Overhead, km: float, points: float, worker
     tiles = km * tiles_per_km
     building = points * building_share
     work = building * costs.per_point_s + tiles * (costs.per_tile_s + overhead.per_task_s)
-    mapping_h = work / workers / 3600
-    route_one_h = points * costs.route_per_point_s / 3600
-    route_par_h = route_one_h / workers
+    mapping_s = work / workers
+    route_one_s = points * costs.route_per_point_s
+    route_par_s = route_one_s / workers
+    tile_cost = (f'{costs.per_tile_s:.2f} s per tile' if costs.per_tile_s > 0 else
+                 'no cost per tile resolved by the fit: all of it per point')
     rows = [
         ('building points', f'{building:.3g} ({building_share:.0%} of {points:.3g} input points, as measured)'),
         ('tiles', f'{tiles:,.0f} ({tiles_per_km:.1f} per km of street, as measured)'),
-        ('mapping work', f'{work / 3600:,.0f} worker-hours ({costs.per_point_s * 1e6:.1f} µs per building point, '
-                         f'{costs.per_tile_s:.2f} s per tile, {overhead.per_task_s * 1e3:.1f} ms scheduler per task)'),
-        (f'mapping on {workers} workers', f'{mapping_h:,.1f} h (tasks spread evenly; the largest tile, '
+        ('mapping work', f'{work / 3600:,.1f} worker-hours ({costs.per_point_s * 1e6:.1f} µs per building point, '
+                         f'{tile_cost}, {overhead.per_task_s * 1e3:.1f} ms scheduler per task)'),
+        (f'mapping on {workers} workers', f'{_hours(mapping_s)} (tasks spread evenly; the largest tile, '
                                           f'{costs.largest_tile_points:,} points, takes '
                                           f'{costs.per_tile_s + costs.largest_tile_points * costs.per_point_s:.0f} s)'),
-        ('routing, one client', f'{route_one_h:,.1f} h ({costs.route_per_point_s * 1e6:.2f} µs per input point)'),
-        (f'routing, {workers} routers', f'{route_par_h:,.2f} h (inputs cut by file, routed in parallel)'),
-        ('total', f'{mapping_h + route_par_h:,.1f} h with parallel routing, {mapping_h + route_one_h:,.1f} h with '
+        ('routing, one client', f'{_hours(route_one_s)} ({costs.route_per_point_s * 1e6:.2f} µs per input point: '
+                                'reading, selecting, spilling)'),
+        (f'routing, {workers} routers', f'{_hours(route_par_s)} (inputs cut by file, routed in parallel: not built)'),
+        ('total', f'{_hours(mapping_s + route_par_s)} with parallel routing, {_hours(mapping_s + route_one_s)} with '
                   'one client'),
         ('memory per worker', f'{costs.peak_rss_mb:,.0f} MB peak measured (largest tile {costs.largest_tile_points:,} '
                               'points); a city tile of the same buildings needs the same'),
@@ -150,8 +157,8 @@ def main(argv: list[str] | None = None) -> int:
           f'cluster start {overhead.start_s:.1f} s')
     print(f'measured   {costs.input_points:,} input points, {costs.building_points:,} building points, {costs.tiles} '
           f'tiles{"" if costs.street_km is None else f", {costs.street_km:.2f} km of street"}: '
-          f'{costs.per_point_s * 1e6:.2f} µs per building point + {costs.per_tile_s:.3f} s per tile (fit over the '
-          f'tile tasks), routing {costs.route_per_point_s * 1e6:.2f} µs per input point, peak RSS '
+          f'{costs.per_point_s * 1e6:.2f} µs per building point + {costs.per_tile_s:.3f} s per tile (processor '
+          f'seconds of the tile tasks, fitted), routing {costs.route_per_point_s * 1e6:.2f} µs per input point, peak RSS '
           f'{costs.peak_rss_mb:.0f} MB')
     rows = plan(costs, overhead, args.km, args.points, args.workers)
     print(f'\nplan: {args.km:,.0f} km of street, {args.points:.3g} input points, {args.workers} workers')

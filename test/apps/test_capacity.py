@@ -33,8 +33,8 @@ def test_the_plan_scales_the_measured_costs():
     overhead = capacity.Overhead(2, 100, per_task_s=0.01, round_trip_s=0.02, start_s=1.0)
     rows = dict(capacity.plan(costs, overhead, km=100.0, points=4e8, workers=10))
     # 1e8 building points x 1e-5 s + 1000 tiles x (1 + 0.01) s = 2010 worker-s, over 10 workers
-    assert rows['mapping work'].startswith('1 worker-hours')
-    assert rows['mapping on 10 workers'].startswith(f'{2010 / 10 / 3600:,.1f} h')
+    assert rows['mapping work'].startswith(f'{2010 / 3600:,.1f} worker-hours')
+    assert rows['mapping on 10 workers'].startswith(f'{2010 / 10 / 3600:,.2f} h ({2010 / 10 / 60:,.0f} min)')
     assert rows['tiles'].startswith('1,000')
 
 
