@@ -13,8 +13,6 @@ from uncertain_facade_map.io.clouds import write_cloud
 from uncertain_facade_map.io.map_file import save_map
 from uncertain_facade_map.localisation import se3, xyzrpy_from_pose
 from uncertain_facade_map.localisation.solver import centred_log
-from uncertain_facade_map.mapping.facade_map import build_map
-from uncertain_facade_map.params import MapParams
 from uncertain_facade_map_apps.cli import main
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'localisation'))
@@ -27,10 +25,7 @@ ORIGIN = np.array([500_000.0, 5_400_000.0, 400.0])
 def files(scenes, tmp_path_factory):
     """A map of the small scene (with a georeference) and two scans of campaign 1 as PLY and NPZ."""
     out = tmp_path_factory.mktemp('localise')
-    cloud = scenes.campaign('small', 0)
-    pts = cloud.points[cloud.points['class'] == 1]
-    fmap = build_map(np.stack([pts['x'], pts['y'], pts['z']], 1), pts['building_id'],
-                     np.stack([pts['origin_x'], pts['origin_y'], pts['origin_z']], 1), MapParams(), ORIGIN)
+    fmap = scenes.building_map('small', 0, ORIGIN)
     save_map(fmap, out / 'map.npz')
     truths = []
     for k, (frac, suffix) in enumerate(((0.45, '.ply'), (0.6, '.npz'))):

@@ -14,8 +14,6 @@ from uncertain_facade_map.io.cloud import Cloud
 from uncertain_facade_map.io.clouds import write_cloud
 from uncertain_facade_map.io.map_file import save_map
 from uncertain_facade_map.localisation import xyzrpy_from_pose
-from uncertain_facade_map.mapping.facade_map import build_map
-from uncertain_facade_map.params import MapParams
 from uncertain_facade_map.tiling.manifest import MANIFEST, read_manifest
 from uncertain_facade_map.tiling.tiled_map import TiledMap
 from uncertain_facade_map_apps.cli import main
@@ -30,10 +28,7 @@ ORIGIN = np.array([500_000.0, 5_400_000.0, 400.0])
 def files(scenes, tmp_path_factory):
     """The small scene's map (georeferenced), cut into 10 m tiles by ``tile``, and a scan of campaign 1."""
     out = tmp_path_factory.mktemp('tiled_cli')
-    cloud = scenes.campaign('small', 0)
-    pts = cloud.points[cloud.points['class'] == 1]
-    fmap = build_map(np.stack([pts['x'], pts['y'], pts['z']], 1), pts['building_id'],
-                     np.stack([pts['origin_x'], pts['origin_y'], pts['origin_z']], 1), MapParams(), ORIGIN)
+    fmap = scenes.building_map('small', 0, ORIGIN)
     save_map(fmap, out / 'map.npz')
     assert main(['tile', str(out / 'map.npz'), '--out', str(out / 'tiled'), '--side', '10', '--quiet']) == 0
     scan, truth = sensor_scan(scenes.scene('small'), scenes.campaign('small', 1), 1, 0.45, 4000)

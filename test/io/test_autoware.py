@@ -32,19 +32,15 @@ from uncertain_facade_map.io.autoware import (
 )
 from uncertain_facade_map.io.map_file import save_map
 from uncertain_facade_map.io.pcd import read_pcd
-from uncertain_facade_map.mapping.facade_map import FacadeMap, build_map
+from uncertain_facade_map.mapping.facade_map import FacadeMap
 from uncertain_facade_map.mapping.products import surface_grid
-from uncertain_facade_map.params import MapParams
 from uncertain_facade_map_apps.cli import main
 
 
 @pytest.fixture(scope='module')
 def small_map(scenes, tmp_path_factory):
     """The small scene's map and its file."""
-    cloud = scenes.campaign('small', 0)
-    pts = cloud.points[cloud.points['class'] == 1]
-    fmap = build_map(np.stack([pts['x'], pts['y'], pts['z']], 1), pts['building_id'],
-                     np.stack([pts['origin_x'], pts['origin_y'], pts['origin_z']], 1), MapParams(), cloud.map_origin)
+    fmap = scenes.building_map('small', 0)
     path = save_map(fmap, tmp_path_factory.mktemp('autoware') / 'map.npz')
     return fmap, path
 

@@ -11,18 +11,13 @@ from scipy.linalg import cho_factor, cho_solve
 
 from uncertain_facade_map.localisation import covariance_from_std, localise, map_query
 from uncertain_facade_map.localisation.solver import centred_log
-from uncertain_facade_map.mapping.facade_map import build_map
-from uncertain_facade_map.params import MapParams
 
 PRIOR_COV = covariance_from_std([2.0, 2.0, 2.0, *np.deg2rad([3.0, 3.0, 3.0])])
 
 
 @pytest.fixture(scope='module')
 def small_map(scenes):
-    cloud = scenes.campaign('small', 0)
-    pts = cloud.points[cloud.points['class'] == 1]
-    return build_map(np.stack([pts['x'], pts['y'], pts['z']], 1), pts['building_id'],
-                     np.stack([pts['origin_x'], pts['origin_y'], pts['origin_z']], 1), MapParams(), cloud.map_origin)
+    return scenes.building_map('small', 0)
 
 
 @pytest.fixture(scope='module')

@@ -36,8 +36,7 @@ from uncertain_facade_map.io.map_file import save_map  # noqa: E402
 from uncertain_facade_map.io.parameter_file import dump_config  # noqa: E402
 from uncertain_facade_map.localisation import covariance_from_std  # noqa: E402
 from uncertain_facade_map.localisation.solver import centred_log  # noqa: E402
-from uncertain_facade_map.mapping.facade_map import build_map  # noqa: E402
-from uncertain_facade_map.params import LOCALIZER_NAME, Config, MapParams  # noqa: E402
+from uncertain_facade_map.params import LOCALIZER_NAME, Config  # noqa: E402
 from uncertain_facade_map_apps.ros_client import SpinningClient  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -113,10 +112,7 @@ def _wait_log(proc: subprocess.Popen, log: Path, text: str, timeout: float = 60.
 def world(scenes, tmp_path_factory):
     """The map file of campaign 0 of ``small``, and scans of campaign 1 with their true poses."""
     tmp = tmp_path_factory.mktemp('localizer')
-    cloud = scenes.campaign('small', 0)
-    pts = cloud.points[cloud.points['class'] == 1]
-    fmap = build_map(np.stack([pts['x'], pts['y'], pts['z']], 1), pts['building_id'],
-                     np.stack([pts['origin_x'], pts['origin_y'], pts['origin_z']], 1), MapParams(), cloud.map_origin)
+    fmap = scenes.building_map('small', 0)
     save_map(fmap, tmp / 'map.npz')
     scene, drive = scenes.scene('small'), scenes.campaign('small', 1)
     scans = [sensor_scan(scene, drive, 1, f, 5000) for f in np.linspace(0.2, 0.8, SCANS)]

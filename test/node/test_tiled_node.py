@@ -25,7 +25,6 @@ pytest.importorskip('uncertain_facade_map.srv')
 from test_node import Client, NodeProcess, diagnostics, node_config  # noqa: E402
 
 from uncertain_facade_map.io.map_file import save_map  # noqa: E402
-from uncertain_facade_map.mapping.facade_map import build_map  # noqa: E402
 from uncertain_facade_map.params import QueryConfig  # noqa: E402
 from uncertain_facade_map.pipeline.step7_queries import ANSWER_FIELDS  # noqa: E402
 from uncertain_facade_map.tiling.cut import cut_map  # noqa: E402
@@ -41,10 +40,7 @@ NEAR = {'tile_0_0': (9.0, 11.0), 'tile_1_0': (31.0, 11.0)}
 def maps(scenes, tmp_path_factory):
     """(work folder, the one-file map, its file, the tiled map's folder)."""
     work = tmp_path_factory.mktemp('tiled_node')
-    cloud = scenes.campaign('small', 0)
-    pts = cloud.points[cloud.points['class'] == 1]
-    whole = build_map(np.stack([pts['x'], pts['y'], pts['z']], 1), pts['building_id'],
-                      np.stack([pts['origin_x'], pts['origin_y'], pts['origin_z']], 1), map_origin=cloud.map_origin)
+    whole = scenes.building_map('small', 0)
     save_map(whole, work / 'whole.npz')
     manifest = cut_map(whole, work / 'tiled', SIDE)
     assert sorted(manifest.tiles) == sorted(NEAR)

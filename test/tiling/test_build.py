@@ -19,11 +19,7 @@ from uncertain_facade_map.tiling.manifest import Manifest
 
 @pytest.fixture(scope='module')
 def street(scenes):
-    cloud = scenes.campaign('small', 0)
-    pts = cloud.points[cloud.points['class'] == 1]
-    xyz = np.stack([pts['x'], pts['y'], pts['z']], 1)
-    origins = np.stack([pts['origin_x'], pts['origin_y'], pts['origin_z']], 1)
-    return xyz, pts['building_id'].astype(np.int64), origins, cloud.map_origin
+    return *scenes.building_points('small', 0), scenes.campaign('small', 0).map_origin
 
 
 @pytest.fixture(scope='module')
