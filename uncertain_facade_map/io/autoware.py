@@ -72,7 +72,6 @@ import math
 import os
 import re
 import shutil
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -82,9 +81,8 @@ import numpy as np
 from ..errors import InputError
 from ..mapping.facade_map import FacadeMap
 from ..mapping.products import surface_grid
-from ._files import _one_line
+from ._files import _one_line, atomic_write
 from .cloud import Cloud
-from .map_file import _umask
 from .pcd import write_pcd
 
 __all__ = ['AUTOWARE_GRID', 'MAX_COORDINATE', 'METADATA_NAME', 'PCD_DTYPE', 'AutowareExport', 'ExportedFile', 'cell_file_name',
@@ -238,25 +236,10 @@ def _group(rows: np.ndarray, grid: int) -> Iterator[tuple[tuple[int, int], np.nd
         yield (int(key[0]), int(key[1])), rows[order[starts[k]:starts[k + 1]]]
 
 
-def _atomic(path: Path, write: Callable[[str], None]) -> None:
-    """Write ``path`` through ``write(temporary name)`` in its folder, fsync, then rename over it."""
-    fd, tmp = tempfile.mkstemp(prefix=f'.{path.name}.', suffix='.tmp', dir=path.parent)
-    os.close(fd)
-    try:
-        write(tmp)
-        with open(tmp, 'rb+') as fh:
-            os.fsync(fh.fileno())
-        os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def _write_cell(folder: Path, prefix: str, corner: tuple[int, int], rows: np.ndarray) -> ExportedFile:
     name = cell_file_name(prefix, *corner)
     cloud = Cloud(np.ascontiguousarray(rows), np.zeros(3))
-    _atomic(folder / name, lambda tmp: write_pcd(tmp, cloud, encoding='binary'))
+    atomic_write(folder / name, lambda tmp: write_pcd(tmp, cloud, encoding='binary'))
     return ExportedFile(name, corner, len(rows))
 
 
@@ -354,7 +337,7 @@ def export_autoware(source: FacadeMap | str | os.PathLike[str] | Any, out: str |
         def write_text(tmp: str) -> None:
             Path(tmp).write_text(text, encoding='ascii')
 
-        _atomic(metadata, write_text)
+        atomic_write(metadata, write_text)
     except OSError as exc:
         raise InputError(f'cannot write the export to {folder}: {_one_line(exc)}') from exc
     return AutowareExport(folder, metadata, float(grid_m), files, sum(f.points for f in files), bounds,

@@ -31,8 +31,6 @@ Saving is atomic: the file is written next to the target and renamed over it.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 import zipfile
 from pathlib import Path
 from typing import Any, Callable
@@ -44,6 +42,7 @@ from ..errors import InputError
 from ..mapping.facade_map import FacadeMap
 from ..params import map_params_from_record, map_params_record
 from ..pipeline.step8_occupancy import PLSC
+from ._files import atomic_write, temporary_name
 
 FORMAT = 'uncertain_facade_map.map'
 VERSION = 4
@@ -76,25 +75,6 @@ def _facade_arrays(f: FacadeModel) -> dict[str, np.ndarray]:
     }
 
 
-def _umask() -> int:
-    """The process's umask (read from /proc where it can be, without changing it)."""
-    try:
-        with open('/proc/self/status', encoding='ascii') as f:
-            for line in f:
-                if line.startswith('Umask:'):
-                    return int(line.split()[1], 8)
-    except (OSError, ValueError):
-        pass
-    mask = os.umask(0o022)  # elsewhere: read by setting it (briefly)
-    os.umask(mask)
-    return mask
-
-
-def _temporary_name(path: Path) -> tuple[str, str]:
-    """(prefix, suffix) of the temporary files :func:`save_map` writes next to ``path``."""
-    return f'.{path.name}.', '.tmp'
-
-
 def remove_stale_temporaries(path: str | Path) -> list[Path]:
     """Delete the temporary files that saves of ``path`` left behind (a process killed while
     saving leaves one: ``.NAME.XXXXXXXX.tmp`` next to ``path``). Call it when no save of
@@ -104,7 +84,7 @@ def remove_stale_temporaries(path: str | Path) -> list[Path]:
         The files deleted.
     """
     path = Path(path)
-    prefix, suffix = _temporary_name(path)
+    prefix, suffix = temporary_name(path)
     removed = []
     if path.parent.is_dir():
         for stale in path.parent.glob(f'{prefix}*{suffix}'):
@@ -179,18 +159,12 @@ def save_map(fmap: FacadeMap, path: str | Path) -> Path:
         # Each call held back is one scan (FacadeMap.registration_var_): its number per point.
         arrays['pending/scan'] = np.repeat(np.arange(len(fmap.pending), dtype=np.int64),
                                            [len(p[0]) for p in fmap.pending])
-    prefix, suffix = _temporary_name(path)
-    fd, tmp = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=path.parent)
-    try:
-        with os.fdopen(fd, 'wb') as fh:
-            os.fchmod(fh.fileno(), 0o666 & ~_umask())
+
+    def write(name: str) -> None:
+        with open(name, 'wb') as fh:
             _write_npz(fh, arrays)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+
+    atomic_write(path, write)
     return path
 
 

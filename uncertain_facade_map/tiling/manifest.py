@@ -33,7 +33,6 @@ import hashlib
 import json
 import math
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any
@@ -41,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..io._files import atomic_write
 from ..mapping.facade_map import FacadeMap
 from . import grid as _grid
 from .grid import tile_file, tile_id
@@ -177,18 +177,13 @@ def write_manifest(folder: str | os.PathLike, manifest: Manifest) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     target = folder / MANIFEST
     text = json.dumps(manifest.as_dict(), indent=1, allow_nan=False)
-    fd, tmp = tempfile.mkstemp(prefix=f'.{MANIFEST}.', suffix='.tmp', dir=folder)
-    try:
-        with os.fdopen(fd, 'w', encoding='utf-8') as fh:
-            os.fchmod(fh.fileno(), 0o644)
+
+    def write(name: str) -> None:
+        with open(name, 'w', encoding='utf-8') as fh:
             fh.write(text)
             fh.write('\n')
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, target)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+
+    atomic_write(target, write, mode=0o644)
     _fsync_dir(folder)
     return target
 
