@@ -313,6 +313,16 @@ class TiledMap:
         if self._registration is not None:
             fmap.registration_var_, fmap.registration_sums_ = self._registration[0], self._registration[1].copy()
 
+    def _hit(self, tile_id: str) -> FacadeMap | None:
+        """The tile's map if it is loaded (counted as a hit, made the most recently used), else
+        None; called with ``_lock`` held."""
+        hit = self._tiles.get(tile_id)
+        if hit is None:
+            return None
+        self._tiles.move_to_end(tile_id)
+        self._stats['hits'] += 1
+        return hit[0]
+
     def tile(self, tile_id: str) -> FacadeMap:
         """A tile's map, loaded through the cache (do not modify it).
 
@@ -322,19 +332,15 @@ class TiledMap:
         if tile_id not in self.manifest_.tiles:
             raise InputError(f'the tiled map {self.folder} has no tile {tile_id!r}')
         with self._lock:
-            hit = self._tiles.get(tile_id)
+            hit = self._hit(tile_id)
             if hit is not None:
-                self._tiles.move_to_end(tile_id)
-                self._stats['hits'] += 1
-                return hit[0]
+                return hit
             loading = self._loading.setdefault(tile_id, threading.Lock())
         with loading:  # one load per tile at a time; other tiles load meanwhile
             with self._lock:
-                hit = self._tiles.get(tile_id)
+                hit = self._hit(tile_id)  # loaded by another thread while this one waited
                 if hit is not None:
-                    self._tiles.move_to_end(tile_id)
-                    self._stats['hits'] += 1
-                    return hit[0]
+                    return hit
             start = time.perf_counter()
             fmap = self._load(tile_id)
             size = array_bytes(fmap)
