@@ -443,9 +443,13 @@ def spill_part(folder: str | Path, index: int, chunks: list[str], plan: RoutePla
             so = z['sensor_origins'] if plan.has_origins else None
         labels = plan.labels(ids, xyz)
         uniq, inverse = np.unique(labels, return_inverse=True)
-        tiles = np.array([plan.tiles[b] for b in uniq.tolist()])[inverse.reshape(-1)]
-        for t in np.unique(tiles).tolist():
-            sel = np.flatnonzero(tiles == t)
+        of_label = [plan.tiles[b] for b in uniq.tolist()]
+        names = sorted(set(of_label))
+        code = np.searchsorted(np.array(names), np.array(of_label))[inverse.reshape(-1)]
+        order = np.argsort(code, kind='stable')  # by tile, input order within each
+        cut = np.searchsorted(code[order], np.arange(len(names) + 1))
+        for i, t in enumerate(names):
+            sel = order[cut[i]:cut[i + 1]]
             (work / t).mkdir(parents=True, exist_ok=True)
             target = work / t / f'part_{k:06d}.npz'
             arrays = {'xyz': xyz[sel], 'building_id': labels[sel]}
