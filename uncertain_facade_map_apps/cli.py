@@ -427,8 +427,8 @@ def _build_tiles(args: argparse.Namespace, config) -> int:
         count = iter(range(1, len(todo) + 1))
         results = run_tiles(todo, folder, manifest, workers=args.workers or 0, scheduler=args.scheduler,
                             progress=lambda _r: update(next(count)),
-                            calibrate=None if not router.has_origins or (not todo and manifest.occupancy) else
-                            (calibration_tile(tasks), config.query.resolution))
+                            calibrate=None if not todo and manifest.local_calibration else
+                            (calibration_tile(tasks), config.query.resolution if router.has_origins else None))
     map_s = time.perf_counter() - started - read_s - route_s
     plsc = manifest.occupancy
     occupancy = ('the fixed formula' if plsc is None else

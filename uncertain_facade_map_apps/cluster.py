@@ -59,12 +59,13 @@ def record_tile(folder: str | Path, manifest: Manifest, result: TileResult) -> N
 def run_tiles(tasks: Iterable[TileTask], folder: str | Path, manifest: Manifest, workers: int = 0,
               scheduler: str | None = None, progress: Callable[[TileResult], None] | None = None,
               retries: int = RETRIES, function: Callable[[TileTask], TileResult] = build_tile,
-              calibrate: tuple[str, float] | None = None) -> list[TileResult]:
+              calibrate: tuple[str, float | None] | None = None) -> list[TileResult]:
     """Run the tile tasks and record each finished tile in the manifest (written after each).
 
-    With ``calibrate``, the map's occupancy PLSC is learnt too (:func:`calibrate_tile`, as one more
-    task once that tile is written, or at once if it is not among the tasks: on a cluster it runs
-    beside the remaining tiles, which go largest first) and put into ``manifest.occupancy``.
+    With ``calibrate``, the map's occupancy PLSC and its local reading's calibration are learnt too
+    (:func:`calibrate_tile`, as one more task once that tile is written, or at once if it is not among
+    the tasks: on a cluster it runs beside the remaining tiles, which go largest first) and put into
+    ``manifest.occupancy`` and ``manifest.local_calibration``.
 
     Args:
         tasks: the tiles to build.
@@ -75,8 +76,8 @@ def run_tiles(tasks: Iterable[TileTask], folder: str | Path, manifest: Manifest,
         progress: called with each finished tile's result.
         retries: times a task is run again after a lost worker or an error.
         function: what runs a task (tests wrap :func:`build_tile`).
-        calibrate: (the tile to learn the occupancy on, the voxel side of its labels in m), or
-            None: not learnt (:func:`~uncertain_facade_map.tiling.build.calibration_tile` chooses).
+        calibrate: (the tile to learn the calibrations on, the voxel side of the occupancy's labels in m
+            or None: no occupancy learnt), or None: not learnt (:func:`~uncertain_facade_map.tiling.build.calibration_tile` chooses).
 
     Returns:
         The results in order of completion.
@@ -92,8 +93,10 @@ def run_tiles(tasks: Iterable[TileTask], folder: str | Path, manifest: Manifest,
         if progress is not None:
             progress(result)
 
-    def learnt(occupancy: dict | None) -> None:
-        manifest.occupancy = occupancy
+    def learnt(calibrations: dict) -> None:
+        if resolution is not None:  # else not learnt (points without sensor origins): the manifest's kept
+            manifest.occupancy = calibrations['occupancy']
+        manifest.local_calibration = dict(calibrations['local_calibration'])
         write_manifest(folder, manifest)
 
     if not tasks and learn_on is None:

@@ -343,13 +343,13 @@ class FacadeMapperNode(Node):
         return FacadeMap(self.params, np.asarray(cfg.input.map_origin, dtype=np.float64))
 
     def _open_map(self, path: str) -> FacadeMap | TiledMap:
-        """A map file, or a tiled map read through ``tiles.cache_mb`` and ``tiles.union_tiles``.
+        """A map file, or a tiled map read through ``tiles.cache_mb`` and ``tiles.view_tiles``.
 
         Raises:
             InputError: a damaged file or manifest, a folder without a manifest (one line each).
         """
         t = self.config.tiles
-        return TiledMap(path, t.cache_mb, t.union_tiles) if is_tiled_map(path) else open_map(path, t.cache_mb)
+        return TiledMap(path, t.cache_mb, t.view_tiles) if is_tiled_map(path) else open_map(path, t.cache_mb)
 
     @staticmethod
     def _live_map_for(tiled: TiledMap) -> FacadeMap:
@@ -361,7 +361,7 @@ class FacadeMapperNode(Node):
         if self._tiled is None:
             return
         follower = nt.TileFollower(self._tiled, self.config.tiles, self._pose_xy,
-                                   lambda text: self._warn(text, 'tile follower', period=30.0))
+                                   lambda text: self._warn(text, 'tile follower', period=30.0), self.config.query)
         self._follower = follower
         follower.start()
 
@@ -913,7 +913,7 @@ class FacadeMapperNode(Node):
                   'tiles_loaded': len(info['tiles']),
                   'tiles_cache_mb': round(info['bytes'] / 2**20, 1),
                   'tiles_cache_limit_mb': round(info['limit_bytes'] / 2**20, 1),
-                  'tiles_merged_maps': len(info['groups']),
+                  'tiles_views': len(info['views']), 'tiles_views_built': info['views_built'],
                   'tiles_hits': info['hits'], 'tiles_misses': info['misses'], 'tiles_evictions': info['evictions'],
                   'tiles_load_seconds': round(info['load_seconds'], 3)}
         if follower is not None:

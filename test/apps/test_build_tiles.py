@@ -19,7 +19,9 @@ import pytest
 from uncertain_facade_map.io.cloud import Cloud
 from uncertain_facade_map.io.map_file import load_map
 from uncertain_facade_map.io.npz import write_npz
+from uncertain_facade_map.params import QueryConfig
 from uncertain_facade_map.tiling.manifest import MANIFEST, read_manifest
+from uncertain_facade_map.tiling.tiled_map import local_calibration, reading_id
 from uncertain_facade_map_apps.cli import main
 
 COPIES = 3
@@ -63,6 +65,10 @@ def test_a_build_lists_its_tiles(built):
     assert not (built / '.work').exists()
     for record in manifest.tiles.values():
         assert load_map(built / record.file).buildings == record.buildings
+    # The local reading's calibration: the largest tile's own, as its one-file map learns it.
+    largest = max(manifest.tiles.values(), key=lambda r: r.points)
+    assert manifest.local_calibration == local_calibration(load_map(built / largest.file))
+    assert 0.5 < manifest.local_calibration[reading_id(QueryConfig())] < 5
 
 
 def test_a_killed_build_resumes_to_the_same_tiles(drives, built, tmp_path, capsys):
@@ -90,6 +96,7 @@ def test_a_killed_build_resumes_to_the_same_tiles(drives, built, tmp_path, capsy
     assert _hashes(out) == _hashes(built)
     assert read_manifest(out).tiles == read_manifest(built).tiles
     assert read_manifest(out).occupancy == read_manifest(built).occupancy is not None
+    assert read_manifest(out).local_calibration == read_manifest(built).local_calibration != {}
 
 
 def test_a_second_drive_updates_only_the_tiles_it_saw(drives, built, tmp_path, capsys):
@@ -157,3 +164,4 @@ def test_a_lost_worker_is_replaced_and_the_map_is_the_same(drives, built, tmp_pa
     assert len({r.pid for r in results}) >= 2
     assert _hashes(out) == _hashes(built)
     assert manifest.occupancy == read_manifest(built).occupancy is not None
+    assert manifest.local_calibration == read_manifest(built).local_calibration != {}

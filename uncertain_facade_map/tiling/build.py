@@ -172,33 +172,38 @@ def build_tile(task: TileTask) -> TileResult:
                       mapped - started, written - mapped, time.process_time() - cpu)
 
 
-def calibrate_tile(folder: str, file: str, resolution: float) -> dict | None:
-    """One occupancy PLSC for the whole tiled map (``Manifest.occupancy``, what
-    :class:`~.tiled_map.TiledMap` answers every tile with), learnt as ``build`` learns a map's
-    (:meth:`~uncertain_facade_map.mapping.facade_map.FacadeMap.calibrate_occupancy`) on one
-    tile, the build's largest: one calibration (a map of at most ``calibration.max_points``
-    points) whatever the number of tiles, where one per tile cost five times the mapping.
+def calibrate_tile(folder: str, file: str, resolution: float | None) -> dict:
+    """The tiled map's map-wide calibrations (what :class:`~.tiled_map.TiledMap` answers every
+    tile with), learnt on one tile, the build's largest: one calibration whatever the number of
+    tiles, where one per tile cost five times the mapping.
+
+    - ``occupancy``: the occupancy's PLSC (``Manifest.occupancy``), learnt as ``build`` learns a
+      map's (:meth:`~uncertain_facade_map.mapping.facade_map.FacadeMap.calibrate_occupancy`, a map
+      of at most ``calibration.max_points`` points); None: no ``resolution`` given, points without
+      sensor origins, or too few labelled voxels (the fixed formula).
+    - ``local_calibration``: the local reading's leave-one-out factor for the default query
+      settings (``Manifest.local_calibration``, :func:`~.tiled_map.local_calibration`), learnt on
+      the tile's stored points (at most ``CALIBRATION_POINTS`` of them, as a one-file map learns
+      it on all of its own).
 
     Args:
         folder: the tiled map's folder.
         file: the tile's file, relative to ``folder``.
-        resolution: voxel side of the labels, m.
-
-    Returns:
-        ``PLSC.as_dict()``, or None: its points lack sensor
-        origins, or too few labelled voxels (the fixed formula).
+        resolution: voxel side of the occupancy's labels, m, or None: no occupancy learnt.
     """
     from ..io.map_file import load_map
+    from .tiled_map import local_calibration
 
     fmap = load_map(Path(folder) / file)
-    if not fmap.facades or not fmap._has_rays:
-        return None
-    plsc = fmap.calibrate_occupancy(resolution)
-    return plsc.as_dict() if plsc.learnt else None
+    occupancy = None
+    if resolution is not None and fmap.facades and fmap._has_rays:
+        plsc = fmap.calibrate_occupancy(resolution)
+        occupancy = plsc.as_dict() if plsc.learnt else None
+    return {'occupancy': occupancy, 'local_calibration': local_calibration(fmap) if fmap.facades else {}}
 
 
 def calibration_tile(tasks: list[TileTask]) -> str | None:
-    """The tile the run learns the occupancy on: the one with the most routed points (by the
+    """The tile the run learns the map-wide calibrations on (:func:`calibrate_tile`): the one with the most routed points (by the
     size of its spilled parts; ties to the first id), chosen among all the run's tiles, built
     already or not, so that a resumed build learns on the one the uninterrupted build would."""
     if not tasks:
