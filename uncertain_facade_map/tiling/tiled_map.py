@@ -5,21 +5,19 @@
 :meth:`~uncertain_facade_map.mapping.facade_map.FacadeMap.query` does on one map holding
 every building. A tile's map answers only near what it holds: its records' ``extent`` covers
 its stored points and its façades' slabs (raster extent x depth band), so the raster reading
-of a point involves only tiles whose extent holds the point; the local reading (``query.surface``
+of a point involves only the façades whose slab holds it; the local reading (``query.surface``
 'local') reads the ``K + 1`` stored points nearest to a point whose nearest lies within
-``query.local_radius``, so it involves the tiles whose extent, grown by the radius and a
-margin (:data:`LOCAL_MARGIN`, for the farther neighbours), holds it. The candidate tiles of
-a point are those; the points are grouped by their candidate set and each group is answered
-by the merged map of its tiles (cached with the tiles; the groups recur as a vehicle moves).
-A batch whose points need few tiles in all (``tiles.union_tiles``) is answered by one merged
-map of them instead, the same answers (a point's answer involves its candidate tiles only)
-in one call of the compiled kernels: each call of the parallel kernels waits for both
-cores, which costs about 10 ms when other processes keep them busy (the street drive's
-0.1 s scans, load 8 on 2 cores: 44,000 points/s by candidate sets, 104,000 by one merged
-map, 100,000 for the one-file map).
+``query.local_radius``, which lie within the radius and a margin (:data:`LOCAL_MARGIN`, for
+the farther neighbours). The points of a batch are answered by **views** (:mod:`.views`): the
+squares of ``tiles.view_tiles`` x ``view_tiles`` tiles of the grid that hold them, each with
+the façades and stored points within that reach of its square, built once from the loaded
+tiles and kept in the cache (a vehicle's scans fall in one or two squares: one call of the
+compiled kernels each). Each tile's local reading (its stored points' labels, the outliers
+that stand alone) is prepared once and kept with the tile.
 Map-wide quantities are the manifest's: the learnt occupancy (``occupancy``), the
-scan-to-scan variance (``registration``) and the local reading's leave-one-out calibration (``local_calibration``, when the manifest has it for the
-query's settings; else each merged map's own, which differs a little from a one-file map's).
+scan-to-scan variance (``registration``) and the local reading's leave-one-out calibration
+(``local_calibration``, when the manifest has it for the query's settings; else learnt once on
+the tile with the most stored points, for every view).
 
 **Façade ids** of a tiled map: the tiles in the order of their ids (sorted), each tile's
 façades in its file's order; :meth:`TiledMap.merged` numbers its façades the same way
@@ -419,10 +417,6 @@ class TiledMap:
 
     # -- merged maps -----------------------------------------------------------------------
 
-    def _global_ids(self, tiles: Sequence[str]) -> np.ndarray:
-        parts = [self._offset[self._position[t]] + np.arange(self.manifest_.tiles[t].facades) for t in tiles]
-        return np.concatenate(parts).astype(np.int32) if parts else np.empty(0, np.int32)
-
     def _merge(self, maps: Sequence[FacadeMap]) -> FacadeMap:
         fmap = merge_maps(maps) if maps else FacadeMap(self.params, self.map_origin.copy())
         self._map_wide(fmap)
@@ -472,26 +466,6 @@ class TiledMap:
         """Metres a tile's extent is grown by to hold the points its tiles may answer for
         with ``config`` (0 for the raster reading: the extent holds the façades' slabs)."""
         return config.local_radius + LOCAL_MARGIN if config.surface == 'local' else 0.0
-
-    def candidates(self, xyz: np.ndarray, config: QueryConfig | None = None) -> tuple[list[str], np.ndarray]:
-        """The tiles that may answer for (N, 3) points: ``(ids, mask)`` with the (T,) ids of
-        the tiles any point needs and the (N, T) bool of which each point needs."""
-        config = QueryConfig() if config is None else config
-        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-        grow = self.reach(config)
-        lo, hi = self._extent[:, :3] - grow, self._extent[:, 3:] + grow
-        if not len(xyz) or not len(self._ids):
-            return [], np.zeros((len(xyz), 0), bool)
-        qlo, qhi = xyz.min(axis=0), xyz.max(axis=0)
-        near = np.flatnonzero(np.all((lo <= qhi) & (hi >= qlo), axis=1))
-        mask = np.zeros((len(xyz), len(near)), bool)
-        x = xyz[:, 0]
-        for j, i in enumerate(near):  # x first (one pass over the points), y and z on those within
-            k = np.flatnonzero((x >= lo[i, 0]) & (x <= hi[i, 0]))
-            p = xyz[k]
-            mask[k[(p[:, 1] >= lo[i, 1]) & (p[:, 1] <= hi[i, 1]) & (p[:, 2] >= lo[i, 2]) & (p[:, 2] <= hi[i, 2])], j] = True
-        used = mask.any(axis=0)
-        return [self._ids[i] for i in near[used]], mask[:, used]
 
     def _part(self, tile_id: str, fmap: FacadeMap, config: QueryConfig) -> TilePart:
         """The tile's local reading's stored points (:func:`~.views.tile_part`), cached with the tile."""
