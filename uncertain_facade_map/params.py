@@ -695,6 +695,9 @@ class TilesConfig(Section):
     follow_period: float = param(1.0, 'the node looks at its pose and loads the tiles near it this often (0: it '
                                       'does not follow its pose; tiles load when a query needs them)', unit='s',
                                  allowed=_closed(0.0, 3600.0))
+    follow_frame: str = param('', 'the frame whose map-frame position the node follows, looked up in its transform '
+                                  'buffer (/tf, sensor_pose, odometry), e.g. base_link; empty: the child frame of the '
+                                  'latest sensor_pose or odometry message, else the frame of the latest cloud')
 
 
 @dataclass(frozen=True)

@@ -376,10 +376,11 @@ class FacadeMapperNode(Node):
                 self._start_follower()
 
     def _pose_xy(self) -> np.ndarray | None:
-        """The latest map-frame (x, y) of the frame the tiles follow: the child frame of the
-        latest ``sensor_pose`` or odometry message, else the frame of the latest cloud; None
-        while the transform buffer cannot put it in the map frame."""
-        for frame in (self._follow_frame, self._cloud_frame):
+        """The latest map-frame (x, y) of the frame the tiles follow: ``tiles.follow_frame`` when
+        set and the transform buffer holds it (a robot publishing /tf only), else the child frame
+        of the latest ``sensor_pose`` or odometry message, else the frame of the latest cloud;
+        None while the transform buffer cannot put any of them in the map frame."""
+        for frame in (self.config.tiles.follow_frame, self._follow_frame, self._cloud_frame):
             if not frame or frame == self.frame_id:
                 continue
             try:
