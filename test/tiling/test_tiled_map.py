@@ -222,3 +222,29 @@ def test_map_wide_quantities_come_from_the_manifest(tiled, small_whole, tmp_path
     assert on.sum() > 100
     np.testing.assert_allclose(a.variance[on], b.variance[on] + 0.01, rtol=0, atol=1e-12)
     assert TiledMap(copy).merged().registration_var_ == small_whole.registration_var_ + 0.01
+
+
+def test_a_tile_whose_building_has_no_facade(scenes, tmp_path):
+    """A building too small for a façade (a shed of 60 points, in a tile of its own): its stored
+    points count with the nearest façade, in the views as in the one-file map (found on a real
+    sweep cut into 10 m tiles, where such a tile broke the views)."""
+    from uncertain_facade_map.mapping.facade_map import build_map
+
+    xyz, ids, origins = scenes.building_points('small', 0)
+    whole0 = build_map(xyz, ids, origins)
+    pts = np.vstack(list(whole0.points.values()))
+    # Beside the first building, 2 m out from the corner of its bounding box.
+    corner = pts.min(axis=0)
+    rng = np.random.default_rng(2)
+    shed = corner + np.c_[rng.uniform(-2.6, -2.0, 60), rng.uniform(-2.6, -2.0, 60), rng.uniform(0.2, 0.8, 60)]
+    label = int(ids.max()) + 1
+    whole = build_map(np.vstack([xyz, shed]), np.r_[ids, np.full(60, label)],
+                      np.vstack([origins, np.repeat(origins[:1], 60, axis=0)]), map_origin=whole0.map_origin)
+    assert label in whole.points and not [f for f in whole.facades if f.building == label]
+    folder = tmp_path / 'tiled'
+    cut_map(whole, folder, SIDE)
+    tmap = TiledMap(folder, view_tiles=1)
+    ids_map = whole_ids(tmap, whole)
+    near = whole.points[label][rng.choice(len(whole.points[label]), 500)] + rng.normal(0, 0.2, (500, 3))
+    probe = np.vstack([near, probes(whole, 3000, seed=4)])
+    assert_same(tmap.query(probe), whole.query(probe), ids_map)

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..datatypes import FacadeModel, array_bytes
 from ..mapping.facade_map import FacadeMap
@@ -134,13 +135,15 @@ def make_view(key: tuple, tiles: Sequence[str], maps: Sequence[FacadeMap], parts
         p = pts[part.index]
         inside = np.flatnonzero((p[:, 0] >= x0) & (p[:, 0] <= x1) & (p[:, 1] >= y0) & (p[:, 1] <= y1))
         xyz.append(p[inside])
-        fid.append(offset + part.facade[inside].astype(np.int64))
+        f = part.facade[inside].astype(np.int64)
+        fid.append(np.where(f >= 0, offset + f, -1))  # -1: a tile whose buildings have no façade
         building.append(labels[part.index[inside]])
     fid_all = np.concatenate(fid) if fid else np.empty(0, np.int64)
     # The façades whose slabs meet the grown square (all a point of the square may be assigned
     # to), and those a kept stored point belongs to (a point the bands miss takes its nearest
     # stored point's façade), in the tiled map's order.
-    global_ids = np.union1d(np.concatenate(chosen) if chosen else np.empty(0, np.int64), fid_all).astype(np.int32)
+    global_ids = np.union1d(np.concatenate(chosen) if chosen else np.empty(0, np.int64),
+                            fid_all[fid_all >= 0]).astype(np.int32)
     starts = np.asarray(offsets, np.int64)
     owner = np.searchsorted(starts, global_ids, side='right') - 1
     facades = [maps[o].facades[g - starts[o]] for o, g in zip(owner.tolist(), global_ids.tolist())]
@@ -154,7 +157,13 @@ def make_view(key: tuple, tiles: Sequence[str], maps: Sequence[FacadeMap], parts
         # (each tile's are in that order already, and tiles hold disjoint buildings).
         order = np.argsort(b_all, kind='stable')
         pts = np.concatenate(xyz)[order] if xyz else np.empty((0, 3))
-        labels = np.searchsorted(global_ids, fid_all[order]).astype(np.int32)
+        f = fid_all[order]
+        labels = np.where(f >= 0, np.searchsorted(global_ids, f), -1).astype(np.int32)
+        free, mapped = np.flatnonzero(labels < 0), np.flatnonzero(labels >= 0)
+        if len(free) and len(mapped):
+            # Points of buildings with no façade in their tile count with the façade of their
+            # nearest stored point on one, as LocalSurface.of counts them on a whole map.
+            labels[free] = labels[mapped[cKDTree(pts[mapped]).query(pts[free])[1]]]
         normals = np.ascontiguousarray(rasters.axes[:, 2])
         surface = LocalSurface(pts, labels, normals, config.local_neighbours, config.local_radius, config.local_inner)
         if len(pts) > config.local_neighbours + 1:
