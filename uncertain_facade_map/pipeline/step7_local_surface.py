@@ -206,7 +206,7 @@ class LocalSurface:
 
     @classmethod
     def of(cls, facades: Sequence[FacadeModel], points: dict[int, np.ndarray], neighbours: int = 12,
-           radius: float = 0.5, inner: float = 0.2, calibrate: bool = True) -> LocalSurface:
+           radius: float = 0.5, inner: float = 0.2, calibrate: bool = True, join: bool = True) -> LocalSurface:
         """The local surface of a map's façades.
 
         Args:
@@ -217,6 +217,9 @@ class LocalSurface:
             radius: see the class.
             inner: see the class.
             calibrate: learn ``calibration_`` now.
+            join: count the points of a building with no façade with the nearest façade; False:
+                leave them at -1 (a part of a larger map, which joins them over its own points:
+                a tiled map's views, :mod:`~uncertain_facade_map.tiling.views`).
         """
         parts, ids, flags = [], [], []
         for b in sorted(points):
@@ -239,7 +242,7 @@ class LocalSurface:
         xyz = np.concatenate(parts) if parts else np.empty((0, 3))
         fid = np.concatenate(ids) if ids else np.empty(0, np.int32)
         mapped = np.flatnonzero(fid >= 0)
-        if len(mapped) and len(mapped) < len(fid):
+        if join and len(mapped) and len(mapped) < len(fid):
             # A building too small for a façade of its own (often a piece of a neighbour's
             # wall that the clustering cut off): its points count with the nearest façade.
             free = np.flatnonzero(fid < 0)

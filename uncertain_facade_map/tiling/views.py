@@ -46,7 +46,10 @@ class TilePart:
     Attributes:
         index: (M,) int32 the stored points kept (the outliers that stand alone left out):
             their index in the tile's stored points concatenated in building label order.
-        facade: (M,) int32 the tile's façade id of each (its file's order).
+        facade: (M,) int32 the tile's façade id of each (its file's order); -1 for those of a
+            building with no façade (the view counts them with the nearest façade among its
+            points, as a whole map does among all of its own: a neighbour tile's façade may be
+            the nearest).
         box_lo, box_hi: (F, 3) lower and upper corners of the tile's façades' slabs, metres, map frame.
     """
 
@@ -73,7 +76,7 @@ def tile_part(fmap: FacadeMap, config: QueryConfig) -> TilePart:
     if config.surface != 'local':
         return TilePart(np.empty(0, np.int32), np.empty(0, np.int32), lo, hi)
     surface = LocalSurface.of(fmap.facades, fmap.points, config.local_neighbours, config.local_radius,
-                              config.local_inner, calibrate=False)
+                              config.local_inner, calibrate=False, join=False)
     return TilePart(surface.source.astype(np.int32), surface.facade.astype(np.int32), lo, hi)
 
 
@@ -136,7 +139,7 @@ def make_view(key: tuple, tiles: Sequence[str], maps: Sequence[FacadeMap], parts
         inside = np.flatnonzero((p[:, 0] >= x0) & (p[:, 0] <= x1) & (p[:, 1] >= y0) & (p[:, 1] <= y1))
         xyz.append(p[inside])
         f = part.facade[inside].astype(np.int64)
-        fid.append(np.where(f >= 0, offset + f, -1))  # -1: a tile whose buildings have no façade
+        fid.append(np.where(f >= 0, offset + f, -1))  # -1: a building with no façade
         building.append(labels[part.index[inside]])
     fid_all = np.concatenate(fid) if fid else np.empty(0, np.int64)
     # The façades whose slabs meet the grown square (all a point of the square may be assigned
@@ -161,8 +164,9 @@ def make_view(key: tuple, tiles: Sequence[str], maps: Sequence[FacadeMap], parts
         labels = np.where(f >= 0, np.searchsorted(global_ids, f), -1).astype(np.int32)
         free, mapped = np.flatnonzero(labels < 0), np.flatnonzero(labels >= 0)
         if len(free) and len(mapped):
-            # Points of buildings with no façade in their tile count with the façade of their
-            # nearest stored point on one, as LocalSurface.of counts them on a whole map.
+            # Points of buildings with no façade count with the façade of their nearest stored
+            # point on one, here among the view's points (a neighbour tile's façade may be the
+            # nearest), as LocalSurface.of counts them among all of a whole map's.
             labels[free] = labels[mapped[cKDTree(pts[mapped]).query(pts[free])[1]]]
         normals = np.ascontiguousarray(rasters.axes[:, 2])
         surface = LocalSurface(pts, labels, normals, config.local_neighbours, config.local_radius, config.local_inner)
