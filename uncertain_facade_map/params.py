@@ -683,8 +683,9 @@ class TilesConfig(Section):
                               "origin); a building belongs to the tile of the centre of its points' bounding box "
                               "at its first build, whole, so a tile's content may reach past its square",
                         unit='m', allowed=_closed(1.0, 100_000.0))
-    cache_mb: float = param(2048.0, 'a tiled map keeps at most this much of its tiles loaded (least recently used '
-                                    'first out; one tile is always kept, whatever its size)', unit='MB',
+    cache_mb: float = param(2048.0, 'a tiled map keeps at most this much of its tiles (with their local reading) and '
+                                    'of its views loaded (views first out, then the least recently used tiles; one tile '
+                                    'and one view are always kept, whatever their size)', unit='MB',
                             allowed=_closed(1.0, 10_000_000.0))
     view_tiles: int = param(3, 'queries are answered from views of this many tiles a side (the façades and stored '
                                'points near a square of tiles, built once from the loaded tiles and kept in the cache): '

@@ -93,7 +93,7 @@ def test_tiled_answers_equal_the_one_file_map(tiled, small_whole, config, resolu
     info = tmap.cache_info()
     assert info['misses'] >= 2 and len(info['tiles']) >= 1
     if cache_mb < 1:
-        assert len(info['tiles']) == 1 and info['evictions'] >= 1 and not info['views']
+        assert len(info['tiles']) == 1 and info['evictions'] >= 1 and len(info['views']) <= 1
 
 
 def _check_uncalibrated(tmap, whole, xyz, config, resolution, ids):

@@ -384,11 +384,11 @@ class TiledMap:
     def _trim(self, keep: str | None = None) -> None:
         """Evict until the cache is within its bound: views first (least recently used first;
         built again from loaded tiles when needed), then tiles (least recently used first, with
-        their local reading's points and the views holding them); the tiles in use by a query
-        (pinned), ``keep`` and the last tile stay. Call under the lock."""
+        their local reading's points and the views holding them); the most recently used view,
+        the tiles in use by a query (pinned), ``keep`` and the last tile stay. Call under the lock."""
         budget = self.cache_mb * MB
         while self._bytes() > budget:
-            if self._views:
+            if len(self._views) > 1:
                 self._views.popitem(last=False)
                 continue
             candidates = [t for t in self._tiles if t != keep and not self._pins.get(t)]
