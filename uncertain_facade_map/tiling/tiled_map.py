@@ -527,6 +527,9 @@ class TiledMap:
             hit = self._views.get(key)
             if hit is not None:
                 self._views.move_to_end(key)
+                for t in hit.tiles:  # its tiles are in use too (evicting one drops the view)
+                    if t in self._tiles:
+                        self._tiles.move_to_end(t)
                 return hit
         start = time.perf_counter()
         square = self._square(key[0], key[1])
