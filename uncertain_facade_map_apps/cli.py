@@ -372,7 +372,7 @@ def _build_tiles(args: argparse.Namespace, config) -> int:
     from uncertain_facade_map.io.map_file import remove_stale_temporaries
     from uncertain_facade_map.io.trajectory import read_trajectory
     from uncertain_facade_map.params import map_params, map_params_record
-    from uncertain_facade_map.tiling.build import Router, calibration_tile, check_params, done_already, parse_bounds
+    from uncertain_facade_map.tiling.build import Router, calibration_tiles, check_params, done_already, parse_bounds
     from uncertain_facade_map.tiling.manifest import MANIFEST, Manifest, is_tiled_map, read_manifest, write_manifest
 
     from .cluster import run_tiles
@@ -428,7 +428,7 @@ def _build_tiles(args: argparse.Namespace, config) -> int:
         results = run_tiles(todo, folder, manifest, workers=args.workers or 0, scheduler=args.scheduler,
                             progress=lambda _r: update(next(count)),
                             calibrate=None if not todo and manifest.local_calibration else
-                            (calibration_tile(tasks), config.query.resolution if router.has_origins else None))
+                            (calibration_tiles(tasks), config.query.resolution if router.has_origins else None))
     map_s = time.perf_counter() - started - read_s - route_s
     plsc = manifest.occupancy
     occupancy = ('the fixed formula' if plsc is None else

@@ -21,7 +21,7 @@ from uncertain_facade_map.io.map_file import load_map
 from uncertain_facade_map.io.npz import write_npz
 from uncertain_facade_map.params import QueryConfig
 from uncertain_facade_map.tiling.manifest import MANIFEST, read_manifest
-from uncertain_facade_map.tiling.tiled_map import local_calibration, reading_id
+from uncertain_facade_map.tiling.tiled_map import local_calibration, merge_maps, reading_id
 from uncertain_facade_map_apps.cli import main
 
 COPIES = 3
@@ -65,9 +65,10 @@ def test_a_build_lists_its_tiles(built):
     assert not (built / '.work').exists()
     for record in manifest.tiles.values():
         assert load_map(built / record.file).buildings == record.buildings
-    # The local reading's calibration: the largest tile's own, as its one-file map learns it.
-    largest = max(manifest.tiles.values(), key=lambda r: r.points)
-    assert manifest.local_calibration == local_calibration(load_map(built / largest.file))
+    # The local reading's calibration: that of the largest tiles joined (6 small tiles: all of them,
+    # 200,000 points not reached), as the one-file map of the whole learns it.
+    joined = merge_maps([load_map(built / r.file) for r in manifest.tiles.values()])
+    assert manifest.local_calibration == local_calibration(joined)
     assert 0.5 < manifest.local_calibration[reading_id(QueryConfig())] < 5
 
 
@@ -143,7 +144,7 @@ def test_a_lost_worker_is_replaced_and_the_map_is_the_same(drives, built, tmp_pa
     from uncertain_facade_map.io.npz import read_npz
     from uncertain_facade_map.io.parameter_file import load_config
     from uncertain_facade_map.params import map_params, map_params_record
-    from uncertain_facade_map.tiling.build import Router, calibration_tile
+    from uncertain_facade_map.tiling.build import Router, calibration_tiles
     from uncertain_facade_map.tiling.manifest import Manifest
     from uncertain_facade_map_apps.cluster import run_tiles
 
@@ -158,7 +159,7 @@ def test_a_lost_worker_is_replaced_and_the_map_is_the_same(drives, built, tmp_pa
     tasks = router.spill()
     manifest = Manifest(20.0, tuple(router.map_origin), map_params_record(params), {}, None, {})
     results = run_tiles(tasks, out, manifest, workers=2, function=_dying_build,
-                        calibrate=(calibration_tile(tasks), config.query.resolution))
+                        calibrate=(calibration_tiles(tasks), config.query.resolution))
     assert (out / 'killed_once').exists()
     assert len(results) == len(tasks) == 2 * COPIES
     assert len({r.pid for r in results}) >= 2
