@@ -9,7 +9,7 @@ drive in one batch. Prints the median of ``--repeats`` runs of each map, alterna
     .venv/bin/uncertain-facade-map tile /tmp/street.npz --out /tmp/street_tiles --side 50
     .venv/bin/python tools/bench_tiles.py /tmp/street.npz /tmp/street_tiles /tmp/street/campaign0.npz
 
-``--union 0`` groups each batch's points by their own candidate tiles (``tiles.union_tiles``).
+``--view-tiles K`` sets ``tiles.view_tiles`` (the side of the views that answer, in tiles).
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ def main() -> None:
     ap.add_argument('--scans', type=int, default=200, help='scans timed, spread over the drive (default 200)')
     ap.add_argument('--repeats', type=int, default=5, help='runs of each map (default 5)')
     ap.add_argument('--surface', default='local', choices=('local', 'raster'), help='query.surface')
-    ap.add_argument('--union', type=int, default=TilesConfig.union_tiles, help='tiles.union_tiles')
+    ap.add_argument('--view-tiles', type=int, default=TilesConfig.view_tiles, help='tiles.view_tiles')
     ap.add_argument('--cache-mb', type=float, default=TilesConfig.cache_mb, help='tiles.cache_mb')
     args = ap.parse_args()
     config = QueryConfig(surface=args.surface)
@@ -60,16 +60,17 @@ def main() -> None:
     n_scan, n_scan_t = sum(len(s) for s in scans), sum(len(s) for s in scans_t)
     for what, x, sc, n in (('one-file', xyz, scans, n_scan), ('tiled', xyz_t, scans_t, n_scan_t)):
         print(f'{what}: {len(x):,} points; {len(sc)} scans timed ({n:,} points, median '
-              f'{int(np.median([len(s) for s in sc])):,} a scan); query.surface {args.surface}; union_tiles {args.union}')
+              f'{int(np.median([len(s) for s in sc])):,} a scan); query.surface {args.surface}; view_tiles {args.view_tiles}')
     one = load_map(args.map)
-    tiled = TiledMap(args.tiled, args.cache_mb, args.union)
+    tiled = TiledMap(args.tiled, args.cache_mb, args.view_tiles)
     for name, fmap, sc in (('one-file', one, scans), ('tiled', tiled, scans_t)):
         t0 = time.perf_counter()
         _run(fmap, sc, config)  # warm: every structure built, every tile loaded
         print(f'{name} warm-up {time.perf_counter() - t0:.1f} s')
     info = tiled.cache_info()
-    print(f'cache: {len(info["tiles"])} tiles ({info["tile_bytes"] / 1e6:.0f} MB), {len(info["groups"])} merged maps, '
-          f'{info["bytes"] / 1e6:.0f} MB in all; {info["misses"]} loads in {info["load_seconds"]:.2f} s')
+    print(f'cache: {len(info["tiles"])} tiles ({info["tile_bytes"] / 1e6:.0f} MB), {len(info["views"])} views, '
+          f'{info["bytes"] / 1e6:.0f} MB in all; {info["misses"]} loads in {info["load_seconds"]:.2f} s, '
+          f'{info["views_built"]} views built in {info["view_seconds"]:.2f} s')
     work = (('scans', scans, n_scan, scans_t, n_scan_t),
             ('one batch', [xyz[::2]], len(xyz[::2]), [xyz_t[::2]], len(xyz_t[::2])))
     for name, batches, n, batches_t, n_t in work:

@@ -683,18 +683,22 @@ class TilesConfig(Section):
                               "origin); a building belongs to the tile of the centre of its points' bounding box "
                               "at its first build, whole, so a tile's content may reach past its square",
                         unit='m', allowed=_closed(1.0, 100_000.0))
-    cache_mb: float = param(2048.0, 'a tiled map keeps at most this much of its tiles loaded (least recently used '
-                                    'first out; one tile is always kept, whatever its size)', unit='MB',
+    cache_mb: float = param(2048.0, 'a tiled map keeps at most this much of its tiles (with their local reading) and '
+                                    'of its views loaded (views first out, then the least recently used tiles; one tile '
+                                    'and one view are always kept, whatever their size)', unit='MB',
                             allowed=_closed(1.0, 10_000_000.0))
-    union_tiles: int = param(4, 'a query whose points need at most this many tiles in all is answered by one merged '
-                                'map of those tiles (one call of the compiled kernels: each call of the parallel '
-                                'kernels waits for both cores, which costs when they are busy); more tiles: its points '
-                                'are grouped by the tiles each needs (0: always)', allowed=_closed(0, 1000))
+    view_tiles: int = param(3, 'queries are answered from views of this many tiles a side (the façades and stored '
+                               'points near a square of tiles, built once from the loaded tiles and kept in the cache): '
+                               'a batch whose points fit in one view is one call of the compiled kernels; larger views '
+                               'take longer to build and more memory', allowed=_closed(1, 64))
     radius: float = param(150.0, 'the node keeps the tiles within this distance of its latest pose loaded, and '
                                  'list_tiles answers within it by default', unit='m', allowed=_closed(0.0, 100_000.0))
     follow_period: float = param(1.0, 'the node looks at its pose and loads the tiles near it this often (0: it '
                                       'does not follow its pose; tiles load when a query needs them)', unit='s',
                                  allowed=_closed(0.0, 3600.0))
+    follow_frame: str = param('', 'the frame whose map-frame position the node follows, looked up in its transform '
+                                  'buffer (/tf, sensor_pose, odometry), e.g. base_link; empty: the child frame of the '
+                                  'latest sensor_pose or odometry message, else the frame of the latest cloud')
 
 
 @dataclass(frozen=True)

@@ -130,7 +130,7 @@ def node_params(path: Path, folder: str, args: argparse.Namespace) -> Path:
         persistence=dataclasses.replace(config.persistence, map_path=str(folder), autosave_period=0.0),
         tiles=dataclasses.replace(config.tiles, cache_mb=args.cache_mb, radius=args.radius,
                                   follow_period=args.follow_period,
-                                  **({'union_tiles': args.union_tiles} if args.union_tiles else {})),
+                                  **({'view_tiles': args.view_tiles} if args.view_tiles else {})),
         service=dataclasses.replace(config.service, max_query_points=max(args.points, config.service.max_query_points)),
         publish=dataclasses.replace(config.publish, diagnostics_period=0.5))
     path.write_text(dump_config(config))
@@ -221,7 +221,7 @@ def run(args: argparse.Namespace, served: str | None = None) -> dict[str, Any]:
     ms = 1e3 * np.array(latencies)
     return {
         'map': served, 'tiles': len(reader.records), 'cache_mb': args.cache_mb, 'radius_m': args.radius,
-        'union_tiles': args.union_tiles or 'default',
+        'view_tiles': args.view_tiles or 'default',
         'follow_period_s': args.follow_period, 'route_m': float(np.sum(np.hypot(*np.diff(path, axis=0).T))),
         'steps': len(path), 'points_per_query': args.points,
         'share_on_a_facade': round(answered / max(1, args.points * len(path)), 3),
@@ -249,8 +249,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--cache-mb', type=float, default=512.0, help='tiles.cache_mb of the node (default 512)')
     parser.add_argument('--radius', type=float, default=150.0, help='tiles.radius of the node, m (default 150)')
     parser.add_argument('--follow-period', type=float, default=1.0, help='tiles.follow_period, s (default 1)')
-    parser.add_argument('--union-tiles', type=int, default=0,
-                        help="tiles.union_tiles of the node (0: the parameter's default)")
+    parser.add_argument('--view-tiles', type=int, default=0,
+                        help="tiles.view_tiles of the node (0: the parameter's default)")
     parser.add_argument('--speed', type=float, default=10.0, help='the sensor moves at this speed, m/s (default 10)')
     parser.add_argument('--step', type=float, default=5.0, help='a query every STEP metres (default 5)')
     parser.add_argument('--points', type=int, default=2000, help='points per query (default 2000)')

@@ -384,7 +384,7 @@ def _build_tiles(args: argparse.Namespace, config) -> int:
     from uncertain_facade_map.io.map_file import remove_stale_temporaries
     from uncertain_facade_map.io.trajectory import read_trajectory
     from uncertain_facade_map.params import map_params, map_params_record
-    from uncertain_facade_map.tiling.build import Router, calibration_tile, check_params, done_already, parse_bounds
+    from uncertain_facade_map.tiling.build import Router, calibration_tiles, check_params, done_already, parse_bounds
     from uncertain_facade_map.tiling.manifest import MANIFEST, Manifest, is_tiled_map, read_manifest, write_manifest
 
     from .cluster import dask_client, route, run_tiles
@@ -429,8 +429,9 @@ def _build_tiles(args: argparse.Namespace, config) -> int:
         with _counter('tiles', 'tile', args.quiet, total=len(todo)) as update:
             count = iter(range(1, len(todo) + 1))
             results = run_tiles(todo, folder, manifest, progress=lambda _r: update(next(count)),
-                                calibrate=None if not router.has_origins or (not todo and manifest.occupancy) else
-                                (calibration_tile(tasks), config.query.resolution), client=client)
+                                calibrate=None if not todo and manifest.local_calibration else
+                                (calibration_tiles(tasks), config.query.resolution if router.has_origins else None),
+                                client=client)
         map_s = time.perf_counter() - started - start_s - read_s - route_s
     plsc = manifest.occupancy
     occupancy = ('the fixed formula' if plsc is None else

@@ -230,12 +230,14 @@ def record_tile(folder: str | Path, manifest: Manifest, result: TileResult) -> N
 def run_tiles(tasks: Iterable[TileTask], folder: str | Path, manifest: Manifest, workers: int = 0,
               scheduler: str | None = None, progress: Callable[[TileResult], None] | None = None,
               retries: int = RETRIES, function: Callable[[TileTask], TileResult] = build_tile,
-              calibrate: tuple[str, float] | None = None, client: Any = None) -> list[TileResult]:
+              calibrate: tuple[tuple[str, ...], float | None] | None = None,
+              client: Any = None) -> list[TileResult]:
     """Run the tile tasks and record each finished tile in the manifest (written after each).
 
-    With ``calibrate``, the map's occupancy PLSC is learnt too (:func:`calibrate_tile`, as one more
-    task once that tile is written, or at once if it is not among the tasks: on a cluster it runs
-    beside the remaining tiles, which go largest first) and put into ``manifest.occupancy``.
+    With ``calibrate``, the map's occupancy PLSC and its local reading's calibration are learnt too
+    (:func:`calibrate_tile`, as one more task once those tiles are written, or at once if none is among
+    the tasks: on a cluster it runs beside the remaining tiles, which go largest first) and put into
+    ``manifest.occupancy`` and ``manifest.local_calibration``.
 
     Args:
         tasks: the tiles to build.
@@ -246,8 +248,9 @@ def run_tiles(tasks: Iterable[TileTask], folder: str | Path, manifest: Manifest,
         progress: called with each finished tile's result.
         retries: times a task is run again after a lost worker or an error.
         function: what runs a task (tests wrap :func:`build_tile`).
-        calibrate: (the tile to learn the occupancy on, the voxel side of its labels in m), or
-            None: not learnt (:func:`~uncertain_facade_map.tiling.build.calibration_tile` chooses).
+        calibrate: (the tiles to learn the calibrations on, the voxel side of the occupancy's labels in m
+            or None: no occupancy learnt), or None: not learnt (:func:`~uncertain_facade_map.tiling.build.calibration_tiles`
+            chooses).
         client: a Dask client to run the tasks on (:func:`dask_client`; left open), instead of
             ``workers`` and ``scheduler``.
 
@@ -257,7 +260,11 @@ def run_tiles(tasks: Iterable[TileTask], folder: str | Path, manifest: Manifest,
     # The largest tiles first: the last task to finish is a small one.
     tasks = sorted(tasks, key=lambda t: -sum(os.path.getsize(p) for p in t.parts))
     results: list[TileResult] = []
-    learn_on, resolution = calibrate or (None, None)
+    learn_on, resolution = calibrate or ((), None)
+    waiting = set(learn_on) & {t.tile_id for t in tasks}  # the calibration tiles not written yet
+
+    def files() -> list[str]:
+        return [manifest.tiles[t].file for t in learn_on]
 
     def done(result: TileResult) -> None:
         record_tile(folder, manifest, result)
@@ -265,17 +272,19 @@ def run_tiles(tasks: Iterable[TileTask], folder: str | Path, manifest: Manifest,
         if progress is not None:
             progress(result)
 
-    def learnt(occupancy: dict | None) -> None:
-        manifest.occupancy = occupancy
+    def learnt(calibrations: dict) -> None:
+        if resolution is not None:  # else not learnt (points without sensor origins): the manifest's kept
+            manifest.occupancy = calibrations['occupancy']
+        manifest.local_calibration = dict(calibrations['local_calibration'])
         write_manifest(folder, manifest)
 
-    if not tasks and learn_on is None:
+    if not tasks and not learn_on:
         return results
     if client is None and scheduler is None and workers <= 0:
         for task in tasks:
             done(function(task))
-        if learn_on is not None:
-            learnt(calibrate_tile(str(folder), manifest.tiles[learn_on].file, resolution))
+        if learn_on:
+            learnt(calibrate_tile(str(folder), files(), resolution))
         return results
     from dask.distributed import as_completed
 
@@ -288,18 +297,20 @@ def run_tiles(tasks: Iterable[TileTask], folder: str | Path, manifest: Manifest,
                                               pure=False) for task in tasks])
 
         def learn() -> None:
-            futures.add(client.submit(in_one_thread, calibrate_tile, str(folder), manifest.tiles[learn_on].file, resolution,
-                                      key=f'calibrate-{learn_on}', retries=retries, pure=False))
+            futures.add(client.submit(in_one_thread, calibrate_tile, str(folder), files(), resolution,
+                                      key=f'calibrate-{"-".join(learn_on)}', retries=retries, pure=False))
 
-        if learn_on is not None and learn_on not in {t.tile_id for t in tasks}:
+        if learn_on and not waiting:
             learn()  # built already (a resumed build)
         for future in futures:
             result = future.result()
             future.release()
             if isinstance(result, TileResult):
                 done(result)
-                if result.record.id == learn_on:
-                    learn()
+                if result.record.id in waiting:
+                    waiting.discard(result.record.id)
+                    if not waiting:
+                        learn()
             else:
                 learnt(result)
     finally:

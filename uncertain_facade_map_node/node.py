@@ -343,13 +343,13 @@ class FacadeMapperNode(Node):
         return FacadeMap(self.params, np.asarray(cfg.input.map_origin, dtype=np.float64))
 
     def _open_map(self, path: str) -> FacadeMap | TiledMap:
-        """A map file, or a tiled map read through ``tiles.cache_mb`` and ``tiles.union_tiles``.
+        """A map file, or a tiled map read through ``tiles.cache_mb`` and ``tiles.view_tiles``.
 
         Raises:
             InputError: a damaged file or manifest, a folder without a manifest (one line each).
         """
         t = self.config.tiles
-        return TiledMap(path, t.cache_mb, t.union_tiles) if is_tiled_map(path) else open_map(path, t.cache_mb)
+        return TiledMap(path, t.cache_mb, t.view_tiles) if is_tiled_map(path) else open_map(path, t.cache_mb)
 
     @staticmethod
     def _live_map_for(tiled: TiledMap) -> FacadeMap:
@@ -361,7 +361,7 @@ class FacadeMapperNode(Node):
         if self._tiled is None:
             return
         follower = nt.TileFollower(self._tiled, self.config.tiles, self._pose_xy,
-                                   lambda text: self._warn(text, 'tile follower', period=30.0))
+                                   lambda text: self._warn(text, 'tile follower', period=30.0), self.config.query)
         self._follower = follower
         follower.start()
 
@@ -376,10 +376,11 @@ class FacadeMapperNode(Node):
                 self._start_follower()
 
     def _pose_xy(self) -> np.ndarray | None:
-        """The latest map-frame (x, y) of the frame the tiles follow: the child frame of the
-        latest ``sensor_pose`` or odometry message, else the frame of the latest cloud; None
-        while the transform buffer cannot put it in the map frame."""
-        for frame in (self._follow_frame, self._cloud_frame):
+        """The latest map-frame (x, y) of the frame the tiles follow: ``tiles.follow_frame`` when
+        set and the transform buffer holds it (a robot publishing /tf only), else the child frame
+        of the latest ``sensor_pose`` or odometry message, else the frame of the latest cloud;
+        None while the transform buffer cannot put any of them in the map frame."""
+        for frame in (self.config.tiles.follow_frame, self._follow_frame, self._cloud_frame):
             if not frame or frame == self.frame_id:
                 continue
             try:
@@ -913,7 +914,7 @@ class FacadeMapperNode(Node):
                   'tiles_loaded': len(info['tiles']),
                   'tiles_cache_mb': round(info['bytes'] / 2**20, 1),
                   'tiles_cache_limit_mb': round(info['limit_bytes'] / 2**20, 1),
-                  'tiles_merged_maps': len(info['groups']),
+                  'tiles_views': len(info['views']), 'tiles_views_built': info['views_built'],
                   'tiles_hits': info['hits'], 'tiles_misses': info['misses'], 'tiles_evictions': info['evictions'],
                   'tiles_load_seconds': round(info['load_seconds'], 3)}
         if follower is not None:

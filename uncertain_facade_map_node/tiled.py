@@ -16,7 +16,8 @@ folder with ``manifest.json`` and one map file per tile) **read-only**, beside i
 
 :class:`TileFollower` looks at the node's latest pose every ``tiles.follow_period`` s, in a
 thread of its own (never in a query's or a cloud's path), and loads the tiles within
-``tiles.radius`` m of it (:meth:`TiledMap.preload`); the cache evicts the least recently used.
+``tiles.radius`` m of it, with their local reading prepared and the view holding the pose built
+(:meth:`TiledMap.preload`); the cache evicts the least recently used.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from typing import Any, Callable
 import numpy as np
 
 from uncertain_facade_map.errors import InputError
-from uncertain_facade_map.params import TilesConfig
+from uncertain_facade_map.params import QueryConfig, TilesConfig
 from uncertain_facade_map.tiling.manifest import manifest_path
 
 __all__ = ['LIVE_FACADE_OFFSET', 'TileFollower', 'check_radius', 'combine_answers', 'loaded_ids', 'tile_facades',
@@ -111,12 +112,15 @@ class TileFollower:
         config: ``tiles.*`` (radius, follow period).
         pose: returns the node's latest (x, y) in the map frame, metres, or None (no pose yet).
         log: called with a warning's text when a preload fails.
+        query: the queries' settings (``query.*``): the tiles' local reading and the view
+            holding the pose are prepared too (:meth:`TiledMap.preload`); None: tiles only.
     """
 
     def __init__(self, tiled: Any, config: TilesConfig, pose: Callable[[], np.ndarray | None],
-                 log: Callable[[str], None]) -> None:
+                 log: Callable[[str], None], query: QueryConfig | None = None) -> None:
         self.tiled = tiled
         self.config = config
+        self.query = query
         self.pose = pose
         self.log = log
         self.preloads = 0  # preloads done (each loads what is missing within the radius)
@@ -157,7 +161,7 @@ class TileFollower:
             return None
         xy = np.asarray(xy, dtype=np.float64)[:2]
         started = time.perf_counter()
-        ids = list(self.tiled.preload(xy, self.config.radius))
+        ids = list(self.tiled.preload(xy, self.config.radius, self.query))
         seconds = time.perf_counter() - started
         near = len(self.tiled.tiles_near(xy, self.config.radius))
         if len(ids) < near:

@@ -64,7 +64,7 @@ class FakeTiled:
                      np.maximum(np.maximum(box[:, 1] - xy[1], xy[1] - box[:, 3]), 0))
         return [self.records[i] for i in np.argsort(d, kind='stable') if d[i] <= radius][::-1]  # any order
 
-    def preload(self, xy, radius):
+    def preload(self, xy, radius, config=None):
         self.preloaded.append(tuple(xy))
         ids = [r.id for r in sorted(self.tiles_near(xy, radius), key=lambda r: abs(r.bounds[0] + 5 - xy[0]))]
         for t in ids:
@@ -128,7 +128,7 @@ def test_a_failing_preload_is_counted_and_the_follower_lives_on():
     tiled = FakeTiled()
     calls = []
 
-    def preload(xy, radius):
+    def preload(xy, radius, config=None):
         calls.append(1)
         if len(calls) == 1:
             raise InputError('tile_0_0 is damaged')

@@ -54,6 +54,7 @@ def running(maps):
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
     params = node_config(work, **{'persistence.map_path': str(folder), 'persistence.autosave_period': 0.5,
                                   'tiles.cache_mb': 1.0, 'tiles.radius': 5.0, 'tiles.follow_period': 0.1,
+                                  'tiles.follow_frame': 'base_link',
                                   'publish.diagnostics_period': 0.2, 'service.max_query_points': 20000})
     client = Client(domain)
     node = NodeProcess(params, env, work / 'node.log')
@@ -146,6 +147,31 @@ def test_the_node_follows_its_pose_and_evicts_the_far_tile(running):
     assert int(values['tiles_preloads']) >= 4 and int(values['tiles_evictions']) >= 3
     assert 0 < float(values['tiles_cache_mb']) < 3 and float(values['tiles_cache_limit_mb']) == 1.0
     assert float(values['tiles_preload_max_seconds']) > 0 and int(values['tiles_preload_failures']) == 0
+
+
+def test_the_node_follows_a_frame_on_tf_alone(running):
+    """A robot that publishes /tf only (clouds in the map frame, no sensor_pose): with
+    tiles.follow_frame the node follows that frame's position in its transform buffer (which
+    comes first, before the sensor_pose child of the test above)."""
+    from geometry_msgs.msg import TransformStamped
+    from tf2_msgs.msg import TFMessage
+
+    client, _ = running
+    tf_pub = client.on_spin_thread(lambda: client.node.create_publisher(TFMessage, '/tf', 100))
+    for k, tile in enumerate(['tile_0_0', 'tile_1_0', 'tile_0_0']):
+        x, y = NEAR[tile]
+        t = TransformStamped()
+        t.header.frame_id, t.child_frame_id = 'map', 'base_link'
+        t.header.stamp.sec = 100 + k
+        t.transform.translation.x, t.transform.translation.y = x + 0.5, y
+        t.transform.rotation.w = 1.0
+        deadline = time.monotonic() + 20
+        while loaded_near(client) != {tile}:
+            assert time.monotonic() < deadline, loaded_near(client)
+            tf_pub.publish(TFMessage(transforms=[t]))
+            time.sleep(0.1)
+    values = diagnostics(client, until=lambda v: float(v['tiles_follow_x']) == NEAR['tile_0_0'][0] + 0.5)
+    assert int(values['tiles_loaded']) == 1
 
 
 def test_list_tiles_answers_the_tiles_within_the_radius(running, maps):

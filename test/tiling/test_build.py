@@ -208,3 +208,23 @@ def test_a_resumed_build_labels_its_clustered_buildings_alike(tmp_path, street):
     drive.add(xyz, None, origins, origin)
     drive.plan()
     assert min(b for b in drive._plan if b not in placed) > max(placed)
+
+
+def test_the_calibration_tiles_are_the_largest_up_to_the_sample_size(tmp_path):
+    """calibration_tiles: the tiles with the most routed points (counted from the part files'
+    headers) until they hold 200,000 points; ties to the first id; all of a small map's."""
+    from uncertain_facade_map.tiling.build import TileTask, calibration_tiles, routed_points
+
+    def task(name, *rows):
+        parts = []
+        for k, n in enumerate(rows):
+            path = tmp_path / f'{name}_{k}.npz'
+            np.savez(path, xyz=np.zeros((n, 3)), building_id=np.zeros(n, np.int64))
+            parts.append(str(path))
+        return TileTask(str(tmp_path), name, (0, 0), (0, 0, 1, 1), tuple(parts), MapParams(), (0.0, 0.0, 0.0), 'x')
+
+    tasks = [task('tile_a', 30_000), task('tile_b', 90_000, 60_000), task('tile_c', 100_000), task('tile_d', 100_000)]
+    assert [routed_points(t) for t in tasks] == [30_000, 150_000, 100_000, 100_000]
+    assert calibration_tiles(tasks) == ('tile_b', 'tile_c')  # 150,000 + 100,000 (c before d: ties by id)
+    assert calibration_tiles(tasks[:1]) == ('tile_a',) and calibration_tiles([]) == ()
+    assert calibration_tiles([tasks[0], tasks[2]]) == ('tile_a', 'tile_c')  # 130,000: all

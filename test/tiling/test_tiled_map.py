@@ -53,10 +53,16 @@ def probes(whole, n=30000, seed=1):
 
 
 def assert_same(tiled_answer, whole_answer, ids):
+    """The same façades; the same figures bit for bit but for a point in thousands that differs in
+    the last bit (a batch cut into views runs the compiled kernels' serial or parallel version on
+    other points than the one-file map's batch: FacadeMap.query differs so between batches too)."""
     fa = tiled_answer.facade
     np.testing.assert_array_equal(np.where(fa >= 0, ids[np.maximum(fa, 0)], -1), whole_answer.facade)
     for key in ANSWER_FIELDS[1:]:
-        np.testing.assert_array_equal(getattr(tiled_answer, key), getattr(whole_answer, key), err_msg=key)
+        a, b = getattr(tiled_answer, key), getattr(whole_answer, key)
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15, err_msg=key)
+        differ = ~((a == b) | (np.isnan(a) & np.isnan(b)))
+        assert differ.reshape(len(a), -1).any(axis=1).mean() < 1e-3, key
 
 
 def test_the_cut_spreads_buildings_over_tiles(tiled, small_whole):
@@ -72,9 +78,9 @@ def test_the_cut_spreads_buildings_over_tiles(tiled, small_whole):
 
 @pytest.mark.parametrize('config, resolution', [(QueryConfig(), 0.1), (QueryConfig(surface='raster'), 0.2),
                                                 (QueryConfig(occupancy_event='solid', local_radius=0.8), 0.1)])
-@pytest.mark.parametrize('cache_mb, union', [(2048.0, 4), (2048.0, 0), (1e-6, 0)])
-def test_tiled_answers_equal_the_one_file_map(tiled, small_whole, config, resolution, cache_mb, union):
-    tmap = TiledMap(tiled, cache_mb=cache_mb, union_tiles=union)
+@pytest.mark.parametrize('cache_mb, view', [(2048.0, 3), (2048.0, 1), (1e-6, 1)])
+def test_tiled_answers_equal_the_one_file_map(tiled, small_whole, config, resolution, cache_mb, view):
+    tmap = TiledMap(tiled, cache_mb=cache_mb, view_tiles=view)
     ids = whole_ids(tmap, small_whole)
     xyz = probes(small_whole)
     if config.local_radius != 0.5:  # a reading the manifest has no calibration for: the merged maps' own
@@ -87,7 +93,7 @@ def test_tiled_answers_equal_the_one_file_map(tiled, small_whole, config, resolu
     info = tmap.cache_info()
     assert info['misses'] >= 2 and len(info['tiles']) >= 1
     if cache_mb < 1:
-        assert len(info['tiles']) == 1 and info['evictions'] >= 1 and not info['groups']
+        assert len(info['tiles']) == 1 and info['evictions'] >= 1 and len(info['views']) <= 1
 
 
 def _check_uncalibrated(tmap, whole, xyz, config, resolution, ids):
@@ -102,7 +108,7 @@ def _check_uncalibrated(tmap, whole, xyz, config, resolution, ids):
 
 
 def test_queries_from_several_threads(tiled, small_whole):
-    tmap = TiledMap(tiled, cache_mb=1e-6, union_tiles=0)  # evicting while the others query
+    tmap = TiledMap(tiled, cache_mb=1e-6, view_tiles=1)  # evicting while the others query
     ids = whole_ids(tmap, small_whole)
     xyz = probes(small_whole, 6000, seed=3)
     # The one-file map's answers per batch (FacadeMap.query may differ in the last bit for a
@@ -160,6 +166,25 @@ def test_open_map_and_the_helpers(tiled, small_whole, tmp_path):
     assert set(tmap.cache_info()['tiles']) == {r.id for r in rec}
     with pytest.raises(InputError, match='points must be an \\(N, 3\\)'):
         tmap.query(np.zeros((3, 2)))
+    with pytest.raises(InputError, match='view_tiles'):
+        TiledMap(tiled, view_tiles=0)
+
+
+def test_a_preload_with_the_query_settings_builds_the_view_at_the_pose(tiled, small_whole):
+    tmap = TiledMap(tiled, cache_mb=512, view_tiles=2)
+    ids = whole_ids(tmap, small_whole)
+    xyz = probes(small_whole, 3000, seed=5)
+    here = xyz[0, :2]
+    tmap.preload(here, 1e4, QueryConfig())
+    info = tmap.cache_info()
+    assert info['views_built'] == 1 and len(info['views']) == 1
+    assert info['bytes'] > info['tile_bytes']  # the tiles' local reading and the view are counted
+    # Points in the pose's square of 2 x 2 tiles: answered by the view built, as the one-file map answers.
+    square = np.floor_divide(tmap.grid.index(xyz[:, :2]), 2)
+    same = np.all(square == square[0], axis=1)
+    assert same.sum() > 100
+    assert_same(tmap.query(xyz[same]), small_whole.query(xyz[same]), ids)
+    assert tmap.cache_info()['views_built'] == 1
 
 
 def test_damaged_tiles_and_parameters_are_refused(tiled, tmp_path):
@@ -197,3 +222,29 @@ def test_map_wide_quantities_come_from_the_manifest(tiled, small_whole, tmp_path
     assert on.sum() > 100
     np.testing.assert_allclose(a.variance[on], b.variance[on] + 0.01, rtol=0, atol=1e-12)
     assert TiledMap(copy).merged().registration_var_ == small_whole.registration_var_ + 0.01
+
+
+def test_a_tile_whose_building_has_no_facade(scenes, tmp_path):
+    """A building too small for a façade (a shed of 60 points, in a tile of its own): its stored
+    points count with the nearest façade, in the views as in the one-file map (found on a real
+    sweep cut into 10 m tiles, where such a tile broke the views)."""
+    from uncertain_facade_map.mapping.facade_map import build_map
+
+    xyz, ids, origins = scenes.building_points('small', 0)
+    whole0 = build_map(xyz, ids, origins)
+    pts = np.vstack(list(whole0.points.values()))
+    # Beside the first building, 2 m out from the corner of its bounding box.
+    corner = pts.min(axis=0)
+    rng = np.random.default_rng(2)
+    shed = corner + np.c_[rng.uniform(-2.6, -2.0, 60), rng.uniform(-2.6, -2.0, 60), rng.uniform(0.2, 0.8, 60)]
+    label = int(ids.max()) + 1
+    whole = build_map(np.vstack([xyz, shed]), np.r_[ids, np.full(60, label)],
+                      np.vstack([origins, np.repeat(origins[:1], 60, axis=0)]), map_origin=whole0.map_origin)
+    assert label in whole.points and not [f for f in whole.facades if f.building == label]
+    folder = tmp_path / 'tiled'
+    cut_map(whole, folder, SIDE)
+    tmap = TiledMap(folder, view_tiles=1)
+    ids_map = whole_ids(tmap, whole)
+    near = whole.points[label][rng.choice(len(whole.points[label]), 500)] + rng.normal(0, 0.2, (500, 3))
+    probe = np.vstack([near, probes(whole, 3000, seed=4)])
+    assert_same(tmap.query(probe), whole.query(probe), ids_map)

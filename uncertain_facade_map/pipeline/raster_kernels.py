@@ -62,20 +62,46 @@ class PackedRasters:
         self.lo = flat(lambda m: cached_step_depth_range(m.surface, reach)[0], np.float64)
         self.hi = flat(lambda m: cached_step_depth_range(m.surface, reach)[1], np.float64)
         self.noise = np.array([m.noise_var for m in facades], np.float64)
+        self._boxes: dict[tuple[float, float], tuple[np.ndarray, np.ndarray]] = {}
 
     def boxes(self, band_back: float, band_front: float) -> tuple[np.ndarray, np.ndarray]:
         """(F, 3) lower and upper map-frame corners of each façade's slab (raster extent x
-        band), as :func:`~.step7_queries.assign_facades` pre-selects with."""
-        f = len(self.cell)
-        lo, hi = np.empty((f, 3)), np.empty((f, 3))
-        for i in range(f):
-            h, w = self.shape[i]
-            u0, v0 = self.corner[i]
-            u1, v1 = u0 + w * self.cell[i], v0 + h * self.cell[i]
-            uvd = np.array([[u, v, d] for u in (u0, u1) for v in (v0, v1) for d in (-band_back, band_front)])
-            corners = uvd @ self.axes[i] + self.origin[i]
-            lo[i], hi[i] = corners.min(axis=0), corners.max(axis=0)
-        return lo, hi
+        band), as :func:`~.step7_queries.assign_facades` pre-selects with (computed once per band)."""
+        key = (float(band_back), float(band_front))
+        hit = self._boxes.get(key)
+        if hit is None:
+            hit = self._boxes[key] = self._slabs(*key)
+        return hit
+
+    def _slabs(self, band_back: float, band_front: float) -> tuple[np.ndarray, np.ndarray]:
+        return slab_boxes(self.origin, self.axes, self.corner, self.cell, self.shape, band_back, band_front)
+
+
+def slab_boxes(origin: np.ndarray, axes: np.ndarray, corner: np.ndarray, cell: np.ndarray, shape: np.ndarray,
+               band_back: float, band_front: float) -> tuple[np.ndarray, np.ndarray]:
+    """(F, 3) lower and upper map-frame corners of F façades' slabs (raster extent x band, metres)
+    from their frames' (F, 3) origins and (F, 3, 3) axes and their rasters' (F, 2) corners, (F,)
+    cells and (F, 2) shapes (as :class:`PackedRasters` holds them)."""
+    f = len(cell)
+    lo, hi = np.empty((f, 3)), np.empty((f, 3))
+    for i in range(f):
+        h, w = shape[i]
+        u0, v0 = corner[i]
+        u1, v1 = u0 + w * cell[i], v0 + h * cell[i]
+        uvd = np.array([[u, v, d] for u in (u0, u1) for v in (v0, v1) for d in (-band_back, band_front)])
+        corners = uvd @ axes[i] + origin[i]
+        lo[i], hi[i] = corners.min(axis=0), corners.max(axis=0)
+    return lo, hi
+
+
+def facade_boxes(facades: Sequence[FacadeModel], band_back: float, band_front: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`slab_boxes` of façade models, without packing their rasters."""
+    f = len(facades)
+    return slab_boxes(np.array([m.frame.origin for m in facades], np.float64).reshape(f, 3),
+                      np.array([m.frame.axes for m in facades], np.float64).reshape(f, 3, 3),
+                      np.array([m.surface.origin for m in facades], np.float64).reshape(f, 2),
+                      np.array([m.surface.cell for m in facades], np.float64),
+                      np.array([m.surface.mean.shape for m in facades], np.int64).reshape(f, 2), band_back, band_front)
 
 
 #: Packed rasters per map (its tuple of façade models), the few most recent (the node's

@@ -181,6 +181,8 @@ class LocalSurface:
             switch between the two readings instead of a blend).
         calibration_: the leave-one-out scale of the variances (:meth:`calibrate`;
             1 until then).
+        source: (M,) int64 index of each point in the map's stored points concatenated in
+            building label order (:meth:`of`; None: the points as given).
     """
 
     points: np.ndarray
@@ -190,6 +192,7 @@ class LocalSurface:
     radius: float = 0.5
     inner: float = 0.2
     calibration_: float = 1.0
+    source: np.ndarray | None = field(default=None, repr=False)
     _tree: cKDTree | None = field(default=None, init=False, repr=False)
     _grid: PointGrid | None = field(default=None, init=False, repr=False)
     _coarse: PointGrid | None = field(default=None, init=False, repr=False)
@@ -203,7 +206,7 @@ class LocalSurface:
 
     @classmethod
     def of(cls, facades: Sequence[FacadeModel], points: dict[int, np.ndarray], neighbours: int = 12,
-           radius: float = 0.5, inner: float = 0.2, calibrate: bool = True) -> LocalSurface:
+           radius: float = 0.5, inner: float = 0.2, calibrate: bool = True, join: bool = True) -> LocalSurface:
         """The local surface of a map's façades.
 
         Args:
@@ -214,6 +217,9 @@ class LocalSurface:
             radius: see the class.
             inner: see the class.
             calibrate: learn ``calibration_`` now.
+            join: count the points of a building with no façade with the nearest façade; False:
+                leave them at -1 (a part of a larger map, which joins them over its own points:
+                a tiled map's views, :mod:`~uncertain_facade_map.tiling.views`).
         """
         parts, ids, flags = [], [], []
         for b in sorted(points):
@@ -236,7 +242,7 @@ class LocalSurface:
         xyz = np.concatenate(parts) if parts else np.empty((0, 3))
         fid = np.concatenate(ids) if ids else np.empty(0, np.int32)
         mapped = np.flatnonzero(fid >= 0)
-        if len(mapped) and len(mapped) < len(fid):
+        if join and len(mapped) and len(mapped) < len(fid):
             # A building too small for a façade of its own (often a piece of a neighbour's
             # wall that the clustering cut off): its points count with the nearest façade.
             free = np.flatnonzero(fid < 0)
@@ -258,8 +264,10 @@ class LocalSurface:
                 keep = np.ones(len(xyz), bool)
                 keep[alone] = False
                 grid = out.grid
-                out = cls(xyz[keep], fid[keep], normals, neighbours, radius, inner)
+                out = cls(xyz[keep], fid[keep], normals, neighbours, radius, inner, source=np.flatnonzero(keep))
                 out._grid = grid.subset(keep)
+        if out.source is None:
+            out.source = np.arange(len(xyz))
         if calibrate:
             out.calibrate()
         return out
@@ -294,14 +302,16 @@ class LocalSurface:
             self._coarse = PointGrid(self.points, COARSE * self.grid.cell)
         return self._coarse
 
-    def _in_grid_order(self, grid: PointGrid) -> tuple[np.ndarray, np.ndarray]:
+    def _in_grid_order(self, grid: PointGrid, inverse: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
         """(M,) façade of each stored point in ``grid``'s order, and (M,) the position in that
-        order of each stored point (cached per grid)."""
+        order of each stored point (with ``inverse``, for leave-one-out reads; else None), cached per grid."""
         hit = self._orders.get(id(grid))
         if hit is None or hit[0] is not grid:
-            inverse = np.empty(len(grid.order), np.int64)
-            inverse[grid.order] = np.arange(len(grid.order))
-            hit = self._orders[id(grid)] = (grid, self.facade[grid.order].astype(np.int32), inverse)
+            hit = self._orders[id(grid)] = [grid, self.facade[grid.order].astype(np.int32), None]
+        if inverse and hit[2] is None:
+            pos = np.empty(len(grid.order), np.int64)
+            pos[grid.order] = np.arange(len(grid.order))
+            hit[2] = pos
         return hit[1], hit[2]
 
     def _neighbours(self, xyz: np.ndarray, skip: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -347,7 +357,7 @@ class LocalSurface:
         everything = (fid, s, scatter, plane_var, normal, rho, nearest, status)
         for coarse in (False, True):  # the few points far from K + 1 stored points: again, on coarser cells
             grid = self.coarse_grid if coarse else g
-            labels, inverse = self._in_grid_order(grid)
+            labels, inverse = self._in_grid_order(grid, inverse=skip is not None)
             sk = np.full(len(order), -1, np.int64) if skip is None else inverse[skip[order]]
             outs = [a[order] for a in everything]
             kernel = local_planes if len(order) >= SERIAL_BELOW else local_planes_serial

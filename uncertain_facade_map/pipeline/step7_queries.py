@@ -305,7 +305,8 @@ def assign_facades(facades: Sequence[FacadeModel], xyz: np.ndarray, band_back: f
 
 def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: float, band_back: float,
                  band_front: float, occupancy: PLSC = FIXED, local: LocalSurface | None = None,
-                 event: str = 'solid', registration_var: float = 0.0) -> PointQuery:
+                 event: str = 'solid', registration_var: float = 0.0, rasters: PackedRasters | None = None
+                 ) -> PointQuery:
     """Answer the 3D point query for (N, 3) points in the map frame.
 
     Args:
@@ -322,6 +323,9 @@ def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: fl
         event: what ``p_occupied`` is the probability of (``query.occupancy_event``):
             'surface', that the surface crosses the voxel (the same in front and behind);
             'solid', that the voxel lies at least partly behind the surface.
+        rasters: ``facades`` packed (:class:`~.raster_kernels.PackedRasters`) when the caller
+            keeps them (a tiled map's views); None: :func:`~.raster_kernels.packed`'s, cached
+            for the few most recent maps.
 
     Returns:
         The answers; NaN depth, variance, noise variance and distance, and occupancy 0.5,
@@ -345,8 +349,8 @@ def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: fl
     mean, var, noise, dist = (np.full(n, np.nan) for _ in range(4))
     normal = np.zeros((n, 3))  # the occupancy's (the façade's, the local plane's where it leads)
     surface_normal = np.full((n, 3), np.nan)
-    normals = np.array([f.frame.normal for f in facades]).reshape(-1, 3)
-    rasters = packed(facades, STEP_REACH)
+    rasters = packed(facades, STEP_REACH) if rasters is None else rasters
+    normals = rasters.axes[:, 2]  # the façades' outward normals (FacadeFrame.normal)
     boxes = rasters.boxes(band_back, band_front)
     for start in range(0, n, CHUNK):
         part = slice(start, min(start + CHUNK, n))
@@ -456,7 +460,8 @@ def _blend(answer: tuple[np.ndarray, ...], reading: LocalReading, w: np.ndarray,
 
 def query_map(facades: Sequence[FacadeModel], stored_points: dict[int, np.ndarray], xyz: np.ndarray,
               resolution: float, band_back: float, band_front: float, learnt: PLSC, config: QueryConfig,
-              local: LocalSurface | None | bool = True, registration_var: float = 0.0) -> PointQuery:
+              local: LocalSurface | None | bool = True, registration_var: float = 0.0,
+              rasters: PackedRasters | None = None) -> PointQuery:
     """What the command line's ``query`` and the node's ``query_points`` answer: :func:`query_points`
     with the ``query.*`` settings (the reading, the occupancy's parameters and event).
 
@@ -473,8 +478,9 @@ def query_map(facades: Sequence[FacadeModel], stored_points: dict[int, np.ndarra
             one (the node, per snapshot); True: built here as ``config`` says.
         registration_var: the map's scan-to-scan variance (``FacadeMap.registration_var_``),
             m^2, added to every answered point's variance.
+        rasters: ``facades`` packed, when the caller keeps them (see :func:`query_points`).
     """
     if local is True:
         local = for_query(facades, stored_points, config)
     return query_points(facades, xyz, resolution, band_back, band_front, occupancy_model(learnt, config.occupancy),
-                        local or None, config.occupancy_event, registration_var)
+                        local or None, config.occupancy_event, registration_var, rasters)

@@ -5,21 +5,19 @@
 :meth:`~uncertain_facade_map.mapping.facade_map.FacadeMap.query` does on one map holding
 every building. A tile's map answers only near what it holds: its records' ``extent`` covers
 its stored points and its façades' slabs (raster extent x depth band), so the raster reading
-of a point involves only tiles whose extent holds the point; the local reading (``query.surface``
+of a point involves only the façades whose slab holds it; the local reading (``query.surface``
 'local') reads the ``K + 1`` stored points nearest to a point whose nearest lies within
-``query.local_radius``, so it involves the tiles whose extent, grown by the radius and a
-margin (:data:`LOCAL_MARGIN`, for the farther neighbours), holds it. The candidate tiles of
-a point are those; the points are grouped by their candidate set and each group is answered
-by the merged map of its tiles (cached with the tiles; the groups recur as a vehicle moves).
-A batch whose points need few tiles in all (``tiles.union_tiles``) is answered by one merged
-map of them instead, the same answers (a point's answer involves its candidate tiles only)
-in one call of the compiled kernels: each call of the parallel kernels waits for both
-cores, which costs about 10 ms when other processes keep them busy (the street drive's
-0.1 s scans, load 8 on 2 cores: 44,000 points/s by candidate sets, 104,000 by one merged
-map, 100,000 for the one-file map).
+``query.local_radius``, which lie within the radius and a margin (:data:`LOCAL_MARGIN`, for
+the farther neighbours). The points of a batch are answered by **views** (:mod:`.views`): the
+squares of ``tiles.view_tiles`` x ``view_tiles`` tiles of the grid that hold them, each with
+the façades and stored points within that reach of its square, built once from the loaded
+tiles and kept in the cache (a vehicle's scans fall in one or two squares: one call of the
+compiled kernels each). Each tile's local reading (its stored points' labels, the outliers
+that stand alone) is prepared once and kept with the tile.
 Map-wide quantities are the manifest's: the learnt occupancy (``occupancy``), the
-scan-to-scan variance (``registration``) and the local reading's leave-one-out calibration (``local_calibration``, when the manifest has it for the
-query's settings; else each merged map's own, which differs a little from a one-file map's).
+scan-to-scan variance (``registration``) and the local reading's leave-one-out calibration
+(``local_calibration``, when the manifest has it for the query's settings; else learnt once on
+the tile with the most stored points, for every view).
 
 **Façade ids** of a tiled map: the tiles in the order of their ids (sorted), each tile's
 façades in its file's order; :meth:`TiledMap.merged` numbers its façades the same way
@@ -37,7 +35,7 @@ import os
 import threading
 import time
 from collections import OrderedDict
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Iterable, Sequence
 
@@ -49,10 +47,11 @@ from ..mapping.calibration import registration_variance
 from ..mapping.facade_map import FacadeMap, query_settings, reading_key
 from ..params import MapParams, QueryConfig, TilesConfig, map_params_from_record
 from ..pipeline.step7_local_surface import LocalSurface
-from ..pipeline.step7_queries import PointQuery
+from ..pipeline.step7_queries import PointQuery, query_map
 from ..pipeline.step8_occupancy import PLSC
 from .grid import TileGrid
 from .manifest import Manifest, TileRecord, manifest_path, read_manifest, verify_tile
+from .views import TilePart, View, make_view, stored_points, tile_part
 
 __all__ = ['merge_maps', 'subset_map', 'open_map', 'TiledMap', 'reading_id', 'LOCAL_MARGIN']
 
@@ -109,6 +108,19 @@ def merge_maps(maps: Sequence[FacadeMap]) -> FacadeMap:
     pool = {b: maps[owner[b]].pool_checked[b] for b in labels if b in maps[owner[b]].pool_checked}
     thinned = {b: maps[owner[b]].thinned[b] for b in labels if b in maps[owner[b]].thinned}
     pending = [p for m in maps for p in m.pending]
+    occupancy, sums, reg_var = joint_map_wide(maps)
+    return FacadeMap(first.params, first.map_origin.copy(), facades, points, origins, normals, pool,
+                     pending=pending, thinned=thinned, occupancy_=occupancy,
+                     occupancy_stored_=int(sum(m.occupancy_stored_ for m in maps)),
+                     registration_sums_=sums, registration_var_=reg_var)
+
+
+def joint_map_wide(maps: Sequence[FacadeMap]) -> tuple[PLSC, np.ndarray, float]:
+    """The map-wide quantities of maps joined (:func:`merge_maps`): the learnt occupancy (the
+    maps' own when they agree, else that of the map with the most points stored at its
+    calibration), the scan-to-scan sums (added) and variance (the maps' own when they agree,
+    else learnt again from the sums, m^2)."""
+    first = maps[0]
     if all(m.occupancy_ == first.occupancy_ for m in maps):
         occupancy = first.occupancy_
     else:
@@ -118,10 +130,7 @@ def merge_maps(maps: Sequence[FacadeMap]) -> FacadeMap:
         reg_var = first.registration_var_
     else:
         reg_var = registration_variance(sums, first.params.update.registration_max_std)
-    return FacadeMap(first.params, first.map_origin.copy(), facades, points, origins, normals, pool,
-                     pending=pending, thinned=thinned, occupancy_=occupancy,
-                     occupancy_stored_=int(sum(m.occupancy_stored_ for m in maps)),
-                     registration_sums_=sums, registration_var_=reg_var)
+    return occupancy, sums, reg_var
 
 
 def subset_map(fmap: FacadeMap, buildings: Iterable[int]) -> FacadeMap:
@@ -207,23 +216,11 @@ def _install_local_surface(fmap: FacadeMap, config: QueryConfig, calibration: fl
     cache[1][reading_key(config)] = surface
 
 
-@dataclass(eq=False)
-class _Group:
-    """A merged map of some tiles (the candidate set of a group of points), its façades'
-    global ids and the bytes it adds to its tiles' (its local surfaces, copies)."""
-
-    tiles: tuple[str, ...]
-    fmap: FacadeMap
-    global_ids: np.ndarray
-    extra: int = 0
-    readings: set = field(default_factory=set)
-    lock: threading.Lock = field(default_factory=threading.Lock)
-
-
 class TiledMap:
     """A tiled map read on demand: the manifest at opening, the tiles when queries need them,
-    through an LRU bounded in bytes (the arrays a loaded tile's map holds, and what merged
-    maps of several tiles add: their local surfaces). Thread-safe.
+    through an LRU bounded in bytes (the arrays a loaded tile's map holds with its local
+    reading's stored points, and what the views add: packed rasters, the stored points within
+    their square and their grid). Thread-safe.
 
     Attributes:
         folder: the map's folder.
@@ -232,13 +229,11 @@ class TiledMap:
         map_origin: (3,) georeference of the map frame, metres.
         grid: the tile grid.
         cache_mb: the cache bound, MB (at least one tile is kept, whatever its size).
-        union_tiles: a query whose points need at most this many tiles in all is answered by
-            one merged map of them (``tiles.union_tiles``); else its points are grouped by
-            their own candidate tiles.
+        view_tiles: the side of a view, in tiles (``tiles.view_tiles``, :mod:`.views`).
     """
 
     def __init__(self, path: str | os.PathLike, cache_mb: float = TilesConfig.cache_mb,
-                 union_tiles: int = TilesConfig.union_tiles) -> None:
+                 view_tiles: int = TilesConfig.view_tiles) -> None:
         self.manifest_: Manifest = read_manifest(path)
         target = manifest_path(path)
         self.folder = target.parent
@@ -249,7 +244,9 @@ class TiledMap:
         if not (isinstance(cache_mb, (int, float)) and cache_mb > 0):
             raise InputError(f'cache_mb must be a number of MB > 0, got {cache_mb!r}')
         self.cache_mb = float(cache_mb)
-        self.union_tiles = int(union_tiles)
+        if isinstance(view_tiles, bool) or not isinstance(view_tiles, (int, np.integer)) or view_tiles < 1:
+            raise InputError(f'view_tiles must be a whole number of tiles >= 1, got {view_tiles!r}')
+        self.view_tiles = int(view_tiles)
         self.map_origin = np.asarray(self.manifest_.map_origin, dtype=np.float64)
         self.grid = TileGrid(self.manifest_.side)
         occupancy = self.manifest_.occupancy
@@ -269,9 +266,12 @@ class TiledMap:
         self._lock = threading.RLock()
         self._loading: dict[str, threading.Lock] = {}
         self._tiles: OrderedDict[str, tuple[FacadeMap, int]] = OrderedDict()
-        self._groups: OrderedDict[tuple[str, ...], _Group] = OrderedDict()
+        self._parts: dict[tuple[str, tuple], tuple[TilePart, int]] = {}  # (tile, reading) -> part, bytes
+        self._views: OrderedDict[tuple, View] = OrderedDict()
+        self._calibration: dict[str, float] = dict(self.manifest_.local_calibration)
         self._pins: dict[str, int] = {}
-        self._stats = {'hits': 0, 'misses': 0, 'evictions': 0, 'load_seconds': 0.0}
+        self._stats = {'hits': 0, 'misses': 0, 'evictions': 0, 'load_seconds': 0.0, 'views_built': 0,
+                       'view_seconds': 0.0}
 
     # -- tiles ---------------------------------------------------------------------------
 
@@ -351,68 +351,71 @@ class TiledMap:
                 self._trim(keep=tile_id)
         return fmap
 
-    def preload(self, xy: np.ndarray, radius: float) -> list[str]:
+    def preload(self, xy: np.ndarray, radius: float, config: QueryConfig | None = None) -> list[str]:
         """Load the tiles within ``radius`` of ``xy`` (nearest first, as many as the cache
-        holds); returns the ids of those loaded now or already (what a node following its pose calls)."""
+        holds); returns the ids of those loaded now or already (what a node following its pose
+        calls). With ``config`` (the queries' settings), also prepare those tiles' local reading
+        (:func:`~.views.tile_part`) and build the view holding ``xy`` (:mod:`.views`), so that
+        queries near the pose find them ready."""
         out = []
         budget = self.cache_mb * MB
         used = 0
         for rec in self.tiles_near(xy, radius):
             fmap = self.tile(rec.id)
+            if config is not None:
+                self._part(rec.id, fmap, config)
             with self._lock:
                 entry = self._tiles.get(rec.id)
                 used += entry[1] if entry is not None else array_bytes(fmap)
+                part = self._parts.get((rec.id, reading_key(config))) if config is not None else None
+                used += part[1] if part is not None else 0
             out.append(rec.id)
             if used >= budget:
                 break
+        if config is not None and out:
+            here = np.asarray(xy, dtype=np.float64).reshape(1, -1)[:, :2]
+            self._view(self._split(np.c_[here, np.zeros(1)], config)[0][0], config)
         return out
 
     def _bytes(self) -> int:
-        return sum(s for _, s in self._tiles.values()) + sum(g.extra for g in self._groups.values())
+        return (sum(s for _, s in self._tiles.values()) + sum(s for _, s in self._parts.values())
+                + sum(v.nbytes for v in self._views.values()))
 
     def _trim(self, keep: str | None = None) -> None:
-        """Evict until the cache is within its bound: merged maps first (least recently used
-        first; rebuilt from loaded tiles when needed again), then tiles (least recently used
-        first, with the merged maps holding them); the tiles in use by a query (pinned),
-        ``keep`` and the last tile stay. Call under the lock."""
+        """Evict until the cache is within its bound: views first (least recently used first;
+        built again from loaded tiles when needed), then tiles (least recently used first, with
+        their local reading's points and the views holding them); the most recently used view,
+        the tiles in use by a query (pinned), ``keep`` and the last tile stay. Call under the lock."""
         budget = self.cache_mb * MB
         while self._bytes() > budget:
-            victim = None
-            # The least recently used of the tiles and merged maps not in use.
-            for key in self._groups:
-                if not any(self._pins.get(t) for t in key) and len(self._groups) > 0:
-                    victim = ('group', key)
-                    break
-            if victim is None:
-                candidates = [t for t in self._tiles if t != keep and not self._pins.get(t)]
-                if len(self._tiles) <= 1 or not candidates:
-                    return
-                victim = ('tile', candidates[0])
-            self._evict(*victim)
+            if len(self._views) > 1:
+                self._views.popitem(last=False)
+                continue
+            candidates = [t for t in self._tiles if t != keep and not self._pins.get(t)]
+            if len(self._tiles) <= 1 or not candidates:
+                return
+            self._evict(candidates[0])
 
-    def _evict(self, kind: str, key) -> None:
-        if kind == 'group':
-            self._groups.pop(key, None)
-            return
-        self._tiles.pop(key, None)
-        for g in [g for g in self._groups if key in g]:
-            self._groups.pop(g, None)
+    def _evict(self, tile_id: str) -> None:
+        self._tiles.pop(tile_id, None)
+        for key in [k for k in self._parts if k[0] == tile_id]:
+            del self._parts[key]
+        for key in [k for k, v in self._views.items() if tile_id in v.tiles]:
+            del self._views[key]
         self._stats['evictions'] += 1
 
     def cache_info(self) -> dict:
-        """What the cache holds: ``tiles`` (ids loaded, least recently used first), ``groups``
-        (merged maps, as tuples of ids), ``bytes`` (tiles and merged maps), ``tile_bytes``,
-        ``limit_bytes``, ``hits``, ``misses`` and ``evictions`` of tiles, ``load_seconds``."""
+        """What the cache holds: ``tiles`` (ids loaded, least recently used first), ``views``
+        (keys ``(i0, j0, reading)`` of the views built, :mod:`.views`), ``bytes`` (tiles, their
+        local reading's points and views), ``tile_bytes``, ``limit_bytes``, ``hits``,
+        ``misses`` and ``evictions`` of tiles, ``load_seconds``, ``views_built`` and
+        ``view_seconds`` (building them)."""
         with self._lock:
-            return {'tiles': list(self._tiles), 'groups': list(self._groups), 'bytes': self._bytes(),
+            return {'tiles': list(self._tiles), 'views': list(self._views), 'bytes': self._bytes(),
                     'tile_bytes': sum(s for _, s in self._tiles.values()), 'limit_bytes': int(self.cache_mb * MB),
                     **self._stats}
 
     # -- merged maps -----------------------------------------------------------------------
-
-    def _global_ids(self, tiles: Sequence[str]) -> np.ndarray:
-        parts = [self._offset[self._position[t]] + np.arange(self.manifest_.tiles[t].facades) for t in tiles]
-        return np.concatenate(parts).astype(np.int32) if parts else np.empty(0, np.int32)
 
     def _merge(self, maps: Sequence[FacadeMap]) -> FacadeMap:
         fmap = merge_maps(maps) if maps else FacadeMap(self.params, self.map_origin.copy())
@@ -464,56 +467,104 @@ class TiledMap:
         with ``config`` (0 for the raster reading: the extent holds the façades' slabs)."""
         return config.local_radius + LOCAL_MARGIN if config.surface == 'local' else 0.0
 
-    def candidates(self, xyz: np.ndarray, config: QueryConfig | None = None) -> tuple[list[str], np.ndarray]:
-        """The tiles that may answer for (N, 3) points: ``(ids, mask)`` with the (T,) ids of
-        the tiles any point needs and the (N, T) bool of which each point needs."""
-        config = QueryConfig() if config is None else config
-        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-        grow = self.reach(config)
-        lo, hi = self._extent[:, :3] - grow, self._extent[:, 3:] + grow
-        if not len(xyz) or not len(self._ids):
-            return [], np.zeros((len(xyz), 0), bool)
-        qlo, qhi = xyz.min(axis=0), xyz.max(axis=0)
-        near = np.flatnonzero(np.all((lo <= qhi) & (hi >= qlo), axis=1))
-        mask = np.zeros((len(xyz), len(near)), bool)
-        x = xyz[:, 0]
-        for j, i in enumerate(near):  # x first (one pass over the points), y and z on those within
-            k = np.flatnonzero((x >= lo[i, 0]) & (x <= hi[i, 0]))
-            p = xyz[k]
-            mask[k[(p[:, 1] >= lo[i, 1]) & (p[:, 1] <= hi[i, 1]) & (p[:, 2] >= lo[i, 2]) & (p[:, 2] <= hi[i, 2])], j] = True
-        used = mask.any(axis=0)
-        return [self._ids[i] for i in near[used]], mask[:, used]
+    def _part(self, tile_id: str, fmap: FacadeMap, config: QueryConfig) -> TilePart:
+        """The tile's local reading's stored points (:func:`~.views.tile_part`), cached with the tile."""
+        key = (tile_id, reading_key(config))
+        with self._lock:
+            hit = self._parts.get(key)
+        if hit is not None:
+            return hit[0]
+        part = tile_part(fmap, config)
+        with self._lock:
+            if tile_id in self._tiles:  # kept with its tile (not when the tile was evicted meanwhile)
+                hit = self._parts.setdefault(key, (part, array_bytes(part)))
+                return hit[0]
+        return part
 
-    def _group(self, tiles: tuple[str, ...], maps: list[FacadeMap]) -> _Group:
+    def local_calibration(self, config: QueryConfig) -> float:
+        """The local reading's map-wide calibration factor for ``config``: the manifest's
+        (``local_calibration``), else learnt once (leave-one-out,
+        :meth:`~uncertain_facade_map.pipeline.step7_local_surface.LocalSurface.calibrate`) on the
+        tile with the most stored points, for every view alike."""
+        key = reading_id(config) or ''
         with self._lock:
-            g = self._groups.get(tiles)
-            if g is not None:
-                self._groups.move_to_end(tiles)
-                return g
-        g = _Group(tiles, self._merge(maps), self._global_ids(tiles))
+            hit = self._calibration.get(key)
+        if hit is not None:
+            return hit
+        if not self._records:
+            return 1.0
+        largest = max(self._records, key=lambda r: (r.points, r.id))
+        fmap = self.tile(largest.id)
+        part = self._part(largest.id, fmap, config)
+        normals = np.array([f.frame.normal for f in fmap.facades]).reshape(-1, 3)
+        surface = LocalSurface(stored_points(fmap)[0][part.index], part.facade, normals, config.local_neighbours,
+                               config.local_radius, config.local_inner)
+        value = float(surface.calibrate())
         with self._lock:
-            return self._groups.setdefault(tiles, g)
+            return self._calibration.setdefault(key, value)
 
-    def _prepare(self, g: _Group, config: QueryConfig) -> None:
-        """Build the group's local surface for ``config`` once (with the manifest's
-        calibration when it has one) and count its bytes."""
-        key = reading_id(config)
-        if key is None or key in g.readings:
-            return
-        with g.lock:
-            if key in g.readings:
-                return
-            calibration = self.manifest_.local_calibration.get(key)
-            if calibration is not None:
-                _install_local_surface(g.fmap, config, calibration)
-            surface = g.fmap.local_surface(config)
-            if surface is not None and len(surface.points) > config.local_neighbours + 1:
-                surface.grid  # noqa: B018 - built now, counted below (the first read would build it)
-            g.readings.add(key)
-            extra = array_bytes(surface)
+    def _square(self, i0: int, j0: int) -> tuple[float, float, float, float]:
+        lo = self.grid.bounds(i0, j0)
+        hi = self.grid.bounds(i0 + self.view_tiles - 1, j0 + self.view_tiles - 1)
+        return lo[0], lo[1], hi[2], hi[3]
+
+    def _split(self, xyz: np.ndarray, config: QueryConfig) -> list[tuple[tuple, np.ndarray]]:
+        """The views that answer (N, 3) points, and which points each: the squares of
+        ``view_tiles`` x ``view_tiles`` tiles of the grid that hold them."""
+        block = np.floor_divide(self.grid.index(xyz[:, :2]), self.view_tiles)
+        reading = reading_key(config)
+        k = self.view_tiles
+        code = (block[:, 0] << 32) + (block[:, 1] & 0xFFFFFFFF)  # one int64 per square
+        if (code == code[0]).all():
+            return [((int(block[0, 0]) * k, int(block[0, 1]) * k, reading), np.arange(len(xyz)))]
+        order = np.argsort(code, kind='stable')
+        cuts = np.flatnonzero(np.diff(code[order])) + 1
+        return [((int(block[m[0], 0]) * k, int(block[m[0], 1]) * k, reading), m) for m in np.split(order, cuts)]
+
+    def _view(self, key: tuple, config: QueryConfig) -> View:
+        """The view of ``key``, from the cache or built (its tiles loaded)."""
         with self._lock:
-            if self._groups.get(g.tiles) is g:
-                g.extra += extra
+            hit = self._views.get(key)
+            if hit is not None:
+                self._views.move_to_end(key)
+                for t in hit.tiles:  # its tiles are in use too (evicting one drops the view)
+                    if t in self._tiles:
+                        self._tiles.move_to_end(t)
+                return hit
+        start = time.perf_counter()
+        square = self._square(key[0], key[1])
+        pad = self.reach(config)
+        e = self._extent
+        meets = ((e[:, 0] <= square[2] + pad) & (e[:, 3] >= square[0] - pad)
+                 & (e[:, 1] <= square[3] + pad) & (e[:, 4] >= square[1] - pad)) if len(e) else np.zeros(0, bool)
+        tiles = [self._ids[i] for i in np.flatnonzero(meets)]
+        with self._lock:
+            for t in tiles:
+                self._pins[t] = self._pins.get(t, 0) + 1
+        try:
+            maps = [self.tile(t) for t in tiles]
+            parts = [self._part(t, m, config) for t, m in zip(tiles, maps)]
+            calibration = self.local_calibration(config) if config.surface == 'local' and maps else 1.0
+            occupancy, _, reg_var = joint_map_wide(maps) if maps else (FacadeMap(self.params).occupancy_, None, 0.0)
+            if self._occupancy is not None:
+                occupancy = self._occupancy
+            if self._registration is not None:
+                reg_var = self._registration[0]
+            offsets = [int(self._offset[self._position[t]]) for t in tiles]
+            view = make_view(key, tiles, maps, parts, offsets, square, pad, config, calibration, occupancy, reg_var)
+        finally:
+            with self._lock:
+                for t in tiles:
+                    self._pins[t] -= 1
+                    if not self._pins[t]:
+                        del self._pins[t]
+        with self._lock:
+            self._stats['views_built'] += 1
+            self._stats['view_seconds'] += time.perf_counter() - start
+            view = self._views.setdefault(key, view)
+            self._views.move_to_end(key)
+            self._trim()
+        return view
 
     def query(self, xyz: np.ndarray, config: QueryConfig | None = None, resolution: float | None = None,
               event: str | None = None) -> PointQuery:
@@ -529,48 +580,20 @@ class TiledMap:
         xyz = np.asarray(xyz, dtype=np.float64)
         if xyz.ndim != 2 or xyz.shape[1] != 3 or not np.isfinite(xyz).all() or not len(xyz):
             return self._merge([]).query(xyz, config, resolution)  # its own checks and messages
-        ids, mask = self.candidates(xyz, config)
         n = len(xyz)
-        if 0 < len(ids) <= self.union_tiles:
-            # One merged map of all the batch's candidate tiles answers every point (the same
-            # answers: a point's answer involves its candidates only): one call of the
-            # compiled kernels instead of one per candidate set.
-            mask = np.ones((n, len(ids)), bool)
-        if ids:
-            keys = np.packbits(mask, axis=1)
-            keys = np.ascontiguousarray(keys).view(np.dtype((np.void, keys.shape[1]))).ravel()
-            uniq, inverse = np.unique(keys, return_inverse=True)
-            inverse = inverse.ravel()
-        else:
-            uniq, inverse = np.zeros(1, np.int8), np.zeros(n, np.int64)
-        order = np.argsort(inverse, kind='stable')
-        cuts = np.searchsorted(inverse[order], np.arange(1, len(uniq)))
         out = {'facade': np.full(n, -1, np.int32), 'mean_depth': np.empty(n), 'variance': np.empty(n),
                'noise_variance': np.empty(n), 'signed_distance': np.empty(n), 'p_occupied': np.empty(n),
                'normal': np.empty((n, 3))}
-        needed = sorted(ids)
-        with self._lock:
-            for t in needed:
-                self._pins[t] = self._pins.get(t, 0) + 1
-        try:
-            for members in np.split(order, cuts):
-                tiles = tuple(t for t, m in zip(ids, mask[members[0]]) if m) if ids else ()
-                tiles = tuple(sorted(tiles))
-                g = self._group(tiles, [self.tile(t) for t in tiles])
-                self._prepare(g, config)
-                answer = g.fmap.query(xyz[members], config, resolution)
-                fid = answer.facade
-                out['facade'][members] = np.where(fid >= 0, g.global_ids[np.maximum(fid, 0)] if len(g.global_ids)
-                                                  else -1, -1)
-                for k in ('mean_depth', 'variance', 'noise_variance', 'signed_distance', 'p_occupied', 'normal'):
-                    out[k][members] = getattr(answer, k)
-        finally:
-            with self._lock:
-                for t in needed:
-                    self._pins[t] -= 1
-                    if not self._pins[t]:
-                        del self._pins[t]
-                self._trim()
+        ex = self.params.extraction
+        for key, members in self._split(xyz, config):
+            view = self._view(key, config)
+            answer = query_map(view.facades, {}, xyz[members], resolution, ex.band_back, ex.band_front, view.occupancy,
+                               config, view.local, view.registration_var, view.rasters)
+            fid = answer.facade
+            ids = view.global_ids
+            out['facade'][members] = np.where(fid >= 0, ids[np.maximum(fid, 0)] if len(ids) else -1, -1)
+            for k in ('mean_depth', 'variance', 'noise_variance', 'signed_distance', 'p_occupied', 'normal'):
+                out[k][members] = getattr(answer, k)
         return PointQuery(**out)
 
     def __repr__(self) -> str:
