@@ -138,8 +138,8 @@ def plan(costs: BuildCosts, overhead: Overhead, km: float, points: float, worker
                                           f'{costs.per_tile_s + costs.largest_tile_points * costs.per_point_s:.0f} s)'),
         (f'routing on {workers} workers', f'{_hours(route_par_s)} ({costs.route_per_point_s * 1e6:.2f} µs of worker '
                                           'time per input point: reading, selecting, surveying, spilling, a task per '
-                                          f'input file; then {_hours(client_s)} in the client, merging the surveys '
-                                          f'and planning: {costs.plan_per_point_s * 1e6:.3f} µs per input point)'),
+                                          f'input file; then {client_s:,.0f} s in the client, merging the surveys and '
+                                          f'planning: {costs.plan_per_point_s * 1e9:.2g} ns per input point)'),
         ('routing, one process', f'{_hours(route_one_s)} (the same work in the client: --workers 0)'),
         ('total', f'{_hours(mapping_s + route_par_s)} ({workers} workers routing and mapping)'),
         ('memory per worker', f'{costs.peak_rss_mb:,.0f} MB peak measured (largest tile {costs.largest_tile_points:,} '
@@ -173,7 +173,7 @@ def main(argv: list[str] | None = None) -> int:
           f'tiles{"" if costs.street_km is None else f", {costs.street_km:.2f} km of street"}: '
           f'{costs.per_point_s * 1e6:.2f} µs per building point + {costs.per_tile_s:.3f} s per tile (processor '
           f'seconds of the tile tasks, fitted), routing {costs.route_per_point_s * 1e6:.2f} µs per input point (processor '
-          f'seconds of the routing tasks) + {costs.plan_per_point_s * 1e6:.3f} µs in the client, peak RSS '
+          f'seconds of the routing tasks) + {costs.plan_per_point_s * 1e9:.2g} ns in the client, peak RSS '
           f'{costs.peak_rss_mb:.0f} MB')
     rows = plan(costs, overhead, args.km, args.points, args.workers)
     print(f'\nplan: {args.km:,.0f} km of street, {args.points:.3g} input points, {args.workers} workers')
