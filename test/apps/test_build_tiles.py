@@ -2,7 +2,7 @@
 updates only the tiles whose buildings it saw, and a worker killed during a task on Dask leaves
 the same map. Input: three copies of the `small` scene, 60 m apart in x (6 buildings, 6 tiles).
 
-About 75 s (five in-process builds of 6 tiles, two Dask builds with a cluster of 2 workers). The
+About 40 s (five in-process builds of 6 tiles, two Dask builds with a cluster of 2 workers). The
 routing on the workers gives the same tiles as in this process (one input file or four)."""
 
 import hashlib

@@ -1,7 +1,8 @@
 """The tiled build's routing and tile tasks (issue 29): with sensor origins, the tiles' buildings
 are those of one map of the whole input, bit for bit, however the input is cut.
 
-About 6 s (the `small` scene: 2 buildings, 14,000 points, mapped three times)."""
+About 4 s (the `small` scene: 2 buildings, 14,000 points, mapped three times; the three cases of
+parts surveyed and spilled apart take 0.1 s each)."""
 
 import json
 from pathlib import Path
