@@ -9,13 +9,17 @@ measured on:
 2. **The cost per building point and per tile**: from a tiled build's report
    (``build.json`` in the folder that ``build --tiles`` wrote): each tile task's processor seconds
    against its building points, fitted as ``seconds = per_tile + per_point * points`` (least
-   squares), and the client's serial part (reading and routing the inputs) per input point.
+   squares); the routing tasks' processor seconds (reading, selecting, surveying and spilling each
+   input file on a worker) per input point; and the client's serial part (merging the surveys,
+   planning) per input point. A report of a build that routed in the client (no ``route_tasks``)
+   gives its reading and routing seconds as the routing work, and no client part.
 3. **Memory**: the largest peak RSS of a worker and the largest tile's points.
 
 The plan then scales them to a street network (``--km``, ``--points``, ``--workers``) and
 states its assumptions: tiles per km and building points per input point as in the measured
-build; tasks spread evenly; the serial routing done per input file in parallel (as many
-routers as workers) or in one client, both printed.
+build; tasks spread evenly (routing: input files at least as many as workers, each a task); the
+client's merging and planning growing with the input points. Routing in one process (the
+``--workers 0`` build) is printed beside it.
 """
 
 from __future__ import annotations
@@ -77,9 +81,10 @@ class BuildCosts:
     street_km: float | None
     per_point_s: float    # worker-seconds per building point of a tile task
     per_tile_s: float     # worker-seconds per tile task on top (reading its points, writing its file)
-    route_per_point_s: float  # client seconds per input point (reading, selecting, routing)
+    route_per_point_s: float  # worker-seconds per input point of the routing tasks (reading, selecting, spilling)
     peak_rss_mb: float
     largest_tile_points: int
+    plan_per_point_s: float = 0.0  # client seconds per input point (merging the surveys, planning)
 
 
 def build_costs(report: dict, street_km: float | None = None) -> BuildCosts:
@@ -92,11 +97,17 @@ def build_costs(report: dict, street_km: float | None = None) -> BuildCosts:
     (per_tile, per_point), *_ = np.linalg.lstsq(design, seconds, rcond=None)
     if per_tile < 0:  # the intercept is not resolved: all the cost per point
         per_tile, per_point = 0.0, float(seconds.sum() / max(points.sum(), 1.0))
-    route_s = float(report.get('read_seconds', 0.0)) + float(report.get('route_seconds', 0.0))
+    n_input = max(int(report['input_points']), 1)
+    if report.get('route_tasks'):  # routed on the workers: their processor seconds, and the client's part
+        route_s = sum(float(t['cpu_seconds']) for t in report['route_tasks'])
+        plan_s = float(report.get('plan_seconds') or 0.0)
+    else:  # routed in the client (an older report): all of it
+        route_s = float(report.get('read_seconds', 0.0)) + float(report.get('route_seconds', 0.0))
+        plan_s = 0.0
     return BuildCosts(int(report['input_points']), int(report['building_points']), len(tasks),
-                      street_km, float(per_point), float(per_tile),
-                      route_s / max(int(report['input_points']), 1),
-                      max(float(t.get('peak_rss_mb', 0.0)) for t in tasks), int(points.max(initial=0)))
+                      street_km, float(per_point), float(per_tile), route_s / n_input,
+                      max(float(t.get('peak_rss_mb', 0.0)) for t in tasks), int(points.max(initial=0)),
+                      plan_s / n_input)
 
 
 def _hours(seconds: float) -> str:
@@ -111,8 +122,10 @@ def plan(costs: BuildCosts, overhead: Overhead, km: float, points: float, worker
     building = points * building_share
     work = building * costs.per_point_s + tiles * (costs.per_tile_s + overhead.per_task_s)
     mapping_s = work / workers
-    route_one_s = points * costs.route_per_point_s
-    route_par_s = route_one_s / workers
+    route_work_s = points * costs.route_per_point_s
+    client_s = points * costs.plan_per_point_s
+    route_par_s = route_work_s / workers + client_s
+    route_one_s = route_work_s + client_s
     tile_cost = (f'{costs.per_tile_s:.2f} s per tile' if costs.per_tile_s > 0 else
                  'no cost per tile resolved by the fit: all of it per point')
     rows = [
@@ -123,11 +136,12 @@ def plan(costs: BuildCosts, overhead: Overhead, km: float, points: float, worker
         (f'mapping on {workers} workers', f'{_hours(mapping_s)} (tasks spread evenly; the largest tile, '
                                           f'{costs.largest_tile_points:,} points, takes '
                                           f'{costs.per_tile_s + costs.largest_tile_points * costs.per_point_s:.0f} s)'),
-        ('routing, one client', f'{_hours(route_one_s)} ({costs.route_per_point_s * 1e6:.2f} µs per input point: '
-                                'reading, selecting, spilling)'),
-        (f'routing, {workers} routers', f'{_hours(route_par_s)} (inputs cut by file, routed in parallel: not built)'),
-        ('total', f'{_hours(mapping_s + route_par_s)} with parallel routing, {_hours(mapping_s + route_one_s)} with '
-                  'one client'),
+        (f'routing on {workers} workers', f'{_hours(route_par_s)} ({costs.route_per_point_s * 1e6:.2f} µs of worker '
+                                          'time per input point: reading, selecting, surveying, spilling, a task per '
+                                          f'input file; then {client_s:,.0f} s in the client, merging the surveys and '
+                                          f'planning: {costs.plan_per_point_s * 1e9:.2g} ns per input point)'),
+        ('routing, one process', f'{_hours(route_one_s)} (the same work in the client: --workers 0)'),
+        ('total', f'{_hours(mapping_s + route_par_s)} ({workers} workers routing and mapping)'),
         ('memory per worker', f'{costs.peak_rss_mb:,.0f} MB peak measured (largest tile {costs.largest_tile_points:,} '
                               'points); a city tile of the same buildings needs the same'),
         ('scheduler', f'{tiles:,.0f} tasks x {overhead.per_task_s * 1e3:.1f} ms = '
@@ -158,7 +172,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f'measured   {costs.input_points:,} input points, {costs.building_points:,} building points, {costs.tiles} '
           f'tiles{"" if costs.street_km is None else f", {costs.street_km:.2f} km of street"}: '
           f'{costs.per_point_s * 1e6:.2f} µs per building point + {costs.per_tile_s:.3f} s per tile (processor '
-          f'seconds of the tile tasks, fitted), routing {costs.route_per_point_s * 1e6:.2f} µs per input point, peak RSS '
+          f'seconds of the tile tasks, fitted), routing {costs.route_per_point_s * 1e6:.2f} µs per input point (processor '
+          f'seconds of the routing tasks) + {costs.plan_per_point_s * 1e9:.2g} ns in the client, peak RSS '
           f'{costs.peak_rss_mb:.0f} MB')
     rows = plan(costs, overhead, args.km, args.points, args.workers)
     print(f'\nplan: {args.km:,.0f} km of street, {args.points:.3g} input points, {args.workers} workers')

@@ -344,20 +344,33 @@ def cmd_build(args: argparse.Namespace) -> int:
 
 
 def _write_build_report(folder: Path, args: argparse.Namespace, n_read: int, n_building: int, read_s: float,
-                        route_s: float, map_s: float, total_s: float, results: list) -> Path:
-    """Write ``DIR/build.json``: this run's figures, per tile task its building points, seconds,
-    processor seconds and its worker's peak memory (:mod:`uncertain_facade_map_apps.capacity` fits
-    the cost per point and per tile on them)."""
+                        route_s: float, map_s: float, total_s: float, results: list, routed=None,
+                        start_s: float = 0.0) -> Path:
+    """Write ``DIR/build.json``: this run's figures (``start_seconds``: starting the cluster;
+    ``read_seconds``, ``route_seconds``: wall time of the survey tasks, and of merging, planning
+    and the spill tasks, ``plan_seconds`` of which the client's merging and planning), per tile
+    task its building points, seconds, processor seconds and its worker's peak memory, per routing
+    task (``route_tasks``) its input, points, seconds and processor seconds
+    (:mod:`uncertain_facade_map_apps.capacity` fits the costs on them)."""
     import json
     import os
 
+    route_tasks = []
+    if routed is not None:
+        route_tasks = [{'step': 'survey', 'input': p.index, 'points': p.read, 'building_points': p.points,
+                        'seconds': p.seconds, 'cpu_seconds': p.cpu_seconds, 'pid': p.pid} for p in routed.parts]
+        route_tasks += [{'step': 'spill', 'input': s.index, 'seconds': s.seconds, 'cpu_seconds': s.cpu_seconds,
+                         'pid': s.pid} for s in routed.spilled]
     report = {
         'inputs': [str(p) for p in args.inputs], 'workers': args.workers or 0, 'scheduler': args.scheduler,
         'cpus': os.cpu_count(), 'input_points': n_read, 'building_points': n_building,
-        'read_seconds': read_s, 'route_seconds': route_s, 'map_seconds': map_s, 'total_seconds': total_s,
+        'start_seconds': start_s, 'read_seconds': read_s, 'route_seconds': route_s,
+        'plan_seconds': None if routed is None else routed.plan_seconds, 'map_seconds': map_s,
+        'total_seconds': total_s,
         'tasks': [{'tile': r.record.id, 'points': r.points, 'seconds': r.map_seconds + r.write_seconds,
                    'map_seconds': r.map_seconds, 'write_seconds': r.write_seconds, 'cpu_seconds': r.cpu_seconds,
                    'pid': r.pid, 'peak_rss_mb': r.max_rss_kb / 1024} for r in results],
+        'route_tasks': route_tasks,
     }
     path = folder / 'build.json'
     path.write_text(json.dumps(report, indent=1))
@@ -366,17 +379,16 @@ def _write_build_report(folder: Path, args: argparse.Namespace, n_read: int, n_b
 
 def _build_tiles(args: argparse.Namespace, config) -> int:
     """``build --tiles DIR``: route the inputs' building points to tiles, map the tiles (in this
-    process or on Dask), write the tiles and the manifest; resume or update an existing one."""
-    from msg_adapters.bag_io import load_inputs
-    from uncertain_facade_map.io.inputs import select_building_points
+    process or on Dask: one cluster for both), write the tiles and the manifest; resume or update
+    an existing one."""
     from uncertain_facade_map.io.map_file import remove_stale_temporaries
     from uncertain_facade_map.io.trajectory import read_trajectory
     from uncertain_facade_map.params import map_params, map_params_record
     from uncertain_facade_map.tiling.build import Router, calibration_tiles, check_params, done_already, parse_bounds
     from uncertain_facade_map.tiling.manifest import MANIFEST, Manifest, is_tiled_map, read_manifest, write_manifest
 
-    from .cluster import run_tiles
-    from .las_chunks import input_chunks
+    from .cluster import dask_client, route, run_tiles
+    from .las_chunks import BuildingChunks
 
     if args.sensor is not None and args.trajectory is not None:
         raise CliError('give --sensor or --trajectory, not both')
@@ -399,45 +411,39 @@ def _build_tiles(args: argparse.Namespace, config) -> int:
     bounds = None if args.bounds is None else parse_bounds(args.bounds)
     trajectory = None if args.trajectory is None else read_trajectory(args.trajectory)
     selection = config.selection if args.select is None else dataclasses.replace(config.selection, mode=args.select)
+    reader = BuildingChunks(config, selection, bounds, args.topic, args.sensor, trajectory)
     router = Router(folder, params, side, bounds, existing)
     started = time.perf_counter()
-    n_read = 0
-    for path in args.inputs:
-        for cloud in input_chunks(path, bounds, lambda p: load_inputs([p], topic=args.topic,
-                                                                     max_distance=config.input.max_distance,
-                                                                     warn=print, config=config)):
-            n_read += len(cloud)
-            if not len(cloud):
-                continue
-            points = select_building_points(cloud, config.input, selection, sensor=args.sensor, trajectory=trajectory)
-            router.add(points.xyz, points.building_id, points.sensor_origins, points.map_origin)
-    if not router.points:
-        raise CliError('no building points in the inputs' + ('' if bounds is None else ' within --bounds'))
-    read_s = time.perf_counter() - started
-    router.plan()
-    tasks = router.spill()
-    route_s = time.perf_counter() - started - read_s
-    manifest = existing or Manifest(side, tuple(float(v) for v in router.map_origin), map_params_record(params), {},
-                                    None, {})
-    todo = [t for t in tasks if not done_already(folder, existing, t)]
-    skipped = len(tasks) - len(todo)
-    if existing is None:
-        write_manifest(folder, manifest)
-    with _counter('tiles', 'tile', args.quiet, total=len(todo)) as update:
-        count = iter(range(1, len(todo) + 1))
-        results = run_tiles(todo, folder, manifest, workers=args.workers or 0, scheduler=args.scheduler,
-                            progress=lambda _r: update(next(count)),
-                            calibrate=None if not todo and manifest.local_calibration else
-                            (calibration_tiles(tasks), config.query.resolution if router.has_origins else None))
-    map_s = time.perf_counter() - started - read_s - route_s
+    with dask_client(args.workers or 0, args.scheduler) as client:  # one cluster: routing and tiles
+        start_s = time.perf_counter() - started
+        routed = route(router, [str(Path(p).absolute()) for p in args.inputs], reader, client)
+        if not router.points:
+            raise CliError('no building points in the inputs' + ('' if bounds is None else ' within --bounds'))
+        tasks, n_read, read_s, route_s = routed.tasks, routed.read, routed.read_seconds, routed.route_seconds
+        manifest = existing or Manifest(side, tuple(float(v) for v in router.map_origin), map_params_record(params),
+                                        {}, None, {})
+        todo = [t for t in tasks if not done_already(folder, existing, t)]
+        skipped = len(tasks) - len(todo)
+        if existing is None:
+            write_manifest(folder, manifest)
+        with _counter('tiles', 'tile', args.quiet, total=len(todo)) as update:
+            count = iter(range(1, len(todo) + 1))
+            results = run_tiles(todo, folder, manifest, progress=lambda _r: update(next(count)),
+                                calibrate=None if not todo and manifest.local_calibration else
+                                (calibration_tiles(tasks), config.query.resolution if router.has_origins else None),
+                                client=client)
+        map_s = time.perf_counter() - started - start_s - read_s - route_s
     plsc = manifest.occupancy
     occupancy = ('the fixed formula' if plsc is None else
                  f'scale {plsc["scale"]:.3g}, spread {plsc["spread"] * 100:.1f} cm, learnt on the largest tile built')
     router.cleanup()
     total_s = time.perf_counter() - started
     n_building = router.points
-    print(f'read     {n_read:,} points ({n_building:,} building) from {len(args.inputs)} input(s) in {read_s:.1f} s')
-    print(f'route    {len(tasks)} tiles, {len(router._plan):,} buildings in {route_s:.1f} s')
+    where = 'in this process' if client is None else 'as tasks'
+    print(f'read     {n_read:,} points ({n_building:,} building) from {len(args.inputs)} input(s) in {read_s:.1f} s '
+          f'({where}{"" if client is None else f", after {start_s:.1f} s starting the cluster"})')
+    print(f'route    {len(tasks)} tiles, {len(router._plan):,} buildings in {route_s:.1f} s '
+          f'({routed.plan_seconds:.1f} s merging and planning)')
     print(f'map      {len(results)} tiles written, {skipped} skipped (built already) in {map_s:.1f} s '
           f'({sum(r.points for r in results) / max(map_s, 1e-9):,.0f} building points/s; tasks: '
           f'{sum(r.map_seconds for r in results):.1f} s mapping, {sum(r.write_seconds for r in results):.1f} s writing)')
@@ -449,7 +455,8 @@ def _build_tiles(args: argparse.Namespace, config) -> int:
         print(f'worker   pid {pid}: {len(rs)} tiles in {sum(r.cpu_seconds for r in rs):.1f} s of CPU, peak RSS '
               f'{max(r.max_rss_kb for r in rs) / 1024:.0f} MB, largest tile {big.record.id} ({big.points:,} points)')
     print(f'plsc     {occupancy} (for all tiles)')
-    report = _write_build_report(folder, args, n_read, n_building, read_s, route_s, map_s, total_s, results)
+    report = _write_build_report(folder, args, n_read, n_building, read_s, route_s, map_s, total_s, results, routed,
+                                 start_s)
     print(f'report   {report} (what uncertain-facade-map capacity plans from)')
     facades = sum(r.facades for r in manifest.tiles.values())
     print(f'tiles    {folder} ({len(manifest.tiles)} tiles, {facades} façades, '
@@ -1205,11 +1212,12 @@ def build_parser() -> argparse.ArgumentParser:
                             'points are updated')
     build.add_argument('--side', type=float, metavar='M', help='--tiles: tile side, metres (default tiles.side)')
     build.add_argument('--workers', type=int, metavar='N',
-                       help='--tiles: map the tiles on a local Dask cluster of N processes of one thread '
-                            '(default 0: in this process)')
+                       help='--tiles: read and route the inputs (one task per input file) and map the tiles on a '
+                            'local Dask cluster of N processes of one thread (default 0: in this process)')
     build.add_argument('--scheduler', metavar='ADDRESS',
-                       help='--tiles: map the tiles on an existing Dask cluster (e.g. tcp://host:8786); its workers '
-                            'need this package installed and DIR shared at the same path')
+                       help='--tiles: read, route and map on an existing Dask cluster (e.g. tcp://host:8786); its '
+                            'workers need this package installed, the inputs readable and DIR shared at the same '
+                            'paths')
     build.add_argument('--bounds', metavar='MIN_X,MIN_Y,MAX_X,MAX_Y',
                        help='--tiles: build only the points in this area (the inputs\' georeferenced x, y, metres; '
                             'COPC files are read by area)')

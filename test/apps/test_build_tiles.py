@@ -2,9 +2,11 @@
 updates only the tiles whose buildings it saw, and a worker killed during a task on Dask leaves
 the same map. Input: three copies of the `small` scene, 60 m apart in x (6 buildings, 6 tiles).
 
-About 60 s (four in-process builds of 6 tiles, one Dask build with a cluster of 2 workers)."""
+About 40 s (five in-process builds of 6 tiles, two Dask builds with a cluster of 2 workers). The
+routing on the workers gives the same tiles as in this process (one input file or four)."""
 
 import hashlib
+import json
 import os
 import shutil
 import signal
@@ -18,7 +20,7 @@ import pytest
 
 from uncertain_facade_map.io.cloud import Cloud
 from uncertain_facade_map.io.map_file import load_map
-from uncertain_facade_map.io.npz import write_npz
+from uncertain_facade_map.io.npz import read_npz, write_npz
 from uncertain_facade_map.params import QueryConfig
 from uncertain_facade_map.tiling.manifest import MANIFEST, read_manifest
 from uncertain_facade_map.tiling.tiled_map import local_calibration, merge_maps, reading_id
@@ -126,6 +128,45 @@ def test_a_second_drive_updates_only_the_tiles_it_saw(drives, built, tmp_path, c
     assert '0 tiles written, 2 skipped' in capsys.readouterr().out
 
 
+@pytest.fixture(scope='module')
+def drive_files(drives):
+    """drive1.npz cut into four input files (its copies, the second in two): the same points in
+    the same order."""
+    cloud = read_npz(drives / 'drive1.npz')
+    n = len(cloud.points) // COPIES
+    cuts = [0, n, n + n // 3, 2 * n, len(cloud.points)]
+    paths = []
+    for k, (a, b) in enumerate(zip(cuts[:-1], cuts[1:])):
+        paths.append(drives / f'drive1_{k}.npz')
+        write_npz(paths[-1], Cloud(cloud.points[a:b], cloud.map_origin))
+    return paths
+
+
+def test_routing_on_the_workers_gives_the_same_tiles(drive_files, built, tmp_path, capsys):
+    """Issue 29: the inputs read and routed as tasks (one per file, 2 workers) give the tiles of
+    the in-process build (0 workers) of the same files, records and fingerprints alike, and of the
+    one-file build, bit for bit; build.json times the routing tasks."""
+    runs = {}
+    for workers in (0, 2):
+        out = tmp_path / f'w{workers}'
+        assert main(['build', *map(str, drive_files), '--tiles', str(out), '--side', '20', '--quiet',
+                     '--workers', str(workers)]) == 0
+        runs[workers] = out
+    assert 'as tasks' in capsys.readouterr().out
+    assert _hashes(runs[0]) == _hashes(runs[2]) == _hashes(built)
+    assert read_manifest(runs[0]).tiles == read_manifest(runs[2]).tiles
+    assert read_manifest(runs[2]).building_tiles == read_manifest(built).building_tiles
+    # (learnt on the tile of the largest part files: the one-file build may choose another of the same points)
+    assert read_manifest(runs[0]).occupancy == read_manifest(runs[2]).occupancy is not None
+    report = json.loads((runs[2] / 'build.json').read_text())
+    surveys = [t for t in report['route_tasks'] if t['step'] == 'survey']
+    assert [t['input'] for t in surveys] == list(range(len(drive_files)))
+    assert sum(t['points'] for t in surveys) == report['input_points']
+    assert sum(t['building_points'] for t in surveys) == report['building_points']
+    assert len({t['pid'] for t in report['route_tasks']} | {t['pid'] for t in report['tasks']}) == 2  # one cluster
+    assert report['read_seconds'] > 0 and report['route_seconds'] >= report['plan_seconds'] >= 0
+
+
 def _dying_build(task):
     """build_tile, but the first attempt at tile_0_0 kills its worker process."""
     from uncertain_facade_map.tiling.build import build_tile
@@ -141,7 +182,6 @@ def test_a_lost_worker_is_replaced_and_the_map_is_the_same(drives, built, tmp_pa
     import cloudpickle
 
     from uncertain_facade_map.io.inputs import select_building_points
-    from uncertain_facade_map.io.npz import read_npz
     from uncertain_facade_map.io.parameter_file import load_config
     from uncertain_facade_map.params import map_params, map_params_record
     from uncertain_facade_map.tiling.build import Router, calibration_tiles
@@ -162,7 +202,10 @@ def test_a_lost_worker_is_replaced_and_the_map_is_the_same(drives, built, tmp_pa
                         calibrate=(calibration_tiles(tasks), config.query.resolution))
     assert (out / 'killed_once').exists()
     assert len(results) == len(tasks) == 2 * COPIES
-    assert len({r.pid for r in results}) >= 2
+    killed = int((out / 'killed_once').read_text())
+    # tile_0_0 was run again by another process (the other worker, or the killed one's replacement:
+    # which one depends on how fast the tasks go, so no count of processes is asserted)
+    assert killed not in {r.pid for r in results}
     assert _hashes(out) == _hashes(built)
     assert manifest.occupancy == read_manifest(built).occupancy is not None
     assert manifest.local_calibration == read_manifest(built).local_calibration != {}

@@ -38,6 +38,25 @@ def test_the_plan_scales_the_measured_costs():
     assert rows['tiles'].startswith('1,000')
 
 
+def test_routing_on_the_workers_divides_by_the_workers():
+    """A report with routing tasks: their processor seconds are the routing work (spread over the
+    workers), the client's merging and planning is added whole; an older report's client routing
+    counts as routing work."""
+    report = _report(1.0, 1e-5, [100_000] * 10)  # 4e6 input points
+    report['route_tasks'] = [{'step': 'survey', 'cpu_seconds': 3.0}, {'step': 'spill', 'cpu_seconds': 1.0}]
+    report['plan_seconds'] = 0.4
+    costs = capacity.build_costs(report, street_km=1.0)
+    assert costs.route_per_point_s == pytest.approx(4.0 / 4e6) and costs.plan_per_point_s == pytest.approx(0.1 / 1e6)
+    overhead = capacity.Overhead(2, 100, per_task_s=0.01, round_trip_s=0.02, start_s=1.0)
+    rows = dict(capacity.plan(costs, overhead, km=100.0, points=4e8, workers=10))
+    # 4e8 points x 1 µs = 400 worker-s over 10 workers, + 4e8 x 0.1 µs = 40 s in the client
+    assert rows['routing on 10 workers'].startswith(f'{80 / 3600:,.2f} h (1 min)')
+    assert rows['routing, one process'].startswith(f'{440 / 3600:,.2f} h (7 min)')
+    assert rows['total'].startswith(f'{(2010 / 10 + 80) / 3600:,.2f} h')
+    old = capacity.build_costs(_report(1.0, 1e-5, [100_000] * 10), street_km=1.0)
+    assert old.route_per_point_s == pytest.approx(4.0 / 4e6) and old.plan_per_point_s == 0.0
+
+
 def test_a_tiled_build_writes_the_report_the_plan_reads(scenes, tmp_path, monkeypatch, capsys):
     write_npz(tmp_path / 'drive.npz', scenes.campaign('small', 0))
     out = tmp_path / 'map'
@@ -50,3 +69,4 @@ def test_a_tiled_build_writes_the_report_the_plan_reads(scenes, tmp_path, monkey
     assert capacity.main([str(out / 'build.json'), '--street-km', '0.05']) == 0
     printed = capsys.readouterr().out
     assert 'plan: 1,000 km of street' in printed and 'memory per worker' in printed
+    assert 'routing on 100 workers' in printed and 'in the client' in printed

@@ -1,9 +1,11 @@
 """The tiled build's routing and tile tasks (issue 29): with sensor origins, the tiles' buildings
 are those of one map of the whole input, bit for bit, however the input is cut.
 
-About 6 s (the `small` scene: 2 buildings, 14,000 points, mapped three times)."""
+About 4 s (the `small` scene: 2 buildings, 14,000 points, mapped three times; the three cases of
+parts surveyed and spilled apart take 0.1 s each)."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,7 +15,16 @@ from uncertain_facade_map.io.map_file import _facade_arrays, load_map
 from uncertain_facade_map.mapping.facade_map import build_map
 from uncertain_facade_map.params import MapParams, map_params_record
 from uncertain_facade_map.pipeline.step1_facades import split_buildings
-from uncertain_facade_map.tiling.build import Router, build_tile, in_bounds, parse_bounds, read_parts
+from uncertain_facade_map.tiling.build import (
+    Router,
+    build_tile,
+    in_bounds,
+    in_frame,
+    parse_bounds,
+    read_parts,
+    spill_part,
+    survey_part,
+)
 from uncertain_facade_map.tiling.manifest import Manifest
 
 
@@ -71,13 +82,74 @@ def test_tiles_hold_the_whole_maps_buildings_bit_for_bit(tmp_path, street, whole
 
 
 def test_routing_does_not_depend_on_the_cut(tmp_path, street):
+    """The same points and labels in every tile however the input is cut into chunks; the
+    fingerprint (a hash of the parts' digests, one part per chunk) is the same for the same cut."""
     n = len(street[0])
     _, a = _route(tmp_path / 'a', street, [0, n])
     _, b = _route(tmp_path / 'b', street, [0, 7, 3000, 3001, 9000, n])
-    assert [t.inputs for t in a] == [t.inputs for t in b]
+    _, c = _route(tmp_path / 'c', street, [0, 7, 3000, 3001, 9000, n])
+    assert [t.tile_id for t in a] == [t.tile_id for t in b]
+    assert [t.inputs for t in b] == [t.inputs for t in c] != [t.inputs for t in a]
     for ta, tb in zip(a, b):
         for x, y in zip(read_parts(ta.parts), read_parts(tb.parts)):
             assert x.tobytes() == y.tobytes()
+
+
+def _pieces(street, files, shift=None):
+    """The street cut into input files of a few chunks each (file k of ``files``: the chunks'
+    (start, stop) rows); with ``shift``, the odd files in a map frame moved by it (metres)."""
+    xyz, given, origins, origin = street
+    out = []
+    for k, cuts in enumerate(files):
+        d = np.zeros(3) if shift is None or k % 2 == 0 else np.asarray(shift)
+        out.append([(xyz[a:b] - d, given[a:b], origins[a:b] - d, origin + d) for a, b in cuts])
+    return out
+
+
+@pytest.mark.parametrize('ids,shift', [(True, None), (False, None), (True, (10.0, -3.0, 0.5))])
+def test_parts_surveyed_and_spilled_apart_route_as_one_router(tmp_path, street, ids, shift):
+    """Issue 29's parallel routing: each input file surveyed on its own (here in reverse order,
+    as workers may finish), the surveys merged in input order, the files spilled on their own:
+    the same labels, tiles, part files and fingerprints as one router fed chunk by chunk; inputs
+    of another map origin than the first's are surveyed again in the first's frame."""
+    n = len(street[0])
+    files = [[(0, 10)], [(10, 3000), (3000, 3001), (3001, 6000)], [], [(6000, 9000), (9000, n)]]
+    pieces = _pieces(street, files, shift)
+    if not ids:
+        pieces = [[(x, None, so, o) for x, _, so, o in chunks] for chunks in pieces]
+    serial = Router(tmp_path / 'serial', MapParams(), 20.0)
+    for chunks in pieces:
+        for chunk in chunks:
+            serial.add(*chunk)
+    want = serial.spill()
+    folder = tmp_path / 'parallel'
+    router = Router(folder, MapParams(), 20.0)
+    cell = router.cell
+    parts = {k: survey_part(folder, k, pieces[k], cell) for k in reversed(range(len(pieces)))}
+    origin = parts[0].origin
+    assert [in_frame(parts[k], origin) for k in range(len(pieces))] == [True, shift is None, True, shift is None]
+    for k in range(len(pieces)):
+        if not in_frame(parts[k], origin):
+            parts[k] = survey_part(folder, k, pieces[k], cell, origin=origin)
+        router.merge(parts[k])
+    assert router.plan() == serial._plan
+    assert router.points == serial.points == n
+    spilled = [spill_part(folder, p.index, p.chunks, router.route_plan, first)
+               for p, first in reversed(list(zip(router.parts, router.spill_firsts())))]
+    got = router.tasks(spilled)
+    assert [t.tile_id for t in got] == [t.tile_id for t in want] and len(got) >= 2
+    assert [t.inputs for t in got] == [t.inputs for t in want]
+    for tg, tw in zip(got, want):
+        assert [Path(p).name for p in tg.parts] == [Path(p).name for p in tw.parts]
+        for x, y in zip(read_parts(tg.parts), read_parts(tw.parts)):
+            assert x.dtype == y.dtype and x.tobytes() == y.tobytes()
+    if not ids:
+        labels = np.concatenate([read_parts(t.parts)[1] for t in got])
+        assert len(np.unique(labels)) > 2  # clustered: the two buildings and a few stray points
+    if shift is not None:
+        other = Router(tmp_path / 'refuse', MapParams(), 20.0, map_origin=origin)
+        with pytest.raises(ValueError, match='map frame'):
+            other.merge(survey_part(other.folder, 1, pieces[1], cell))
 
 
 def test_points_without_ids_are_clustered_over_the_whole_input(tmp_path, street):

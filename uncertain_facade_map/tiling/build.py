@@ -1,24 +1,30 @@
 """The tiled build's plain pieces (issue 29): routing points to tiles by area, and one tile's task.
 
 No Dask here (the core imports numpy, scipy, sklearn only): ``uncertain_facade_map_apps.cluster``
-runs :func:`build_tile` on Dask's workers, or in this process, and owns the manifest.
+runs the survey and spill of each input (:func:`survey_part`, :func:`spill_part`) and
+:func:`build_tile` on Dask's workers, or in this process, and owns the manifest.
 
 The build goes in three steps:
 
-1. **Survey** (:meth:`Router.add`, one chunk of building points at a time, in input order):
-   each chunk is shifted into the build's map frame, limited to ``bounds``, spilled to
-   ``DIR/.work/chunks/`` and its buildings measured: per given building id its (x, y) bounding
-   box; points without an id add their ``extraction.building_cell`` cells (in order of first
-   point) with each cell's bounding box. The client holds cells and boxes, never the points.
-2. **Plan** (:meth:`Router.plan`): the cells are clustered over the whole input (8-connected
-   components, numbered in order of first point from ``max(id) + 1``: the labels
+1. **Survey** (:func:`survey_part`, one piece of the input at a time -- an input file on a
+   worker, or a chunk given to :meth:`Router.add`): each chunk of building points is shifted
+   into the build's map frame, limited to ``bounds``, spilled to ``DIR/.work/chunks/`` and its
+   buildings measured (:class:`Survey`): per given building id its (x, y) bounding box; points
+   without an id add their ``extraction.building_cell`` cells (in order of first point) with
+   each cell's bounding box. The client merges the pieces' surveys in input order
+   (:meth:`Router.merge`: the same survey as the whole input's, bit for bit); it holds cells and
+   boxes, never the points.
+2. **Plan** (:meth:`Router.plan`, in the client): the cells are clustered over the whole input
+   (8-connected components, numbered in order of first point from ``max(id) + 1``: the labels
    :func:`~uncertain_facade_map.pipeline.step1_facades.split_buildings` gives the joined input,
    whatever the cut into inputs and chunks); each building goes to the tile of the centre of its
    bounding box (``tiles.side``), or stays in the tile an existing tiled map gives it
-   (``building_tiles``).
-3. **Spill** (:meth:`Router.spill`): the chunks are read back one at a time and each tile's
-   points (xyz, building label, sensor origins; input order) appended to
-   ``DIR/.work/tiles/<id>/part_<k>.npy`` files, hashed as they go (the tile's fingerprint).
+   (``building_tiles``). The result, :class:`RoutePlan`, is what every spill needs.
+3. **Spill** (:func:`spill_part`, per piece, on a worker or in this process): the piece's
+   chunks are read back one at a time and each tile's points (xyz, building label, sensor
+   origins; input order) written to ``DIR/.work/tiles/<id>/part_<k>.npz`` files, each hashed;
+   :meth:`Router.tasks` puts the parts in input order and fingerprints each tile by its parts'
+   digests.
 
 A task (:class:`TileTask`, picklable) then maps one tile's buildings in one
 :class:`~uncertain_facade_map.mapping.facade_map.FacadeMap` (or continues the tile's saved map:
@@ -39,6 +45,7 @@ import os
 import resource
 import shutil
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -94,7 +101,12 @@ class TileTask:
             sensor_origins if known).
         params: the map's parameters.
         map_origin: (3,) the map's georeference, m.
-        inputs: the fingerprint the record gets (earlier runs' and this run's, :data:`RUNS`).
+        inputs: the fingerprint the record gets (earlier runs' and this run's, :data:`RUNS`). A
+            run's fingerprint is the sha256 of the map parameters' record, the map origin and the
+            sha256 digests of the tile's part files' rows (:func:`_rows`) in input order
+            (:meth:`Router.tasks`): the same for the same inputs whatever runs the routing, and
+            whatever the number of workers; it depends on the cut of the input into chunks (one
+            part per chunk), which a resumed build or a repeated drive reads alike.
         previous: the tile's saved map to continue (a second drive), or None: a new map.
         calibrate: voxel side of a PLSC calibration of the tile's own, or None (the command
             line: one for the whole map, :func:`city_occupancy`).
@@ -254,9 +266,243 @@ def intact(folder: str | Path, record: TileRecord) -> bool:
 
 
 @dataclass
+class Survey:
+    """What routing keeps of building points (map frame), never the points: per given building
+    id its (x, y) bounding box, and the ``extraction.building_cell`` cells of the points without
+    an id, in order of first point, each with its bounding box.
+
+    One survey measures chunks in input order (:meth:`measure`); surveys of consecutive pieces
+    of the input merge into the survey of their union (:meth:`merge`, in input order): boxes are
+    unions (minimum and maximum, exact) and a cell keeps the place of its first point, so the
+    merged survey is bit for bit the one of the whole input measured chunk by chunk.
+    """
+
+    box: dict[int, np.ndarray] = field(default_factory=dict)  # id -> (4,) min x, min y, max x, max y
+    cells: list[np.ndarray] = field(default_factory=list)  # new cell keys per piece, order of first point
+    cell_keys: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))  # sorted
+    cell_order: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))  # rank of each sorted key
+    cell_box: np.ndarray = field(default_factory=lambda: np.empty((0, 4)))  # (C, 4) per rank
+
+    def measure(self, xyz: np.ndarray, ids: np.ndarray, cell: float) -> None:
+        """Add one chunk: (N, 3) xyz (m, map frame), (N,) int64 ids (negative: none), the
+        clustering cell side (m)."""
+        given = ids >= 0
+        if given.any():
+            labels, inverse = np.unique(ids[given], return_inverse=True)
+            self._add_boxes(labels.tolist(), _boxes(xyz[given, :2], inverse, len(labels)))
+        free = ~given
+        if not free.any():
+            return
+        keys = building_cells(xyz[free], cell)
+        uniq, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+        self._add_cells(uniq, first, _boxes(xyz[free, :2], inverse.reshape(-1), len(uniq)))
+
+    def merge(self, other: Survey) -> None:
+        """Add the survey of the input's next piece (the pieces in input order)."""
+        self._add_boxes(sorted(other.box), [other.box[b] for b in sorted(other.box)])
+        keys = other.cell_list()
+        if len(keys):
+            self._add_cells(keys, np.arange(len(keys)), other.cell_box)
+
+    def cell_list(self) -> np.ndarray:
+        """(C,) int64 the cell keys in order of first point."""
+        return np.concatenate(self.cells) if self.cells else np.empty(0, np.int64)
+
+    def _add_boxes(self, labels: list[int], boxes) -> None:
+        for b, bx in zip(labels, boxes):
+            old = self.box.get(b)
+            self.box[b] = bx if old is None else np.r_[np.minimum(old[:2], bx[:2]), np.maximum(old[2:], bx[2:])]
+
+    def _add_cells(self, uniq: np.ndarray, first: np.ndarray, box: np.ndarray) -> None:
+        """(K,) distinct keys, (K,) the place of each one's first point, (K, 4) their boxes."""
+        pos = np.searchsorted(self.cell_keys, uniq)
+        known = np.zeros(len(uniq), dtype=bool)
+        if len(self.cell_keys):
+            known = self.cell_keys[np.minimum(pos, len(self.cell_keys) - 1)] == uniq
+        rank = self.cell_order[pos[known]]
+        old = self.cell_box[rank]
+        self.cell_box[rank] = np.c_[np.minimum(old[:, :2], box[known, :2]), np.maximum(old[:, 2:], box[known, 2:])]
+        new = np.flatnonzero(~known)
+        new = new[np.argsort(first[new], kind='stable')]  # order of first point
+        if len(new):
+            ranks = len(self.cell_box) + np.arange(len(new))
+            self.cells.append(uniq[new])
+            self.cell_box = np.vstack([self.cell_box, box[new]])
+            at = np.searchsorted(self.cell_keys, uniq[new])
+            order = np.argsort(uniq[new])
+            self.cell_keys = np.insert(self.cell_keys, at[order], uniq[new][order])
+            self.cell_order = np.insert(self.cell_order, at[order], ranks[order])
+
+
+@dataclass
+class Part:
+    """One piece of the input (an input file, or one :meth:`Router.add` chunk) surveyed and
+    spilled by :func:`survey_part`: what goes back to the client (small: no points).
+
+    Attributes:
+        index: the piece's place in the input (the parts are merged in this order).
+        origin: (3,) the map frame its points were shifted into (m), or None: it had no chunk.
+        chunks: its spilled chunk files (``DIR/.work/chunks/``), in input order.
+        points: building points kept (inside ``bounds``).
+        has_origins: whether every chunk had sensor origins.
+        survey: its :class:`Survey`.
+        read: input points read (before the building points were selected; the reader's count).
+        seconds: wall time of the survey, s.
+        cpu_seconds: its processor time (this process), s.
+        pid: the process that ran it.
+    """
+
+    index: int
+    origin: np.ndarray | None
+    chunks: list[str]
+    points: int
+    has_origins: bool
+    survey: Survey
+    read: int = 0
+    seconds: float = 0.0
+    cpu_seconds: float = 0.0
+    pid: int = 0
+
+
+#: One chunk of building points for :func:`survey_part`: (N, 3) xyz (m, the chunk's map frame),
+#: (N,) ids (negative: none) or None, (N, 3) sensor origins or None, (3,) the chunk's map origin.
+Chunk = tuple[np.ndarray, 'np.ndarray | None', 'np.ndarray | None', np.ndarray]
+
+
+def survey_part(folder: str | Path, index: int, chunks: Iterable[Chunk], cell: float,
+                bounds: tuple[float, float, float, float] | None = None, origin: np.ndarray | None = None) -> Part:
+    """Step 1 for one piece of the input, wherever it runs (a Dask worker, or the client): each
+    chunk is limited to ``bounds`` (georeferenced x, y), shifted into the map frame ``origin``
+    (None: the piece's first chunk's), spilled to ``DIR/.work/chunks/part_<index>_<j>.npz`` and
+    measured (:class:`Survey`, clustering cell ``cell`` m)."""
+    started, cpu = time.perf_counter(), time.process_time()
+    work = Path(folder) / WORK / 'chunks'
+    origin = None if origin is None else np.asarray(origin, dtype=np.float64)
+    survey, paths, points, has_origins = Survey(), [], 0, True
+    for xyz, building_id, sensor_origins, map_origin in chunks:
+        map_origin = np.asarray(map_origin, dtype=np.float64)
+        if origin is None:
+            origin = map_origin.copy()
+        xyz = np.asarray(xyz, dtype=np.float64)
+        shift = map_origin - origin
+        keep = in_bounds(xyz[:, :2] + map_origin[:2], bounds)
+        if not keep.all():
+            xyz = xyz[keep]
+        if shift.any():
+            xyz = xyz + shift
+        n = len(xyz)
+        ids = np.full(n, -1, np.int64) if building_id is None else np.asarray(building_id, np.int64)[keep]
+        so = None
+        if sensor_origins is None:
+            has_origins = False
+        else:
+            so = np.asarray(sensor_origins, dtype=np.float64)[keep] + shift
+        if not n:
+            continue
+        path = work / f'part_{index:06d}_{len(paths):06d}.npz'
+        arrays = {'xyz': xyz, 'building_id': ids}
+        if so is not None:
+            arrays['sensor_origins'] = so
+        np.savez(path, **arrays)
+        paths.append(str(path))
+        points += n
+        survey.measure(xyz, ids, cell)
+    return Part(index, origin, paths, points, has_origins, survey, seconds=time.perf_counter() - started,
+                cpu_seconds=time.process_time() - cpu, pid=os.getpid())
+
+
+def in_frame(part: Part, origin: np.ndarray | None) -> bool:
+    """Whether ``part`` was surveyed in the map frame ``origin`` (None: any), or holds no points:
+    else it must be surveyed again with that origin (inputs of several map origins)."""
+    return part.origin is None or origin is None or not part.points or bool(np.array_equal(part.origin, origin))
+
+
+@dataclass(frozen=True)
+class RoutePlan:
+    """Step 2's result, what every spill needs (picklable): labels and tiles of the points.
+
+    Attributes:
+        cell: the clustering cell side, m.
+        cell_keys: (C,) sorted cell keys of the points without ids.
+        cell_label: (C,) the building label of each.
+        tiles: building label -> tile id (this run's and the existing map's buildings).
+        origin: (3,) the map origin, m.
+        has_origins: whether every chunk had sensor origins (else none are spilled).
+        params_record: the map parameters' record (JSON bytes), the start of every fingerprint.
+    """
+
+    cell: float
+    cell_keys: np.ndarray
+    cell_label: np.ndarray
+    tiles: dict[int, str]
+    origin: tuple[float, float, float]
+    has_origins: bool
+    params_record: bytes
+
+    def labels(self, ids: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+        """(N,) building labels of a chunk's points (given ids, else their cell's component)."""
+        free = ids < 0
+        if not free.any():
+            return ids
+        out = ids.copy()
+        out[free] = self.cell_label[np.searchsorted(self.cell_keys, building_cells(xyz[free], self.cell))]
+        return out
+
+
+@dataclass
+class Spilled:
+    """What :func:`spill_part` gives back: per tile, in input order, its new part files, each
+    with the sha256 digest of its rows (:func:`_rows`); and the time it took."""
+
+    index: int
+    parts: dict[str, list[tuple[str, str]]]
+    seconds: float = 0.0
+    cpu_seconds: float = 0.0
+    pid: int = 0
+
+
+def spill_part(folder: str | Path, index: int, chunks: list[str], plan: RoutePlan, first: int) -> Spilled:
+    """Step 3 for one piece (``index``, :attr:`Part.index`): its chunk files (:attr:`Part.chunks`)
+    are read back in order, labelled (``plan``), cut by tile, and each tile's points (xyz, label,
+    sensor origins) written to ``DIR/.work/tiles/<id>/part_<k>.npz``, ``k`` counting the run's
+    chunks from ``first``; the chunk files are then removed."""
+    started, cpu = time.perf_counter(), time.process_time()
+    work = Path(folder) / WORK / 'tiles'
+    out: dict[str, list[tuple[str, str]]] = {}
+    for k, path in enumerate(chunks, start=first):
+        with np.load(path) as z:
+            xyz, ids = z['xyz'], z['building_id']
+            so = z['sensor_origins'] if plan.has_origins else None
+        labels = plan.labels(ids, xyz)
+        uniq, inverse = np.unique(labels, return_inverse=True)
+        of_label = [plan.tiles[b] for b in uniq.tolist()]
+        names = sorted(set(of_label))
+        code = np.searchsorted(np.array(names), np.array(of_label))[inverse.reshape(-1)]
+        order = np.argsort(code, kind='stable')  # by tile, input order within each
+        cut = np.searchsorted(code[order], np.arange(len(names) + 1))
+        for i, t in enumerate(names):
+            sel = order[cut[i]:cut[i + 1]]
+            (work / t).mkdir(parents=True, exist_ok=True)
+            target = work / t / f'part_{k:06d}.npz'
+            arrays = {'xyz': xyz[sel], 'building_id': labels[sel]}
+            if so is not None:
+                arrays['sensor_origins'] = so[sel]
+            np.savez(target, **arrays)
+            out.setdefault(t, []).append((str(target), hashlib.sha256(_rows(arrays)).hexdigest()))
+        Path(path).unlink()
+    return Spilled(index, out, time.perf_counter() - started, time.process_time() - cpu, os.getpid())
+
+
+@dataclass
 class Router:
     """Routes building points to tiles by area, spilling them to the work folder
     (see the module's description). One router per build.
+
+    The client surveys and spills in this process (:meth:`add`, then :meth:`spill`), or merges
+    parts surveyed elsewhere (:func:`survey_part` on workers, :meth:`merge` in input order),
+    plans (:meth:`plan`) and turns the parts spilled elsewhere (:func:`spill_part`, with
+    :meth:`spill_firsts` and :attr:`route_plan`) into tasks (:meth:`tasks`): the same points,
+    labels, part files and fingerprints either way.
 
     Args:
         folder: the tiled map's folder (created by the caller).
@@ -272,14 +518,11 @@ class Router:
     bounds: tuple[float, float, float, float] | None = None
     existing: Manifest | None = None
     map_origin: np.ndarray | None = None
-    chunks: list[Path] = field(default_factory=list)
+    parts: list[Part] = field(default_factory=list)
     points: int = 0
     has_origins: bool = True
-    _box: dict[int, np.ndarray] = field(default_factory=dict)  # id -> (4,) min x, min y, max x, max y
-    _cells: list[np.ndarray] = field(default_factory=list)  # new cell keys per chunk, order of first point
-    _cell_keys: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))  # sorted
-    _cell_order: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))  # rank of each sorted key
-    _cell_box: np.ndarray = field(default_factory=lambda: np.empty((0, 4)))  # per rank
+    survey: Survey = field(default_factory=Survey)
+    route_plan: RoutePlan | None = None
     _plan: dict | None = None
 
     def __post_init__(self) -> None:
@@ -290,88 +533,57 @@ class Router:
         if self.existing is not None:
             self.map_origin = np.asarray(self.existing.map_origin, dtype=np.float64)
 
+    @property
+    def cell(self) -> float:
+        """The clustering cell side of points without ids, m."""
+        return self.params.extraction.building_cell
+
     # -- 1. survey -----------------------------------------------------------------------
     def add(self, xyz: np.ndarray, building_id: np.ndarray | None, sensor_origins: np.ndarray | None,
             map_origin: np.ndarray) -> int:
         """Take one chunk of building points (in input order): (N, 3) xyz (metres, the chunk's
         map frame), (N,) ids (negative: none) or None, (N, 3) sensor origins or None, (3,) the
         chunk's map origin. Returns the points kept (inside ``bounds``)."""
-        map_origin = np.asarray(map_origin, dtype=np.float64)
-        if self.map_origin is None:
-            self.map_origin = map_origin.copy()
-        xyz = np.asarray(xyz, dtype=np.float64)
-        shift = map_origin - self.map_origin
-        keep = in_bounds(xyz[:, :2] + map_origin[:2], self.bounds)
-        if not keep.all():
-            xyz = xyz[keep]
-        if shift.any():
-            xyz = xyz + shift
-        n = len(xyz)
-        ids = np.full(n, -1, np.int64) if building_id is None else np.asarray(building_id, np.int64)[keep]
-        so = None
-        if sensor_origins is None:
-            self.has_origins = False
-        else:
-            so = np.asarray(sensor_origins, dtype=np.float64)[keep] + shift
-        if not n:
-            return 0
-        path = self.work / 'chunks' / f'chunk_{len(self.chunks):06d}.npz'
-        arrays = {'xyz': xyz, 'building_id': ids}
-        if so is not None:
-            arrays['sensor_origins'] = so
-        np.savez(path, **arrays)
-        self.chunks.append(path)
-        self.points += n
-        self._survey(xyz, ids)
-        return n
+        part = survey_part(self.folder, len(self.parts), [(xyz, building_id, sensor_origins, map_origin)], self.cell,
+                           self.bounds, self.map_origin)
+        self.merge(part)
+        return part.points
 
-    def _survey(self, xyz: np.ndarray, ids: np.ndarray) -> None:
-        given = ids >= 0
-        if given.any():
-            labels, inverse = np.unique(ids[given], return_inverse=True)
-            box = _boxes(xyz[given, :2], inverse, len(labels))
-            for b, bx in zip(labels.tolist(), box):
-                old = self._box.get(b)
-                self._box[b] = bx if old is None else np.r_[np.minimum(old[:2], bx[:2]), np.maximum(old[2:], bx[2:])]
-        free = ~given
-        if not free.any():
-            return
-        keys = building_cells(xyz[free], self.params.extraction.building_cell)
-        uniq, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
-        box = _boxes(xyz[free, :2], inverse.reshape(-1), len(uniq))
-        pos = np.searchsorted(self._cell_keys, uniq)
-        known = np.zeros(len(uniq), dtype=bool)
-        if len(self._cell_keys):
-            known = self._cell_keys[np.minimum(pos, len(self._cell_keys) - 1)] == uniq
-        rank = self._cell_order[pos[known]]
-        old = self._cell_box[rank]
-        self._cell_box[rank] = np.c_[np.minimum(old[:, :2], box[known, :2]), np.maximum(old[:, 2:], box[known, 2:])]
-        new = np.flatnonzero(~known)
-        new = new[np.argsort(first[new], kind='stable')]  # order of first point
-        if len(new):
-            ranks = len(self._cell_box) + np.arange(len(new))
-            self._cells.append(uniq[new])
-            self._cell_box = np.vstack([self._cell_box, box[new]])
-            at = np.searchsorted(self._cell_keys, uniq[new])
-            order = np.argsort(uniq[new])
-            self._cell_keys = np.insert(self._cell_keys, at[order], uniq[new][order])
-            self._cell_order = np.insert(self._cell_order, at[order], ranks[order])
+    def fits(self, part: Part) -> bool:
+        """Whether ``part`` was surveyed in this router's map frame (:func:`in_frame`)."""
+        return in_frame(part, self.map_origin)
+
+    def merge(self, part: Part) -> None:
+        """Take the next piece of the input surveyed by :func:`survey_part` (in input order).
+
+        Raises:
+            ValueError: surveyed in another map frame (see :meth:`fits`).
+        """
+        if not self.fits(part):
+            raise ValueError(f'part {part.index} was surveyed in map frame {part.origin}, not {self.map_origin}')
+        if self.map_origin is None and part.origin is not None:
+            self.map_origin = np.asarray(part.origin, dtype=np.float64).copy()
+        self.parts.append(part)
+        self.points += part.points
+        self.has_origins &= part.has_origins
+        self.survey.merge(part.survey)
 
     # -- 2. plan -------------------------------------------------------------------------
     def plan(self) -> dict[int, str]:
         """Label the points without ids and give every building its tile; returns
-        building label -> tile id (the new ones and the existing map's)."""
+        building label -> tile id (the new ones and the existing map's). Sets
+        :attr:`route_plan`."""
         grid = TileGrid(self.side)
-        cells = np.concatenate(self._cells) if self._cells else np.empty(0, np.int64)
+        cells = self.survey.cell_list()
         known = [] if self.existing is None else list(self.existing.building_tiles)
-        base = self._base_label(cells, max([*self._box, *known, -1]) + 1)
-        comp = np.empty(0, np.int64)
-        boxes = dict(self._box)
+        base = self._base_label(cells, max([*self.survey.box, *known, -1]) + 1)
+        boxes = dict(self.survey.box)
+        cell_label = np.empty(0, np.int64)
         if len(cells):
             comp = _grid_components(np.stack([cells >> 32, cells & 0xFFFFFFFF], axis=1))
-            cbox = _merge_boxes(self._cell_box, comp, int(comp.max()) + 1)
+            cbox = _merge_boxes(self.survey.cell_box, comp, int(comp.max()) + 1)
             boxes.update({base + c: cbox[c] for c in range(len(cbox))})
-        self._comp, self._base = comp, base
+            cell_label = base + comp[self.survey.cell_order]
         placed = {} if self.existing is None else dict(self.existing.building_tiles)
         labels = sorted(boxes)
         if labels:
@@ -386,6 +598,9 @@ class Router:
         if self.existing is not None:
             self._index.update({t: tuple(r.index) for t, r in self.existing.tiles.items()})
         self._plan = placed
+        origin = (0.0, 0.0, 0.0) if self.map_origin is None else tuple(float(v) for v in self.map_origin)
+        self.route_plan = RoutePlan(self.cell, self.survey.cell_keys, cell_label, placed, origin, self.has_origins,
+                                    json.dumps(map_params_record(self.params), sort_keys=True).encode())
         return placed
 
     def _base_label(self, cells: np.ndarray, base: int) -> int:
@@ -395,8 +610,8 @@ class Router:
         the base it had, so that the points get the same labels and the finished tiles are skipped.
         Kept in ``DIR/RUN`` until the build completes."""
         h = hashlib.sha256(cells.tobytes())
-        for b in sorted(self._box):
-            h.update(np.r_[float(b), self._box[b]].tobytes())
+        for b in sorted(self.survey.box):
+            h.update(np.r_[float(b), self.survey.box[b]].tobytes())
         survey = h.hexdigest()
         path = self.folder / RUN
         try:
@@ -410,55 +625,47 @@ class Router:
 
     def labels(self, ids: np.ndarray, xyz: np.ndarray) -> np.ndarray:
         """(N,) building labels of a chunk's points (given ids, else their cell's component)."""
-        free = ids < 0
-        if not free.any():
-            return ids
-        out = ids.copy()
-        keys = building_cells(xyz[free], self.params.extraction.building_cell)
-        out[free] = self._base + self._comp[self._cell_order[np.searchsorted(self._cell_keys, keys)]]
-        return out
+        if self.route_plan is None:
+            self.plan()
+        return self.route_plan.labels(ids, xyz)
 
     # -- 3. spill ------------------------------------------------------------------------
+    def spill_firsts(self) -> list[int]:
+        """Per merged part, the run-wide number of its first chunk (``first`` of :func:`spill_part`)."""
+        return np.r_[0, np.cumsum([len(p.chunks) for p in self.parts])][:-1].astype(int).tolist()
+
     def spill(self, calibrate: float | None = None) -> list[TileTask]:
-        """Write each tile's points to its part files (chunk by chunk, input order) and return
-        the tasks, one per tile that received points, in tile id order."""
-        if self._plan is None:
+        """Spill every merged part in this process (:func:`spill_part`, in input order) and
+        return the tasks (:meth:`tasks`)."""
+        if self.route_plan is None:
             self.plan()
-        placed = self._plan
-        params_record = json.dumps(map_params_record(self.params), sort_keys=True).encode()
-        hashes: dict[str, hashlib._Hash] = {}
-        parts: dict[str, list[str]] = {}
-        for k, path in enumerate(self.chunks):
-            with np.load(path) as z:
-                xyz, ids = z['xyz'], z['building_id']
-                so = z['sensor_origins'] if self.has_origins else None
-            labels = self.labels(ids, xyz)
-            uniq, inverse = np.unique(labels, return_inverse=True)
-            tiles = np.array([placed[b] for b in uniq.tolist()])[inverse.reshape(-1)]
-            for t in np.unique(tiles).tolist():
-                sel = np.flatnonzero(tiles == t)
-                folder = self.work / 'tiles' / t
-                folder.mkdir(parents=True, exist_ok=True)
-                out = folder / f'part_{k:06d}.npz'
-                arrays = {'xyz': xyz[sel], 'building_id': labels[sel]}
-                if so is not None:
-                    arrays['sensor_origins'] = so[sel]
-                np.savez(out, **arrays)
-                if t not in hashes:
-                    hashes[t] = hashlib.sha256(params_record + np.asarray(self.map_origin).tobytes())
-                hashes[t].update(_rows(arrays))
-                parts.setdefault(t, []).append(str(out))
-            path.unlink()
+        return self.tasks([spill_part(self.folder, part.index, part.chunks, self.route_plan, first)
+                           for part, first in zip(self.parts, self.spill_firsts())], calibrate)
+
+    def tasks(self, spilled: Iterable[Spilled], calibrate: float | None = None) -> list[TileTask]:
+        """The tasks, one per tile that received points, in tile id order, from every part's
+        :func:`spill_part` (any order: they are put back in input order). A tile's fingerprint
+        for this run (see :attr:`TileTask.inputs`) is the sha256 of the map parameters' record,
+        the map origin and the digests of its part files in input order."""
+        if self.route_plan is None:
+            self.plan()
+        plan = self.route_plan
+        parts: dict[str, list[tuple[str, str]]] = {}
+        for s in sorted(spilled, key=lambda s: s.index):
+            for t, files in s.parts.items():
+                parts.setdefault(t, []).extend(files)
         grid = TileGrid(self.side)
         tasks = []
         for t in sorted(parts):
-            run = hashes[t].hexdigest()
+            h = hashlib.sha256(plan.params_record + np.asarray(plan.origin, dtype=np.float64).tobytes())
+            for _, digest in parts[t]:
+                h.update(bytes.fromhex(digest))
+            run = h.hexdigest()
             old = None if self.existing is None else self.existing.tiles.get(t)
             inputs = run if old is None else old.inputs + RUNS + run
             ix, iy = self._index[t]
-            tasks.append(TileTask(str(self.folder), t, (ix, iy), grid.bounds(ix, iy), tuple(parts[t]), self.params,
-                                  tuple(float(v) for v in self.map_origin), inputs,
-                                  None if old is None else old.file, calibrate))
+            tasks.append(TileTask(str(self.folder), t, (ix, iy), grid.bounds(ix, iy), tuple(p for p, _ in parts[t]),
+                                  self.params, plan.origin, inputs, None if old is None else old.file, calibrate))
         return tasks
 
     def cleanup(self) -> None:
@@ -496,8 +703,8 @@ def check_params(manifest: Manifest, params: MapParams, side: float) -> None:
 
 
 def _rows(arrays: dict[str, np.ndarray]) -> bytes:
-    """The points' bytes row by row (x, y, z, label, sensor origin of each point in turn): the
-    hash of the rows of a tile does not depend on how they are cut into parts."""
+    """The points' bytes row by row (x, y, z, label, sensor origin of each point in turn): what a
+    part file's digest hashes (its content, not the ``.npz`` container's bytes)."""
     fields = [(name, a.dtype, a.shape[1:]) for name, a in arrays.items()]
     rows = np.empty(len(arrays['xyz']), dtype=np.dtype(fields))
     for name, a in arrays.items():

@@ -70,7 +70,10 @@ class TileRecord:
         buildings: labels of the tile's buildings.
         facades: number of façades in the tile's file.
         points: stored points in the tile's file.
-        inputs: fingerprint (hex SHA-256) of the routed points that built it.
+        inputs: fingerprint (hex SHA-256) of the routed points that built it: of the map
+            parameters, the map origin and its part files' digests in input order
+            (:attr:`~.build.TileTask.inputs`); a tile built by several drives lists one per run,
+            joined by ``+``.
     """
 
     id: str
