@@ -218,13 +218,22 @@ def route(router: Router, inputs: list[str], read: Callable[[str], Iterable[tupl
     return Routed(tasks, sum(p.read for p in parts), read_s, plan_s, route_s, parts, spilled, len(redo))
 
 
-def record_tile(folder: str | Path, manifest: Manifest, result: TileResult) -> None:
-    """Put a finished tile into the manifest (its buildings placed in it) and write the manifest."""
+#: Seconds between two writes of the manifest while tiles finish (and once at the end, or when
+#: the build stops): a write per tile made the client's work grow as the square of the tiles
+#: (17,000 tiles for 1,000 km of streets); a build killed loses at most this much of finished
+#: tiles' records (their files are rebuilt when it resumes).
+MANIFEST_PERIOD = 2.0
+
+
+def record_tile(folder: str | Path, manifest: Manifest, result: TileResult, write: bool = True) -> None:
+    """Put a finished tile into the manifest (its buildings placed in it) and write the manifest
+    (unless ``write`` is False: the caller writes it later)."""
     record = result.record
     manifest.tiles[record.id] = record
     for b in record.buildings:
         manifest.building_tiles[int(b)] = record.id
-    write_manifest(folder, manifest)
+    if write:
+        write_manifest(folder, manifest)
 
 
 def run_tiles(tasks: Iterable[TileTask], folder: str | Path, manifest: Manifest, workers: int = 0,
@@ -232,7 +241,8 @@ def run_tiles(tasks: Iterable[TileTask], folder: str | Path, manifest: Manifest,
               retries: int = RETRIES, function: Callable[[TileTask], TileResult] = build_tile,
               calibrate: tuple[tuple[str, ...], float | None] | None = None,
               client: Any = None) -> list[TileResult]:
-    """Run the tile tasks and record each finished tile in the manifest (written after each).
+    """Run the tile tasks and record each finished tile in the manifest (written at most every
+    :data:`MANIFEST_PERIOD` s, at the end, and when the run stops on an error).
 
     With ``calibrate``, the map's occupancy PLSC and its local reading's calibration are learnt too
     (:func:`calibrate_tile`, as one more task once those tiles are written, or at once if none is among
@@ -242,7 +252,7 @@ def run_tiles(tasks: Iterable[TileTask], folder: str | Path, manifest: Manifest,
     Args:
         tasks: the tiles to build.
         folder: the tiled map's folder.
-        manifest: the manifest to complete (updated in place and written after every tile).
+        manifest: the manifest to complete (updated in place and written as it goes).
         workers: local worker processes (0: in this process, no Dask).
         scheduler: address of an existing Dask scheduler (instead of ``workers``).
         progress: called with each finished tile's result.
@@ -266,8 +276,18 @@ def run_tiles(tasks: Iterable[TileTask], folder: str | Path, manifest: Manifest,
     def files() -> list[str]:
         return [manifest.tiles[t].file for t in learn_on]
 
+    written = [-float('inf'), False]  # the last write's time, and whether records wait to be written
+
+    def flush() -> None:
+        if written[1]:
+            write_manifest(folder, manifest)
+            written[:] = [time.monotonic(), False]
+
     def done(result: TileResult) -> None:
-        record_tile(folder, manifest, result)
+        record_tile(folder, manifest, result, write=False)
+        written[1] = True
+        if time.monotonic() - written[0] >= MANIFEST_PERIOD:
+            flush()
         results.append(result)
         if progress is not None:
             progress(result)
@@ -276,15 +296,19 @@ def run_tiles(tasks: Iterable[TileTask], folder: str | Path, manifest: Manifest,
         if resolution is not None:  # else not learnt (points without sensor origins): the manifest's kept
             manifest.occupancy = calibrations['occupancy']
         manifest.local_calibration = dict(calibrations['local_calibration'])
-        write_manifest(folder, manifest)
+        written[1] = True
+        flush()
 
     if not tasks and not learn_on:
         return results
     if client is None and scheduler is None and workers <= 0:
-        for task in tasks:
-            done(function(task))
-        if learn_on:
-            learnt(calibrate_tile(str(folder), files(), resolution))
+        try:
+            for task in tasks:
+                done(function(task))
+            if learn_on:
+                learnt(calibrate_tile(str(folder), files(), resolution))
+        finally:
+            flush()
         return results
     from dask.distributed import as_completed
 
@@ -314,6 +338,7 @@ def run_tiles(tasks: Iterable[TileTask], folder: str | Path, manifest: Manifest,
             else:
                 learnt(result)
     finally:
+        flush()
         if own:
             stop_client(client, cluster)
     return results

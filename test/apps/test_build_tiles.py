@@ -209,3 +209,36 @@ def test_a_lost_worker_is_replaced_and_the_map_is_the_same(drives, built, tmp_pa
     assert _hashes(out) == _hashes(built)
     assert manifest.occupancy == read_manifest(built).occupancy is not None
     assert manifest.local_calibration == read_manifest(built).local_calibration != {}
+
+
+def test_the_manifest_is_written_in_batches(drives, built, tmp_path, monkeypatch):
+    """run_tiles writes the manifest at most every MANIFEST_PERIOD s (the first tile at once), once
+    more at the end and with the calibrations: not once per tile (quadratic for a city of 17,000
+    tiles); the manifest written equals the per-tile build's."""
+    import uncertain_facade_map_apps.cluster as cluster
+    from uncertain_facade_map.io.npz import read_npz
+    from uncertain_facade_map.io.parameter_file import load_config
+    from uncertain_facade_map.params import map_params, map_params_record
+    from uncertain_facade_map.tiling.build import Router, calibration_tiles
+    from uncertain_facade_map.tiling.manifest import Manifest, write_manifest
+
+    writes = []
+    monkeypatch.setattr(cluster, 'write_manifest', lambda folder, m: (writes.append(len(m.tiles)),
+                                                                     write_manifest(folder, m)))
+    monkeypatch.setattr(cluster, 'MANIFEST_PERIOD', 1e9)
+    config = load_config(None)
+    params = map_params(config)
+    out = tmp_path / 'map'
+    out.mkdir()
+    router = Router(out, params, 20.0)
+    from uncertain_facade_map.io.inputs import select_building_points
+
+    pts = select_building_points(read_npz(drives / 'drive1.npz'), config.input)
+    router.add(pts.xyz, pts.building_id, pts.sensor_origins, pts.map_origin)
+    tasks = router.spill()
+    manifest = Manifest(20.0, tuple(router.map_origin), map_params_record(params), {}, None, {})
+    cluster.run_tiles(tasks, out, manifest, calibrate=(calibration_tiles(tasks), config.query.resolution))
+    assert len(tasks) == 2 * COPIES
+    assert writes == [1, 2 * COPIES]  # the first tile, then all of them with the calibrations
+    assert read_manifest(out).tiles == read_manifest(built).tiles
+    assert read_manifest(out).local_calibration == read_manifest(built).local_calibration
