@@ -2,8 +2,9 @@
 updates only the tiles whose buildings it saw, and a worker killed during a task on Dask leaves
 the same map. Input: three copies of the `small` scene, 60 m apart in x (6 buildings, 6 tiles).
 
-About 40 s (five in-process builds of 6 tiles, two Dask builds with a cluster of 2 workers). The
-routing on the workers gives the same tiles as in this process (one input file or four)."""
+About 55 s (six in-process builds of 6 tiles, two Dask builds with a cluster of 2 workers, one on
+an existing cluster of 1 worker: --scheduler). The routing on the workers gives the same tiles as
+in this process (one input file or four); the manifest is written in batches."""
 
 import hashlib
 import json
@@ -242,3 +243,23 @@ def test_the_manifest_is_written_in_batches(drives, built, tmp_path, monkeypatch
     assert writes == [1, 2 * COPIES]  # the first tile, then all of them with the calibrations
     assert read_manifest(out).tiles == read_manifest(built).tiles
     assert read_manifest(out).local_calibration == read_manifest(built).local_calibration
+
+
+def test_a_build_on_an_existing_cluster(drives, built, tmp_path):
+    """``--scheduler ADDRESS``: the build runs on a cluster it did not start (here a local one
+    started by the test, as a user's SSH/SLURM/Kubernetes cluster would be), which it leaves
+    running; the same tiles as the in-process build."""
+    from dask.distributed import LocalCluster
+
+    from uncertain_facade_map_apps.cluster import ONE_THREAD
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=':0',
+                      env=dict(ONE_THREAD), silence_logs=40) as cluster:
+        out = tmp_path / 'map'
+        assert main(['build', str(drives / 'drive1.npz'), '--tiles', str(out), '--side', '20', '--quiet',
+                     '--scheduler', cluster.scheduler_address]) == 0
+        assert cluster.scheduler.status.name == 'running' and len(cluster.workers) == 1  # left running
+    assert _hashes(out) == _hashes(built)
+    assert read_manifest(out).tiles == read_manifest(built).tiles
+    report = json.loads((out / 'build.json').read_text())
+    assert report['scheduler'] == cluster.scheduler_address and report['workers'] in (0, None)
