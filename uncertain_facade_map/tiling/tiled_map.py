@@ -355,8 +355,8 @@ class TiledMap:
         """Load the tiles within ``radius`` of ``xy`` (nearest first, as many as the cache
         holds); returns the ids of those loaded now or already (what a node following its pose
         calls). With ``config`` (the queries' settings), also prepare those tiles' local reading
-        (:func:`~.views.tile_part`) and build the view holding ``xy`` (:mod:`.views`), so that
-        queries near the pose find them ready."""
+        (:func:`~.views.tile_part`) and build the view holding ``xy`` (:mod:`.views`) when its
+        tiles are among those, so that queries near the pose find them ready."""
         out = []
         budget = self.cache_mb * MB
         used = 0
@@ -374,7 +374,9 @@ class TiledMap:
                 break
         if config is not None and out:
             here = np.asarray(xy, dtype=np.float64).reshape(1, -1)[:, :2]
-            self._view(self._split(np.c_[here, np.zeros(1)], config)[0][0], config)
+            key = self._split(np.c_[here, np.zeros(1)], config)[0][0]
+            if set(self._view_tiles(key, config)) <= set(out):  # not when the cache cannot hold its tiles too
+                self._view(key, config)
         return out
 
     def _bytes(self) -> int:
@@ -521,6 +523,15 @@ class TiledMap:
         cuts = np.flatnonzero(np.diff(code[order])) + 1
         return [((int(block[m[0], 0]) * k, int(block[m[0], 1]) * k, reading), m) for m in np.split(order, cuts)]
 
+    def _view_tiles(self, key: tuple, config: QueryConfig) -> list[str]:
+        """The tiles a view reads: those whose extent meets its square grown by the reach."""
+        square, pad, e = self._square(key[0], key[1]), self.reach(config), self._extent
+        if not len(e):
+            return []
+        meets = ((e[:, 0] <= square[2] + pad) & (e[:, 3] >= square[0] - pad)
+                 & (e[:, 1] <= square[3] + pad) & (e[:, 4] >= square[1] - pad))
+        return [self._ids[i] for i in np.flatnonzero(meets)]
+
     def _view(self, key: tuple, config: QueryConfig) -> View:
         """The view of ``key``, from the cache or built (its tiles loaded)."""
         with self._lock:
@@ -534,10 +545,7 @@ class TiledMap:
         start = time.perf_counter()
         square = self._square(key[0], key[1])
         pad = self.reach(config)
-        e = self._extent
-        meets = ((e[:, 0] <= square[2] + pad) & (e[:, 3] >= square[0] - pad)
-                 & (e[:, 1] <= square[3] + pad) & (e[:, 4] >= square[1] - pad)) if len(e) else np.zeros(0, bool)
-        tiles = [self._ids[i] for i in np.flatnonzero(meets)]
+        tiles = self._view_tiles(key, config)
         with self._lock:
             for t in tiles:
                 self._pins[t] = self._pins.get(t, 0) + 1
