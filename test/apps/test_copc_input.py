@@ -3,7 +3,8 @@
 time, ground truth) builds, with ``--bounds`` cutting both of its buildings, the same tiles bit for
 bit as the same points in a plain LAS file; the bounded read decompresses only the octree nodes that
 meet the bounds (34 of 182, 18,466 of 34,921 points); without ``--bounds`` the COPC file is read as an
-ordinary LAZ file, to the same tiles as the LAS; bounds that meet no node give the one-line error.
+ordinary LAZ file, to the same tiles as the LAS; bounds that meet no node give the one-line error;
+bounds reaching past the file's int32 coordinates read the points within them.
 
 The tiled build depends on the order of the points, and laspy's COPC query returns its nodes' points
 in file order, so the plain LAS holds the points in the COPC file's order. About 8 s (four in-process
@@ -23,7 +24,7 @@ import numpy as np
 import pytest
 
 from uncertain_facade_map.io.cloud import Cloud
-from uncertain_facade_map.io.las import read_las, write_las
+from uncertain_facade_map.io.las import iter_las, read_las, write_las
 from uncertain_facade_map.tiling.manifest import read_manifest
 from uncertain_facade_map_apps.cli import main
 
@@ -205,3 +206,14 @@ def test_bounds_that_meet_no_node_of_the_copc_file(campaign, capsys):
     assert main(args) == 2
     assert 'no building points in the inputs within --bounds' in capsys.readouterr().err
 
+
+def test_bounds_past_the_files_integer_range(campaign):
+    folder, cloud, _ = campaign
+    path = folder / 'drive.copc.laz'
+    # 0.1 mm quanta in int32 reach 214 km from the offset: laspy's query alone overflowed, and read nothing.
+    parts = list(iter_las(path, bounds=(0.0, 0.0, 1e7, 1e7)))
+    assert [len(p) for p in parts] == [len(cloud)]
+    assert parts[0].points.tobytes() == read_las(path).points.tobytes()
+    parts = list(iter_las(path, bounds=(cloud.map_origin[0], 0.0, 1e7, 1e7)))
+    assert len(parts[0]) == int((cloud.points['x'] >= 0).sum())
+    assert [len(p) for p in iter_las(path, bounds=(1e9, 1e9, 1e9 + 1, 1e9 + 1))] == [0]  # past it: nothing
