@@ -236,7 +236,10 @@ def iter_las(path: PathLike, chunk_points: int = _LAS_CHUNK_POINTS,
             with CopcReader.open(name) as reader:
                 header = reader.header
                 dims = list(header.point_format.dimension_names)
-                record = reader.query(bounds=Bounds(mins=np.array(bounds[:2]), maxs=np.array(bounds[2:])))
+                area = _storable_area(bounds, np.array(header.scales, np.float64),
+                                      np.array(header.offsets, np.float64))
+                record = (laspy.ScaleAwarePointRecord.zeros(0, header=header) if area is None else
+                          reader.query(bounds=Bounds(mins=area[:2], maxs=area[2:])))
                 columns = {dim: np.asarray(record[dim]) for dim in dims}
                 yield _las_cloud(name, columns, dims, np.array(header.scales, np.float64),
                                  np.array(header.offsets, np.float64))
@@ -254,6 +257,25 @@ def iter_las(path: PathLike, chunk_points: int = _LAS_CHUNK_POINTS,
         if not isinstance(exc, _las_errors(laspy)) and type(exc).__name__ != 'PanicException':
             raise
         raise InputError(f'cannot read LAS file {name}: {_one_line(exc)}') from exc
+
+
+def _storable_area(bounds: tuple[float, float, float, float], scales: np.ndarray,
+                   offsets: np.ndarray) -> np.ndarray | None:
+    """``bounds`` (min_x, min_y, max_x, max_y, georeferenced metres) cut to the x, y a LAS file of
+    these header ``scales`` and ``offsets`` can store (int32 coordinates: offset + scale *
+    [-(2^31 - 1), 2^31 - 1]), as (4,) float64, or None if they do not meet it.
+
+    laspy's COPC query turns its bounds into int32 coordinates without a check: bounds reaching
+    past that range (past 214 km from the offset at a 0.1 mm scale, e.g. ``0,0,1e7,1e7``)
+    overflow, and the query returns no point at all. No point lies outside the range, so the
+    cut bounds select the same points.
+    """
+    reach = np.abs(scales[:2]) * (2.0**31 - 1)
+    low = np.maximum(np.asarray(bounds[:2], np.float64), offsets[:2] - reach)
+    high = np.minimum(np.asarray(bounds[2:], np.float64), offsets[:2] + reach)
+    if np.any(low > high):
+        return None
+    return np.concatenate([low, high])
 
 
 def _las_cloud(name: str, columns: dict[str, np.ndarray], dims: list[str], scales: np.ndarray,
