@@ -168,6 +168,26 @@ def test_routing_on_the_workers_gives_the_same_tiles(drive_files, built, tmp_pat
     assert report['read_seconds'] > 0 and report['route_seconds'] >= report['plan_seconds'] >= 0
 
 
+def _routed(drives, tmp_path):
+    """(config, the tiled map's folder, its tile tasks, a new manifest): drive1 routed in this
+    process into 20 m tiles, the map not built."""
+    from uncertain_facade_map.io.inputs import select_building_points
+    from uncertain_facade_map.io.parameter_file import load_config
+    from uncertain_facade_map.params import map_params, map_params_record
+    from uncertain_facade_map.tiling.build import Router
+    from uncertain_facade_map.tiling.manifest import Manifest
+
+    config = load_config(None)
+    params = map_params(config)
+    out = tmp_path / 'map'
+    out.mkdir()
+    router = Router(out, params, 20.0)
+    pts = select_building_points(read_npz(drives / 'drive1.npz'), config.input)
+    router.add(pts.xyz, pts.building_id, pts.sensor_origins, pts.map_origin)
+    manifest = Manifest(20.0, tuple(router.map_origin), map_params_record(params), {}, None, {})
+    return config, out, router.spill(), manifest
+
+
 def _dying_build(task):
     """build_tile, but the first attempt at tile_0_0 kills its worker process."""
     from uncertain_facade_map.tiling.build import build_tile
@@ -182,23 +202,11 @@ def _dying_build(task):
 def test_a_lost_worker_is_replaced_and_the_map_is_the_same(drives, built, tmp_path):
     import cloudpickle
 
-    from uncertain_facade_map.io.inputs import select_building_points
-    from uncertain_facade_map.io.parameter_file import load_config
-    from uncertain_facade_map.params import map_params, map_params_record
-    from uncertain_facade_map.tiling.build import Router, calibration_tiles
-    from uncertain_facade_map.tiling.manifest import Manifest
+    from uncertain_facade_map.tiling.build import calibration_tiles
     from uncertain_facade_map_apps.cluster import run_tiles
 
     cloudpickle.register_pickle_by_value(sys.modules[__name__])
-    config = load_config(None)
-    params = map_params(config)
-    out = tmp_path / 'map'
-    out.mkdir()
-    router = Router(out, params, 20.0)
-    pts = select_building_points(read_npz(drives / 'drive1.npz'), config.input)
-    router.add(pts.xyz, pts.building_id, pts.sensor_origins, pts.map_origin)
-    tasks = router.spill()
-    manifest = Manifest(20.0, tuple(router.map_origin), map_params_record(params), {}, None, {})
+    config, out, tasks, manifest = _routed(drives, tmp_path)
     results = run_tiles(tasks, out, manifest, workers=2, function=_dying_build,
                         calibrate=(calibration_tiles(tasks), config.query.resolution))
     assert (out / 'killed_once').exists()
@@ -217,27 +225,14 @@ def test_the_manifest_is_written_in_batches(drives, built, tmp_path, monkeypatch
     more at the end and with the calibrations: not once per tile (quadratic for a city of 17,000
     tiles); the manifest written equals the per-tile build's."""
     import uncertain_facade_map_apps.cluster as cluster
-    from uncertain_facade_map.io.npz import read_npz
-    from uncertain_facade_map.io.parameter_file import load_config
-    from uncertain_facade_map.params import map_params, map_params_record
-    from uncertain_facade_map.tiling.build import Router, calibration_tiles
-    from uncertain_facade_map.tiling.manifest import Manifest, write_manifest
+    from uncertain_facade_map.tiling.build import calibration_tiles
+    from uncertain_facade_map.tiling.manifest import write_manifest
 
     writes = []
     monkeypatch.setattr(cluster, 'write_manifest', lambda folder, m: (writes.append(len(m.tiles)),
                                                                      write_manifest(folder, m)))
     monkeypatch.setattr(cluster, 'MANIFEST_PERIOD', 1e9)
-    config = load_config(None)
-    params = map_params(config)
-    out = tmp_path / 'map'
-    out.mkdir()
-    router = Router(out, params, 20.0)
-    from uncertain_facade_map.io.inputs import select_building_points
-
-    pts = select_building_points(read_npz(drives / 'drive1.npz'), config.input)
-    router.add(pts.xyz, pts.building_id, pts.sensor_origins, pts.map_origin)
-    tasks = router.spill()
-    manifest = Manifest(20.0, tuple(router.map_origin), map_params_record(params), {}, None, {})
+    config, out, tasks, manifest = _routed(drives, tmp_path)
     cluster.run_tiles(tasks, out, manifest, calibrate=(calibration_tiles(tasks), config.query.resolution))
     assert len(tasks) == 2 * COPIES
     assert writes == [1, 2 * COPIES]  # the first tile, then all of them with the calibrations
