@@ -44,11 +44,7 @@ class PackedRasters:
 
         f = len(facades)
         self.reach = float(reach)
-        self.origin = np.array([m.frame.origin for m in facades], np.float64).reshape(f, 3)
-        self.axes = np.array([m.frame.axes for m in facades], np.float64).reshape(f, 3, 3)
-        self.corner = np.array([m.surface.origin for m in facades], np.float64).reshape(f, 2)
-        self.cell = np.array([m.surface.cell for m in facades], np.float64)
-        self.shape = np.array([m.surface.mean.shape for m in facades], np.int64).reshape(f, 2)
+        self.origin, self.axes, self.corner, self.cell, self.shape = _geometry(facades)
         sizes = self.shape[:, 0] * self.shape[:, 1]
         self.offset = np.r_[0, np.cumsum(sizes)[:-1]].astype(np.int64) if f else np.empty(0, np.int64)
 
@@ -94,14 +90,20 @@ def slab_boxes(origin: np.ndarray, axes: np.ndarray, corner: np.ndarray, cell: n
     return lo, hi
 
 
+def _geometry(facades: Sequence[FacadeModel]) -> tuple[np.ndarray, ...]:
+    """The F façades' frames and raster geometry as :class:`PackedRasters` holds them: (F, 3)
+    origins, (F, 3, 3) axes, (F, 2) raster corners, (F,) cells, (F, 2) shapes."""
+    f = len(facades)
+    return (np.array([m.frame.origin for m in facades], np.float64).reshape(f, 3),
+            np.array([m.frame.axes for m in facades], np.float64).reshape(f, 3, 3),
+            np.array([m.surface.origin for m in facades], np.float64).reshape(f, 2),
+            np.array([m.surface.cell for m in facades], np.float64),
+            np.array([m.surface.mean.shape for m in facades], np.int64).reshape(f, 2))
+
+
 def facade_boxes(facades: Sequence[FacadeModel], band_back: float, band_front: float) -> tuple[np.ndarray, np.ndarray]:
     """:func:`slab_boxes` of façade models, without packing their rasters."""
-    f = len(facades)
-    return slab_boxes(np.array([m.frame.origin for m in facades], np.float64).reshape(f, 3),
-                      np.array([m.frame.axes for m in facades], np.float64).reshape(f, 3, 3),
-                      np.array([m.surface.origin for m in facades], np.float64).reshape(f, 2),
-                      np.array([m.surface.cell for m in facades], np.float64),
-                      np.array([m.surface.mean.shape for m in facades], np.int64).reshape(f, 2), band_back, band_front)
+    return slab_boxes(*_geometry(facades), band_back, band_front)
 
 
 #: Packed rasters per map (its tuple of façade models), the few most recent (the node's

@@ -47,6 +47,7 @@ nearest stored points and the plane per point on both cores; :func:`fit_local_pl
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -270,6 +271,21 @@ class LocalSurface:
             out.source = np.arange(len(xyz))
         if calibrate:
             out.calibrate()
+        return out
+
+    def in_grid_order(self) -> LocalSurface:
+        """The same surface with its points held in its grid's order (:attr:`grid`, built now),
+        once: the grid's own array, not a second copy (a tiled map's views, which hold many
+        points and are read, never calibrated on their own points; ``source`` is not carried).
+        Itself when it has too few points for a grid."""
+        if len(self.points) <= self.neighbours + 1:
+            return self
+        grid = copy.copy(self.grid)  # the arrays shared; this one's order is the identity
+        out = LocalSurface(grid.points, self.facade[grid.order].astype(np.int32), self.normals, self.neighbours,
+                           self.radius, self.inner, self.calibration_)
+        grid.order = np.arange(len(grid.points), dtype=np.int32)
+        out._grid = grid
+        out._orders[id(grid)] = [grid, out.facade, None]  # the labels in the grid's order: its own
         return out
 
     @property

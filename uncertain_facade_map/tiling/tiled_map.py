@@ -446,9 +446,7 @@ class TiledMap:
             b = np.asarray(bounds, dtype=np.float64).reshape(-1)
             if b.shape != (4,) or not np.isfinite(b).all() or b[0] > b[2] or b[1] > b[3]:
                 raise InputError(f'bounds must be MIN_X,MIN_Y,MAX_X,MAX_Y with min <= max, got {list(bounds)}')
-            e = self._extent
-            meets = (e[:, 0] <= b[2]) & (e[:, 3] >= b[0]) & (e[:, 1] <= b[3]) & (e[:, 4] >= b[1])
-            wanted = {self._ids[i] for i in np.flatnonzero(meets)}
+            wanted = set(self._meeting(b))
             ids = [t for t in ids if t in wanted]
         maps = []
         for t in ids:
@@ -525,11 +523,15 @@ class TiledMap:
 
     def _view_tiles(self, key: tuple, config: QueryConfig) -> list[str]:
         """The tiles a view reads: those whose extent meets its square grown by the reach."""
-        square, pad, e = self._square(key[0], key[1]), self.reach(config), self._extent
-        if not len(e):
-            return []
-        meets = ((e[:, 0] <= square[2] + pad) & (e[:, 3] >= square[0] - pad)
-                 & (e[:, 1] <= square[3] + pad) & (e[:, 4] >= square[1] - pad))
+        x0, y0, x1, y1 = self._square(key[0], key[1])
+        pad = self.reach(config)
+        return self._meeting((x0 - pad, y0 - pad, x1 + pad, y1 + pad))
+
+    def _meeting(self, box: Sequence[float]) -> list[str]:
+        """The ids (sorted) of the tiles whose extent meets ``box`` (min_x, min_y, max_x, max_y;
+        metres, map frame)."""
+        e = self._extent
+        meets = (e[:, 0] <= box[2]) & (e[:, 3] >= box[0]) & (e[:, 1] <= box[3]) & (e[:, 4] >= box[1])
         return [self._ids[i] for i in np.flatnonzero(meets)]
 
     def _view(self, key: tuple, config: QueryConfig) -> View:

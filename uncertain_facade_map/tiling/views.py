@@ -3,10 +3,10 @@
 A **view** is a square of ``k x k`` tiles of the grid (``tiles.view_tiles``), lower left tile
 ``(i0, j0)``, holding what a query at a point of the square reads on a map of every building:
 
-- the façades of every tile whose extent (stored points and façade slabs) meets the square
-  grown by the local reading's reach (:data:`~.tiled_map.LOCAL_MARGIN` past
-  ``query.local_radius``), joined as one in-memory map (:func:`~.tiled_map.merge_maps`:
-  arrays shared, not copied), with its rasters packed once
+- of the tiles whose extent (stored points and façade slabs) meets the square grown by the
+  local reading's reach (:data:`~.tiled_map.LOCAL_MARGIN` past ``query.local_radius``), the
+  façades whose slabs meet that grown square or that a kept stored point belongs to (the
+  models shared with the tiles, not copied), their rasters packed once
   (:class:`~uncertain_facade_map.pipeline.raster_kernels.PackedRasters`);
 - the stored points the local reading reads
   (:class:`~uncertain_facade_map.pipeline.step7_local_surface.LocalSurface`), those of the
@@ -69,7 +69,7 @@ def stored_points(fmap: FacadeMap) -> tuple[np.ndarray, np.ndarray]:
 
 def tile_part(fmap: FacadeMap, config: QueryConfig) -> TilePart:
     """The local reading's stored points of one tile's map for the settings ``config``
-    (``query.local_*``; :meth:`LocalSurface.of` on the tile alone, uncalibrated; None for the
+    (``query.local_*``; :meth:`LocalSurface.of` on the tile alone, uncalibrated; none for the
     raster reading) and its façades' slabs."""
     ex = fmap.params.extraction
     lo, hi = facade_boxes(fmap.facades, ex.band_back, ex.band_front)
@@ -169,15 +169,7 @@ def make_view(key: tuple, tiles: Sequence[str], maps: Sequence[FacadeMap], parts
             # nearest), as LocalSurface.of counts them among all of a whole map's.
             labels[free] = labels[mapped[cKDTree(pts[mapped]).query(pts[free])[1]]]
         normals = np.ascontiguousarray(rasters.axes[:, 2])
-        surface = LocalSurface(pts, labels, normals, config.local_neighbours, config.local_radius, config.local_inner)
-        if len(pts) > config.local_neighbours + 1:
-            # The points in their grid's order, held once (the grid's own array).
-            grid = surface.grid
-            surface = LocalSurface(grid.points, labels[grid.order], normals, config.local_neighbours,
-                                   config.local_radius, config.local_inner)
-            grid.order = np.arange(len(pts), dtype=np.int32)
-            surface._grid = grid
-            surface._orders[id(grid)] = [grid, surface.facade, None]  # labels in the grid's order: its own
-        surface.calibration_ = float(calibration)
+        surface = LocalSurface(pts, labels, normals, config.local_neighbours, config.local_radius, config.local_inner,
+                               float(calibration)).in_grid_order()
     nbytes = array_bytes(rasters) + (array_bytes(surface) if surface is not None else 0)
     return View(key, tuple(tiles), facades, global_ids, rasters, surface, occupancy, float(registration_var), nbytes)
