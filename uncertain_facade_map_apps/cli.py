@@ -405,8 +405,7 @@ def _build_tiles(args: argparse.Namespace, config) -> int:
     side = float(args.side if args.side is not None else (existing.side if existing else config.tiles.side))
     if existing is not None:
         check_params(existing, params, side)
-    tiles = {folder / 'tiles' / (p.name[1:].split('.npz.')[0] + '.npz') for p in (folder / 'tiles').glob('.*.npz.*.tmp')}
-    for stale in [folder / MANIFEST, *sorted(tiles)]:
+    for stale in (folder / MANIFEST, folder / 'tiles' / '*.npz'):
         remove_stale_temporaries(stale)  # of writes a killed build left
     bounds = None if args.bounds is None else parse_bounds(args.bounds)
     trajectory = None if args.trajectory is None else read_trajectory(args.trajectory)
@@ -435,7 +434,7 @@ def _build_tiles(args: argparse.Namespace, config) -> int:
         map_s = time.perf_counter() - started - start_s - read_s - route_s
     plsc = manifest.occupancy
     occupancy = ('the fixed formula' if plsc is None else
-                 f'scale {plsc["scale"]:.3g}, spread {plsc["spread"] * 100:.1f} cm, learnt on the largest tile built')
+                 f'scale {plsc["scale"]:.3g}, spread {plsc["spread"] * 100:.1f} cm, learnt on the largest tiles')
     router.cleanup()
     total_s = time.perf_counter() - started
     n_building = router.points

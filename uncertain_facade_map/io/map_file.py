@@ -78,7 +78,7 @@ def _facade_arrays(f: FacadeModel) -> dict[str, np.ndarray]:
 def remove_stale_temporaries(path: str | Path) -> list[Path]:
     """Delete the temporary files that saves of ``path`` left behind (a process killed while
     saving leaves one: ``.NAME.XXXXXXXX.tmp`` next to ``path``). Call it when no save of
-    ``path`` is running.
+    ``path`` is running. The name may be a glob pattern (``DIR/*.npz``: every map file's in DIR).
 
     Returns:
         The files deleted.
