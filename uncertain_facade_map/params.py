@@ -581,6 +581,13 @@ class NodeConfig(Section):
     mapping_nice: int = param(10, 'niceness added to the mapping process and the process that computes the '
                                   'published maps (node.mapping_process): queries and incoming clouds get the CPU '
                                   'first when both want it; 0: the same priority', allowed=_closed(0, 19))
+    batching: str = param('latency', 'when the mapper maps the clouds it was given: latency (a cloud is mapped as '
+                                     'soon as the mapper is free, with the clouds that came while it was busy, up to '
+                                     'update.batch_points: a cloud is queryable after one update, and under load '
+                                     'the batches grow with the backlog) or fixed (points are held back until '
+                                     'update.batch_points have come: the map then depends only on the clouds, not '
+                                     "on their timing, and equals the offline replay's bit for bit)",
+                          allowed=Options(('latency', 'fixed')))
     idle_flush: float = param(2.0, 'when no cloud has come for this long, the points held back '
                                    '(update.batch_points) are mapped; after as long again the façades updated '
                                    'block by block are fitted whole (0: never)', unit='s',

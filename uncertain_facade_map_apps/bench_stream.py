@@ -301,7 +301,8 @@ def stream_drive(drive: Drive, rate: float, config: Any = None, give_up: float =
 
     fmap = FacadeMap(map_params(cfg), drive.map_origin)
     worker = MapWorker(fmap, node.queue_size, on_change=on_change, idle_flush=node.idle_flush,
-                       process=node.mapping_process, nice=node.mapping_nice, queue_points=node.queue_points)
+                       process=node.mapping_process, nice=node.mapping_nice, queue_points=node.queue_points,
+                       batching=node.batching)
     worker.latencies = deque()  # every cloud's latency, not the node's window of the latest 200
     stopped = ''
     try:

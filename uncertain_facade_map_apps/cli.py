@@ -1269,8 +1269,9 @@ def build_parser() -> argparse.ArgumentParser:
                              'geometry_msgs/TransformStamped and nav_msgs/Odometry topic; a topic named tf_static holds '
                              'static transforms)')
     replay.add_argument('--wait-node', type=float, default=10.0,
-                        help="publish: seconds to wait for the node's diagnostics after the last cloud, to report how "
-                             'many it received (default 10; 0: do not wait)')
+                        help="publish: after the last cloud, read the node's diagnostics until it counted every cloud, "
+                             'or none more for this many seconds, to report how many it received (default 10; 0: do '
+                             'not wait)')
     replay.add_argument('--best-effort', action='store_true', help='publish: best-effort QoS (default reliable)')
     replay.add_argument('--quiet', action='store_true', help='no progress bar')
     replay.set_defaults(func=cmd_replay)

@@ -170,6 +170,9 @@ def _guarded(callback: Callable[..., Any]) -> Callable[..., Any]:
         try:
             return callback(self, *args)
         except Exception as exc:  # noqa: BLE001 - the node must live on
+            if getattr(self, '_stopping', False) or not self.context.ok():
+                # Shutting down (Ctrl-C): the context, publishers and helper processes are going, not broken.
+                return args[1] if len(args) == 2 else None
             self._event('callback_error', f'{callback.__name__} failed: {type(exc).__name__}: {exc}')
             self.get_logger().error(f'{callback.__name__} failed: {type(exc).__name__}: {exc}',
                                     throttle_duration_sec=5.0)
@@ -219,6 +222,7 @@ class FacadeMapperNode(Node):
         self._waiting: deque[_Waiting] = deque()  # clouds waiting for their transform, in arrival order
         self._interval = self._new_interval()  # what the next summary line tells
         self._summary_version = -1  # the map version the last summary line told of (set at the end)
+        self._summary_mapped = 0  # the worker's clouds mapped at the last summary line
         self._grid: tuple[int, Any] | None = None
         self._facades_size: tuple[int, float] = (-1, 0.0)  # (snapshot version, MB of its façade arrays)
         self._published_bytes = 0  # of the latest published maps (serialized; the grid's cells)
@@ -253,7 +257,7 @@ class FacadeMapperNode(Node):
         self.worker = MapWorker(fmap, cfg.node.queue_size, on_error=self._cloud_failed, idle_flush=cfg.node.idle_flush,
                                on_flush=self._flushed, on_flush_error=self._flush_failed,
                                process=cfg.node.mapping_process, nice=cfg.node.mapping_nice,
-                               queue_points=cfg.node.queue_points)
+                               queue_points=cfg.node.queue_points, batching=cfg.node.batching)
 
         latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                              reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
@@ -508,7 +512,7 @@ class FacadeMapperNode(Node):
     # -- clouds -------------------------------------------------------------------------
     @staticmethod
     def _new_interval() -> dict[str, Any]:
-        return {'in': 0, 'mapped': 0, 'rejected': Counter(), 'dropped': 0, 'non_ground': 0, 'selected': 0,
+        return {'in': 0, 'queued': 0, 'rejected': Counter(), 'dropped': 0, 'non_ground': 0, 'selected': 0,
                 'notes': Counter(), 'points': 0, 'building': 0}
 
     @_guarded
@@ -620,7 +624,7 @@ class FacadeMapperNode(Node):
         interval['building'] += len(found.xyz)
         if not len(found.xyz):
             self.counters['clouds_no_building'] += 1
-            interval['mapped'] += 1
+            interval['queued'] += 1
             return None
         if not self.worker.put(Cloud(found.xyz, found.building_id, found.sensor_origins, scan.stamp_ns)):
             dropped = self.worker.counters['clouds_dropped']
@@ -629,7 +633,7 @@ class FacadeMapperNode(Node):
             self.get_logger().warning(f'mapping falls behind: dropped the oldest waiting cloud ({dropped} so far; '
                                       'a larger node.queue_size or update.batch_points may help)',
                                       throttle_duration_sec=5.0)
-        interval['mapped'] += 1
+        interval['queued'] += 1
         return None
 
     def _selection_note(self, found: ScanPoints) -> None:
@@ -668,13 +672,17 @@ class FacadeMapperNode(Node):
             interval, self._interval = self._interval, self._new_interval()
             waiting = len(self._waiting)
         snap = self.worker.snapshot
-        if not interval['in'] and not interval['mapped'] and not interval['rejected'] \
-                and snap.version == self._summary_version:
+        mapped = self.worker.counters['clouds_mapped'] + self.counters['clouds_no_building']  # as /diagnostics
+        if not interval['in'] and not interval['queued'] and not interval['rejected'] \
+                and snap.version == self._summary_version and mapped == self._summary_mapped:
             return
         self._summary_version = snap.version
+        mapped, self._summary_mapped = mapped - self._summary_mapped, mapped
         rejected = sum(interval['rejected'].values())
         why = '; '.join(f'{n} {kind}' for kind, n in interval['rejected'].most_common(3))
-        parts = [f'last {self.config.node.log_period:g} s: {interval["in"]} clouds in, {interval["mapped"]} mapped',
+        # queued: placed and handed to the mapper; mapped: taken into the map by the mapper
+        parts = [f'last {self.config.node.log_period:g} s: {interval["in"]} clouds in, {interval["queued"]} queued, '
+                 f'{mapped} mapped',
                  f'{waiting} waiting for a transform', f'{interval["dropped"]} dropped',
                  f'{rejected} rejected' + (f' ({why})' if why else '')]
         if interval['non_ground']:
@@ -686,8 +694,8 @@ class FacadeMapperNode(Node):
         self.get_logger().info(', '.join(parts))
 
     def _flushed(self, points: int, refitted: list[int]) -> None:
-        self.get_logger().info(f'input idle: mapped the {points} points held back, fitted {len(refitted)} '
-                               f'façades whole')
+        held = f'mapped the {points} points held back, ' if points else ''
+        self.get_logger().info(f'input idle: {held}fitted {len(refitted)} façades whole')
 
     def _flush_failed(self, exc: BaseException) -> None:
         self._event('failed', f'idle flush failed: {type(exc).__name__}: {exc}')
@@ -1119,6 +1127,7 @@ class FacadeMapperNode(Node):
             self.get_logger().error(f'autosave failed: {exc}', throttle_duration_sec=30.0)
 
     def destroy_node(self) -> None:
+        self._stopping = True  # callbacks still running fail quietly from now on (see _guarded)
         waiting = self.worker.accounts()['clouds_waiting']
         if waiting:
             self.get_logger().warning(f'stopping: {waiting} received clouds were still waiting and are not mapped')

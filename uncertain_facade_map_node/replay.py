@@ -117,8 +117,9 @@ def publish_recording(scans: Sequence[tuple[int, np.ndarray, str]] | Callable[[]
             each time), until interrupted.
         reliable: reliable QoS for the clouds (else best effort, as sensor drivers publish).
         wait_subscriber: seconds to wait for a subscriber of the clouds (0: don't).
-        wait_node: seconds to wait, after the last cloud, for the node's diagnostics to
-            count every cloud published (0: don't read them).
+        wait_node: after the last cloud, the node's diagnostics are read until they count
+            every cloud published, or until they counted no more for this many seconds (a
+            node still taking clouds in is waited for); 0: don't read them.
         window: ``(first, last)`` stamps (ns) of the clouds, when they are a window of the
             recording: only the poses within :data:`TRANSFORM_MARGIN` of it are sent.
         progress: called with the number of scans published after each one.
@@ -272,14 +273,16 @@ def _received(watch: _NodeWatch | None, before: int | None, published: int, wait
     if before is None:
         return ('no facade_mapper diagnostics on /diagnostics: cannot tell how many clouds the node received '
                 '(is it running in this ROS domain?)'), [], False
-    deadline = time.monotonic() + wait_node
+    # While the node's count still rises it is taking the clouds in (a node slower than the
+    # recording reads them from its DDS queue long after the last was sent): wait until it
+    # has them all, or until it counted none more for wait_node seconds.
     got, steady = watch.received() - before, time.monotonic()
-    while got < published and time.monotonic() < deadline:
+    while got < published:
         time.sleep(0.2)
         now = watch.received() - before
         if now != got:
             got, steady = now, time.monotonic()
-        elif time.monotonic() - steady > 5.0:
+        elif time.monotonic() - steady > wait_node:
             break
     values = watch.values or {}
     line = (f'the node received {got:,} of the {published:,} clouds published (its diagnostics: '

@@ -224,3 +224,39 @@ def test_stop_during_a_long_item_kills_the_process_without_reading_its_pipe():
         for _ in range(50):
             os.kill(pid, 0)
             time.sleep(0.1)
+
+
+def test_the_parent_holds_the_childs_stored_points_from_appended_rows_only():
+    """The stored points come back as the rows each update appended (issue 37: nothing whole
+    crosses the process boundary per cloud), and whole after a command replaced the map: the
+    parent's copy equals the child's map after clouds of two buildings, a reset and more clouds."""
+    from uncertain_facade_map.mapping import engine as eng
+
+    params = MapParams(update=UpdateParams(batch_points=500))
+    worker = MapWorker(FacadeMap(params), queue_size=100, idle_flush=0.0, process=True, batching='latency')
+    try:
+        for i in range(4):
+            for b in (0, 1):
+                worker.put(Cloud(wall(300, seed=10 * b + i, u0=20.0 * b + i), np.full(300, b, np.int64), None, i))
+            worker.wait_idle(120)
+        fmap, _, _ = worker.committed()
+        held = worker.snapshot.stored_points
+        assert sorted(held) == sorted(fmap.points) == [0, 1]
+        for b in held:
+            np.testing.assert_array_equal(held[b], fmap.points[b])
+            assert not held[b].flags.writeable
+        worker.call(functools.partial(replace_with, FacadeMap(params), None))
+        worker.put(Cloud(wall(300, seed=99, u0=50.0), np.full(300, 5, np.int64), None, 9))
+        worker.wait_idle(120)
+        fmap, _, _ = worker.committed()
+        assert sorted(worker.snapshot.stored_points) == sorted(fmap.points) == [5]
+        np.testing.assert_array_equal(worker.snapshot.stored_points[5], fmap.points[5])
+    finally:
+        worker.stop()
+    # The delta of an append carries the new rows only; a replaced array travels whole.
+    a = np.zeros((5, 3))
+    b = np.vstack([a, np.ones((2, 3))])
+    labels, changed = eng._points_delta({0: a}, {0: b}, appended=True)
+    assert labels == (0,) and changed[0][0] == 5 and changed[0][1].shape == (2, 3)
+    assert eng._points_delta({0: a}, {0: b}, appended=False)[1][0][0] == 0
+    np.testing.assert_array_equal(eng._apply_points_delta({0: a}, (labels, changed))[0], b)

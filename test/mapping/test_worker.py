@@ -241,3 +241,37 @@ def test_a_failed_idle_flush_is_reported_and_the_map_kept(monkeypatch):
     assert worker.counters['flushes_failed'] >= 1
     assert worker.committed()[0].n_pending == 300 and worker.snapshot.points == 0
     worker.stop()
+
+
+def test_latency_batching_maps_a_lone_cloud_at_once_and_fixed_batching_holds_it_back():
+    """node.batching (issue 37): with 'latency' a cloud that nothing waits behind is mapped
+    in its own update (queryable at once), with 'fixed' its points wait for
+    update.batch_points; both maps hold the same points once flushed."""
+    import numpy as np
+
+    from uncertain_facade_map.mapping.facade_map import FacadeMap
+    from uncertain_facade_map.mapping.worker import Cloud, MapWorker
+    from uncertain_facade_map.params import MapParams, UpdateParams
+
+    params = MapParams(update=UpdateParams(batch_points=100_000))
+    rng = np.random.default_rng(3)
+    xyz = np.c_[rng.uniform(0, 6, 900), np.full(900, 10.0) + rng.normal(0, 0.02, 900), rng.uniform(0, 6, 900)]
+    maps = {}
+    for batching in ('latency', 'fixed'):
+        worker = MapWorker(FacadeMap(params), queue_size=10, idle_flush=0.0, batching=batching)
+        try:
+            worker.put(Cloud(xyz, np.zeros(900, np.int64), None, 1))
+            assert worker.wait_idle(60)
+            snap = worker.snapshot
+            if batching == 'latency':
+                assert snap.stored == 900 and worker.pending_points == 0 and len(worker.latencies) == 1
+            else:
+                assert snap.stored == 0 and worker.pending_points == 900 and not worker.latencies
+            worker.call(lambda m: m.flush())
+            maps[batching] = worker.committed()[0]
+        finally:
+            worker.stop()
+    np.testing.assert_array_equal(maps['latency'].points[0], maps['fixed'].points[0])
+    import pytest
+    with pytest.raises(ValueError, match='batching'):
+        MapWorker(FacadeMap(params), batching='soon')

@@ -64,8 +64,9 @@ def node_config(tmp: Path, **overrides) -> Path:
     """A parameter file: :func:`scenario_config` with reliable input and a big queue (nothing
     dropped), plus overrides."""
     # A long idle time: a loaded machine (CI) must not pause the stream long enough for a
-    # flush in the middle, which would make another map than the offline core's.
-    node = {'node.qos': 'reliable', 'node.queue_size': 10000, 'node.idle_flush': 5.0}
+    # flush in the middle, which would make another map than the offline core's; fixed
+    # batches: the map depends on the clouds only, not on when they came (node.batching).
+    node = {'node.qos': 'reliable', 'node.queue_size': 10000, 'node.idle_flush': 5.0, 'node.batching': 'fixed'}
     path = tmp / f'params_{len(list(tmp.glob("params_*")))}.yaml'
     path.write_text(dump_config(scenario_config(**{**node, **overrides})))
     return path

@@ -36,7 +36,7 @@ def recording(tmp_path_factory, scenes):
     config = Config()
     config = dataclasses.replace(config, update=UpdateParams(batch_points=BATCH),
                                  node=dataclasses.replace(config.node, qos='reliable', queue_size=10000,
-                                                          idle_flush=5.0))
+                                                          idle_flush=5.0, batching='fixed'))
     params = out / 'params.yaml'
     params.write_text(dump_config(config))
     return out, scans, bags, params, cloud.map_origin

@@ -199,3 +199,23 @@ def test_loo_flags_an_isolated_outlier():
     near = np.linalg.norm(grid - uv[10], axis=1) < 0.05
     assert np.abs(mean[near]).max() < np.abs(mean0[near]).max(), 'the surface no longer bends to the outlier'
     assert seen.all()
+
+
+def test_in_sorted_is_isin_for_any_keys():
+    """The block-code lookup by binary search answers as np.isin, for sorted unique keys
+    (its fast path) and for unsorted or repeated ones (np.isin itself)."""
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    from uncertain_facade_map.pipeline.step4_gp_blocks import in_sorted
+
+    ints = st.lists(st.integers(-50, 50), max_size=40)
+
+    @settings(max_examples=200, deadline=None)
+    @given(ints, ints, st.booleans())
+    def check(values, keys, sort):
+        keys = np.unique(keys) if sort else np.asarray(keys, dtype=np.int64)
+        np.testing.assert_array_equal(in_sorted(np.asarray(values, dtype=np.int64), keys),
+                                      np.isin(values, keys))
+
+    check()

@@ -135,11 +135,13 @@ class LocalEngine:
         self._done = 0
         self.view = view_of(fmap)
 
-    def add_points(self, xyz: np.ndarray, building_id: np.ndarray | None, sensor_origins: np.ndarray | None) -> bool:
-        """Add a cloud (``FacadeMap.add_points(..., defer=True)``); True when an update ran or
-        nothing is held back. Raises what the map raised, the map rolled back."""
+    def add_points(self, xyz: np.ndarray, building_id: np.ndarray | None, sensor_origins: np.ndarray | None,
+                   map_now: bool = False) -> bool:
+        """Add a cloud (``FacadeMap.add_points(..., defer=True, map_now=map_now)``); True when
+        an update ran or nothing is held back. Raises what the map raised, the map rolled back."""
         def add() -> bool:
-            return bool(self._fmap.add_points(xyz, building_id, sensor_origins, defer=True)) or not self._fmap.pending
+            return bool(self._fmap.add_points(xyz, building_id, sensor_origins, defer=True, map_now=map_now)) \
+                or not self._fmap.pending
         return self._item(add)
 
     def run(self, fn: Callable[[FacadeMap], Any]) -> tuple[Any, bool]:
@@ -230,6 +232,7 @@ def _child_main(conn: Any, service: Any, nice: int = 0) -> None:
 
     threading.Thread(target=serve, name='committed_map', daemon=True).start()
     sent: tuple[FacadeModel, ...] = engine.view.facades
+    sent_points: dict[int, np.ndarray] = dict(engine.view.stored_points)
     while True:
         try:
             request = conn.recv()
@@ -252,9 +255,11 @@ def _child_main(conn: Any, service: Any, nice: int = 0) -> None:
         except BaseException as exc:  # noqa: BLE001 - handed to the parent
             result, error = None, _picklable(exc)
         view = engine.view
-        # Only the façade models that changed travel back (the others are the same objects).
+        # Only the façade models that changed travel back (the others are the same objects),
+        # and of the stored points only the rows appended by a cloud or a flush.
         changed = {i: f for i, f in enumerate(view.facades) if i >= len(sent) or sent[i] is not f}
-        delta = (len(view.facades), changed, dataclasses.replace(view, facades=()))
+        points = _points_delta(sent_points, view.stored_points, appended=kind in ('add', 'flush'))
+        delta = (len(view.facades), changed, points, dataclasses.replace(view, facades=(), stored_points={}))
         with lock:
             try:
                 conn.send(('error', error, delta) if error is not None else ('ok', result, delta))
@@ -263,9 +268,43 @@ def _child_main(conn: Any, service: Any, nice: int = 0) -> None:
             except Exception as exc:  # noqa: BLE001 - e.g. a result that does not pickle
                 conn.send(('error', RuntimeError(f'the answer could not be sent: {exc}'), delta))
             answered = engine.committed()
-        sent = view.facades
-        del request, result, delta
+        sent, sent_points = view.facades, dict(view.stored_points)
+        del request, result, delta, points
         release_free_memory()  # the item's temporary arrays, back to the system
+
+
+def _points_delta(sent: dict[int, np.ndarray], now: dict[int, np.ndarray], appended: bool
+                  ) -> tuple[tuple[int, ...], dict[int, tuple[int, np.ndarray]]]:
+    """What the parent needs to hold the stored points ``now`` (per building label, (N, 3)
+    arrays) when it holds ``sent``: (the labels now, in order; per label whose array changed,
+    (rows it keeps of its copy, rows to append)). ``appended``: the item only appended rows
+    to the arrays (a cloud, a flush: :meth:`FacadeMap._append`), so only the new rows travel;
+    otherwise (any function run on the map) a changed array travels whole."""
+    out = {}
+    for b, pts in now.items():
+        old = sent.get(b)
+        if old is pts:
+            continue
+        keep = len(old) if appended and old is not None and len(old) <= len(pts) else 0
+        out[b] = (keep, pts[keep:])
+    return tuple(now), out
+
+
+def _apply_points_delta(held: dict[int, np.ndarray],
+                        delta: tuple[tuple[int, ...], dict[int, tuple[int, np.ndarray]]]) -> dict[int, np.ndarray]:
+    """The stored points after :func:`_points_delta` ``delta`` of ``held`` (new arrays for the
+    changed labels, read-only; the others shared)."""
+    labels, changed = delta
+    out = {}
+    for b in labels:
+        if b not in changed:
+            out[b] = held[b]
+            continue
+        keep, rows = changed[b]
+        pts = rows if not keep else np.concatenate([held[b][:keep], rows])
+        pts.setflags(write=False)
+        out[b] = pts
+    return out
 
 
 class ProcessEngine:
@@ -298,9 +337,10 @@ class ProcessEngine:
         """The child's process id."""
         return self._process.pid
 
-    def add_points(self, xyz: np.ndarray, building_id: np.ndarray | None, sensor_origins: np.ndarray | None) -> bool:
+    def add_points(self, xyz: np.ndarray, building_id: np.ndarray | None, sensor_origins: np.ndarray | None,
+                   map_now: bool = False) -> bool:
         """See :meth:`LocalEngine.add_points`."""
-        return bool(self._request('add', xyz, building_id, sensor_origins))
+        return bool(self._request('add', xyz, building_id, sensor_origins, map_now))
 
     def run(self, fn: Callable[[FacadeMap], Any]) -> tuple[Any, bool]:
         """See :meth:`LocalEngine.run` (``fn`` must pickle: a module-level function or a
@@ -370,12 +410,13 @@ class ProcessEngine:
         except (EOFError, OSError) as exc:
             self._process.join(1.0)
             raise MappingProcessError(self._ended(f'working on a {kind!r} request')) from exc
-        n_facades, changed, rest = delta
+        n_facades, changed, points, rest = delta
         facades = list(self.view.facades[:n_facades])
         facades.extend([None] * (n_facades - len(facades)))  # type: ignore[list-item]
         for i, f in changed.items():
             facades[i] = f
-        self.view = dataclasses.replace(rest, facades=tuple(facades))
+        self.view = dataclasses.replace(rest, facades=tuple(facades),
+                                        stored_points=_apply_points_delta(self.view.stored_points, points))
         self._done += 1
         if status == 'error':
             raise result  # the exception as the child raised it

@@ -62,6 +62,7 @@ from ..pipeline.step1_facades import (
     side_by_side,
     split_buildings,
 )
+from ..pipeline.step4_gp_blocks import in_sorted
 from ..pipeline.step6_surface import _extent, fit_facade, update_facade
 from ..pipeline.step7_local_surface import LocalSurface, for_query
 from ..pipeline.step7_queries import PointQuery, query_map
@@ -132,6 +133,16 @@ class FacadeMap:
     occupancy_stored_: int = 0
     registration_sums_: np.ndarray = field(default_factory=lambda: np.zeros(3))
     registration_var_: float = 0.0
+    #: Scans held for the next comparison (:meth:`_learn_registration`): (xyz (N, 3), scan
+    #: labels (N,)) per update, compared together once ``update.batch_points`` of them wait
+    #: (or at :meth:`flush`), against the stored points as they stood before the first of them.
+    _registration_queue: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list, init=False, repr=False)
+    #: The stored points (per building label, the arrays, shared) before the queued scans came.
+    _registration_base: dict[int, np.ndarray] | None = field(default=None, init=False, repr=False)
+    #: Building points mapped before the queued scans (the seed of the comparison's draw).
+    _registration_mapped: int = field(default=0, init=False, repr=False)
+    #: Per building label, (lo (3,), hi (3,)) bounds of its stored points, metres, map frame.
+    _bounds: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, init=False, repr=False)
     #: Per building label, its occupied storage voxels: (V,) sorted int64 keys and (V,) int32
     #: counts of stored points (rebuilt from ``points`` when missing, e.g. after loading).
     _voxels: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, init=False, repr=False)
@@ -139,7 +150,7 @@ class FacadeMap:
     def add_points(self, xyz: np.ndarray, building_id: np.ndarray | None = None,
                    sensor_origins: np.ndarray | None = None,
                    progress: Callable[[int, int], None] | None = None, defer: bool = False,
-                   scan: np.ndarray | None = None) -> list[int]:
+                   scan: np.ndarray | None = None, map_now: bool = False) -> list[int]:
         """Add building points and update the façades they touch.
 
         Args:
@@ -159,6 +170,12 @@ class FacadeMap:
                 (e.g. the two lidars of a car), or None: the call is one scan. Each scan's
                 points are compared with the other scans' and the stored points where they
                 overlap (:attr:`registration_var_`). Not with ``defer`` (a call is a scan).
+            map_now: with ``defer``, map the points held back now, however few (live mapping
+                when nothing waits behind this cloud: its points are queryable at once; under
+                load the batches grow with the backlog, up to ``update.batch_points``). The
+                scans are still compared with the stored points (:attr:`registration_var_`)
+                once ``update.batch_points`` of them have come, or at :meth:`flush`, so that
+                this comparison's cost follows the points, not the number of updates.
 
         Returns:
             The labels of the buildings updated (none while points are held back).
@@ -178,9 +195,9 @@ class FacadeMap:
                                  f'{scan.shape}')
         if defer:
             self.pending.append((xyz, building_id, sensor_origins))
-            if self.n_pending < self.params.update.batch_points:
+            if self.n_pending < self.params.update.batch_points and not map_now:
                 return []
-            return self._map_pending(progress)
+            return self._map_pending(progress, compare=self.n_pending >= self.params.update.batch_points)
         if self.pending:
             self.pending.append((xyz, building_id, sensor_origins))
             return self._map_pending(progress, scan)
@@ -305,9 +322,10 @@ class FacadeMap:
         return int(sum(len(p[0]) for p in self.pending))
 
     def _map_pending(self, progress: Callable[[int, int], None] | None = None,
-                     last_scan: np.ndarray | None = None) -> list[int]:
+                     last_scan: np.ndarray | None = None, compare: bool = True) -> list[int]:
         """Map the points held back, each call one scan (the last one's points labelled
-        ``last_scan`` if given)."""
+        ``last_scan`` if given); ``compare``: compare the scans waiting for it with the stored
+        points now (:meth:`_learn_registration`), else once enough have come."""
         parts, self.pending = self.pending, []
         if not parts:
             return []
@@ -320,7 +338,7 @@ class FacadeMap:
         if any(p[1] is not None for p in parts):
             ids = np.concatenate([p[1] if p[1] is not None else np.full(len(p[0]), -1, np.int64) for p in parts])
         origins = None if any(p[2] is None for p in parts) else np.vstack([p[2] for p in parts])
-        return self._add(xyz, ids, origins, progress, scan)
+        return self._add(xyz, ids, origins, progress, scan, compare)
 
     def flush(self, consolidate: bool = True) -> list[int]:
         """Map the points held back, then (``consolidate``) fit whole every façade that
@@ -336,6 +354,7 @@ class FacadeMap:
         """
         with one_blas_thread():
             self._map_pending()
+            self._learn_registration()
             done = []
             if consolidate:
                 done = self._consolidate()
@@ -389,15 +408,19 @@ class FacadeMap:
         return xyz, building_id, sensor_origins
 
     def _add(self, xyz: np.ndarray, building_id: np.ndarray | None, sensor_origins: np.ndarray | None,
-             progress: Callable[[int, int], None] | None, scan: np.ndarray | None = None) -> list[int]:
+             progress: Callable[[int, int], None] | None, scan: np.ndarray | None = None,
+             compare: bool = True) -> list[int]:
         # Small matrices only: BLAS in one thread (uncertain_facade_map.threads).
         with one_blas_thread():
-            return self._add_points(xyz, building_id, sensor_origins, progress, scan)
+            return self._add_points(xyz, building_id, sensor_origins, progress, scan, compare)
 
     def _add_points(self, xyz: np.ndarray, building_id: np.ndarray | None, sensor_origins: np.ndarray | None,
-                    progress: Callable[[int, int], None] | None, scan: np.ndarray | None = None) -> list[int]:
+                    progress: Callable[[int, int], None] | None, scan: np.ndarray | None = None,
+                    compare: bool = True) -> list[int]:
         t0 = time.perf_counter()
-        self._learn_registration(xyz, scan)
+        self._queue_registration(xyz, scan)
+        if compare or sum(len(q[0]) for q in self._registration_queue) >= self.params.update.batch_points:
+            self._learn_registration()
         learnt = time.perf_counter()
         labels = self._labels(xyz, building_id)
         self.last_update = {'buildings': [], 'facades_new': [], 'facades_refitted': [], 'facades_updated': [],
@@ -423,21 +446,55 @@ class FacadeMap:
         self.last_update['seconds'] = time.perf_counter() - t0
         return changed
 
-    def _learn_registration(self, xyz: np.ndarray, scan: np.ndarray | None) -> None:
-        """Compare the new points, scan by scan, with the other scans' and the stored points
-        (before they are thinned or stored) and update :attr:`registration_var_`."""
-        up = self.params.update
-        if up.registration_points <= 0:
+    def _queue_registration(self, xyz: np.ndarray, scan: np.ndarray | None) -> None:
+        """Hold new points (N, 3) and their (N,) scan labels (None: one scan) for the next
+        comparison with the stored points (:meth:`_learn_registration`), before they are
+        thinned or stored; the first held keeps the stored points as they stand."""
+        if self.params.update.registration_points <= 0:
             return
-        earlier = np.vstack(list(self.points.values())) if self.points else np.empty((0, 3))
-        labels = np.zeros(len(xyz), np.int64) if scan is None else scan
-        rng = np.random.default_rng([self.params.seed, self.n_points, len(xyz)])
+        if not self._registration_queue:
+            self._registration_base = dict(self.points)  # the arrays are never written: shared
+            self._registration_mapped = self.n_points
+        first = 1 + max((int(q[1].max()) for q in self._registration_queue), default=-1)
+        labels = np.zeros(len(xyz), np.int64) if scan is None else \
+            np.unique(np.asarray(scan), return_inverse=True)[1].reshape(-1).astype(np.int64)
+        self._registration_queue.append((xyz, labels + first))
+
+    def _learn_registration(self) -> None:
+        """Compare the scans held back (:meth:`_queue_registration`), scan by scan, with the
+        other scans' and the stored points of before them, and update :attr:`registration_var_`.
+
+        Only the buildings whose stored points meet the new points' bounds (grown by 2 m) take
+        part, so its cost follows the new points and the walls they meet, not the map."""
+        queue, self._registration_queue = self._registration_queue, []
+        base, self._registration_base = self._registration_base or {}, None
+        up = self.params.update
+        if up.registration_points <= 0 or not queue:
+            return
+        xyz = queue[0][0] if len(queue) == 1 else np.vstack([q[0] for q in queue])
+        labels = queue[0][1] if len(queue) == 1 else np.concatenate([q[1] for q in queue])
+        lo, hi = xyz.min(axis=0) - 2.0, xyz.max(axis=0) + 2.0
+        near = [p for b, p in base.items() if len(p) and self._meets(b, p, lo, hi)]
+        earlier = np.vstack(near) if near else np.empty((0, 3))
+        # The draw as before the queue: seeded by the points mapped before them and their number.
+        rng = np.random.default_rng([self.params.seed, self._registration_mapped, len(xyz)])
         reading = QueryConfig()  # the map does not know how it will be queried: the default local reading
         found = scan_disagreement(xyz, labels, earlier, reading.local_neighbours, up.registration_points, rng,
                                   reading.local_inner)
         if found[0]:
             self.registration_sums_ = self.registration_sums_ + found
             self.registration_var_ = registration_variance(self.registration_sums_, up.registration_max_std)
+
+    def _meets(self, b: int, pts: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:
+        """Whether building ``b``'s points ``pts`` (stored now or earlier: the stored points
+        only grow, so the bounds of those stored now hold them) may lie within the box [lo,
+        hi] (3,), metres, map frame."""
+        held = self._bounds.get(b)
+        if held is None:
+            held = (pts.min(axis=0), pts.max(axis=0))
+            if self.points.get(b) is pts:
+                self._bounds[b] = held
+        return bool(np.all(held[0] <= hi) and np.all(held[1] >= lo))
 
     def _labels(self, xyz: np.ndarray, building_id: np.ndarray | None) -> np.ndarray:
         """Building label of each new point: its id, else the clustered building it touches
@@ -517,6 +574,12 @@ class FacadeMap:
         first = 0 if old is None else len(old)
         pts = xyz if old is None else np.vstack([old, xyz])
         self.points[b] = pts
+        if old is not None and len(old) and b not in self._bounds:
+            self._bounds[b] = (old.min(axis=0), old.max(axis=0))
+        if len(xyz):
+            held = self._bounds.get(b) if old is not None else None
+            lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+            self._bounds[b] = (lo, hi) if held is None else (np.minimum(held[0], lo), np.maximum(held[1], hi))
         old_so = self.sensor_origins.get(b)
         self.sensor_origins[b] = origins if old is None else (None if origins is None or old_so is None
                                                               else np.vstack([old_so, origins]))
@@ -632,7 +695,7 @@ class FacadeMap:
                 continue
             model = self.facades[fid]
             index = np.flatnonzero(owner == fid)
-            fresh = ~np.isin(index, model.point_index)
+            fresh = ~in_sorted(index, model.point_index)  # both sorted building indices
             if not fresh.any():
                 continue
             # The wall's extent grows with the new points on the plane.

@@ -169,6 +169,9 @@ class MapWorker:
         process: update the map in a child process (:class:`~uncertain_facade_map.mapping.engine.ProcessEngine`)
             instead of this worker's thread; :meth:`call` functions must then pickle.
         nice: niceness added to the child process's.
+        batching: ``'fixed'``: points are held back until ``update.batch_points`` have come
+            (the map depends only on the clouds); ``'latency'``: a cloud with no other cloud
+            waiting behind it is mapped at once, with the points held back (``node.batching``).
     """
 
     def __init__(self, fmap: FacadeMap, queue_size: int = 20,
@@ -176,11 +179,14 @@ class MapWorker:
                  on_error: Callable[[Cloud, BaseException], None] | None = None, idle_flush: float = 1.0,
                  on_flush: Callable[[int, list[int]], None] | None = None,
                  on_flush_error: Callable[[BaseException], None] | None = None, process: bool = False,
-                 nice: int = 0, queue_points: int | None = None) -> None:
+                 nice: int = 0, queue_points: int | None = None, batching: str = 'fixed') -> None:
         if queue_size < 1:
             raise ValueError(f'queue_size must be >= 1, got {queue_size}')
         if queue_points is not None and queue_points < 1:
             raise ValueError(f'queue_points must be >= 1, got {queue_points}')
+        if batching not in ('fixed', 'latency'):
+            raise ValueError(f"batching must be 'fixed' or 'latency', got {batching!r}")
+        self._latency = batching == 'latency'
         self._engine: LocalEngine | ProcessEngine = ProcessEngine(fmap, nice) if process else LocalEngine(fmap)
         self._queue: deque[Cloud | _Command] = deque()
         self._clouds = 0
@@ -418,8 +424,10 @@ class MapWorker:
 
     def _map_cloud(self, cloud: Cloud) -> None:
         started = time.perf_counter()
+        with self._cond:  # nothing waits behind it: map it now (batching 'latency')
+            now = self._latency and not self._clouds
         try:
-            updated = self._engine.add_points(cloud.xyz, cloud.building_id, cloud.sensor_origins)
+            updated = self._engine.add_points(cloud.xyz, cloud.building_id, cloud.sensor_origins, now)
         except Exception as exc:  # noqa: BLE001 - reported, the node keeps running
             self._item_done()
             with self._cond:

@@ -340,6 +340,21 @@ _NEIGHBOURS = np.array([du * _NB + dv for du in (-1, 0, 1) for dv in (-1, 0, 1)]
 THREADS = 2
 
 
+def in_sorted(values: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    """(N,) bool: which of (N,) ``values`` are among (K,) ``keys`` (``np.isin``), by binary
+    search when the keys are sorted and unique (O(N log K) instead of sorting all N + K
+    values, which matters when a few block codes are looked up among all of a façade's
+    points); other keys are looked up by ``np.isin``."""
+    values = np.asarray(values)
+    keys = np.asarray(keys)
+    if not len(keys):
+        return np.zeros(values.shape, dtype=bool)
+    if keys.ndim != 1 or (len(keys) > 1 and not np.all(keys[1:] > keys[:-1])):
+        return np.isin(values, keys)
+    pos = np.minimum(np.searchsorted(keys, values), len(keys) - 1)
+    return keys[pos] == values
+
+
 def block_codes(uv: np.ndarray, facet: np.ndarray, origin: np.ndarray, sizes: np.ndarray) -> np.ndarray:
     """(N,) int64 code of the block holding each location, in its facet's block grid.
 
@@ -546,5 +561,5 @@ def fit_surface(data: BlockData, uv: np.ndarray, facet: np.ndarray, params: GPPa
         active &= ~flagged
         # Blocks whose extended block held a removed point are solved again.
         hit = np.unique(train_codes[flagged][:, None] + _NEIGHBOURS[None, :])
-        todo = np.flatnonzero(np.isin(blocks, hit))
+        todo = np.flatnonzero(in_sorted(blocks, hit))  # hit: sorted, unique
     return mean, var, seen, removed

@@ -40,6 +40,7 @@ from .step4_gp_blocks import (
     block_size,
     estimate_noise,
     fit_surface,
+    in_sorted,
     optimisation_patches,
     optimise_lengthscales,
 )
@@ -380,12 +381,12 @@ def update_facade(model: FacadeModel, extracted: ExtractedFacade, new: np.ndarra
     fresh = used & new
     dirty = np.union1d((train_codes[fresh][:, None] + _NEIGHBOURS[None, :]).ravel(),
                        cell_codes[changed.ravel() & inside])
-    test = inside & np.isin(cell_codes, dirty)
+    test = inside & in_sorted(cell_codes, dirty)  # dirty: sorted and unique (union1d)
     # Training data: the dirty blocks' extended blocks. Points removed before keep their
     # verdict unless they are tested again (own points of a dirty block).
-    own = used & np.isin(train_codes, dirty)
-    ring = used & np.isin(train_codes, np.unique((dirty[:, None] + _NEIGHBOURS[None, :]).ravel()))
-    removed_before = np.isin(extracted.index, model.outlier_index)
+    own = used & in_sorted(train_codes, dirty)
+    ring = used & in_sorted(train_codes, np.unique((dirty[:, None] + _NEIGHBOURS[None, :]).ravel()))
+    removed_before = in_sorted(extracted.index, model.outlier_index)  # both sorted building indices
     take = ring & ~(removed_before & ~own)
     t1 = time.perf_counter()
 
