@@ -146,3 +146,39 @@ def test_deferred_points_are_kept_and_flushed(tmp_path, drive):
     assert live.n_pending == 0 and live.n_points == sum(len(s[0]) for s in scans)
     assert all(f.fitted_points == len(f.point_index) for f in live.facades)
     assert_same_maps(save_map(live, tmp_path / 'live.npz'), save_map(restored, tmp_path / 'restored.npz'))
+
+
+def test_updates_mapped_at_once_look_for_new_facades_once_a_batch_has_come():
+    """map_now (node.batching 'latency', issue 37): a cloud is stored and allocated at once,
+    but new façades are extracted from a building's pool only in a full update (once
+    update.batch_points points have come) or at flush, as with fixed batches: extraction on
+    small pools gives partial walls that stay façades of their own. Fed cloud by cloud, the
+    flushed map has the façades of the map built in one go, and their surfaces."""
+    import numpy as np
+
+    from uncertain_facade_map.mapping.facade_map import FacadeMap, build_map
+    from uncertain_facade_map.params import MapParams, UpdateParams
+
+    rng = np.random.default_rng(7)
+    n = 3000
+    u = rng.uniform(0, 12, n)
+    z = rng.uniform(0, 8, n)
+    side = rng.random(n) < 0.5
+    xyz = np.where(side[:, None], np.c_[u, np.zeros(n), z], np.c_[np.zeros(n), u, z])
+    xyz = xyz + rng.normal(0, 0.01, xyz.shape) * np.where(side[:, None], [0, 1, 0], [1, 0, 0])
+    order = np.argsort(u)  # a drive along the building: each cloud a slice of both walls
+    xyz = xyz[order]
+    ids = np.zeros(n, np.int64)
+    params = MapParams(update=UpdateParams(batch_points=10 * n))
+    live = FacadeMap(params)
+    for part in np.array_split(np.arange(n), 15):
+        live.add_points(xyz[part], ids[part], defer=True, map_now=True)
+    assert live.n_stored == n and not live.pending and not live.facades  # stored at once, no full update yet
+    live.flush()
+    whole = build_map(xyz, ids, params=params)
+    assert len(live.facades) == len(whole.facades) == 2
+    normals = sorted(tuple(np.round(np.abs(f.frame.normal), 2)) for f in live.facades)
+    assert normals == sorted(tuple(np.round(np.abs(f.frame.normal), 2)) for f in whole.facades)
+    probe = np.c_[np.full(50, 6.0), np.zeros(50), np.linspace(1, 7, 50)]
+    a, b = live.query(probe), whole.query(probe)
+    assert np.nanmax(np.abs(a.signed_distance - b.signed_distance)) < 0.01

@@ -162,8 +162,8 @@ def test_an_update_that_fails_half_way_leaves_the_map_as_it_was(monkeypatch):
 
     real = fm.FacadeMap._update_building
 
-    def broken(self, b, first_index):
-        real(self, b, first_index)
+    def broken(self, b, first_index, *rest):
+        real(self, b, first_index, *rest)
         raise np.linalg.LinAlgError('Matrix is not positive definite')
 
     monkeypatch.setattr(fm.FacadeMap, '_update_building', broken)

@@ -141,6 +141,10 @@ class FacadeMap:
     _registration_base: dict[int, np.ndarray] | None = field(default=None, init=False, repr=False)
     #: Building points mapped before the queued scans (the seed of the comparison's draw).
     _registration_mapped: int = field(default=0, init=False, repr=False)
+    #: Points added since the last full update (see ``map_now`` in :meth:`add_points`).
+    _since_full: int = field(default=0, init=False, repr=False)
+    #: Buildings that received points since their pool was last looked at (in a full update).
+    _unchecked: set[int] = field(default_factory=set, init=False, repr=False)
     #: Per building label, (lo (3,), hi (3,)) bounds of its stored points, metres, map frame.
     _bounds: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, init=False, repr=False)
     #: Per building label, its occupied storage voxels: (V,) sorted int64 keys and (V,) int32
@@ -172,10 +176,16 @@ class FacadeMap:
                 overlap (:attr:`registration_var_`). Not with ``defer`` (a call is a scan).
             map_now: with ``defer``, map the points held back now, however few (live mapping
                 when nothing waits behind this cloud: its points are queryable at once; under
-                load the batches grow with the backlog, up to ``update.batch_points``). The
-                scans are still compared with the stored points (:attr:`registration_var_`)
-                once ``update.batch_points`` of them have come, or at :meth:`flush`, so that
-                this comparison's cost follows the points, not the number of updates.
+                load the batches grow with the backlog, up to ``update.batch_points``). Such
+                an update allocates the points to the façades and updates those; once
+                ``update.batch_points`` points have come since the last full update (or at
+                :meth:`flush`), an update is a full one: it also looks for new façades in
+                the buildings' pools (RANSAC) and compares the scans with the stored points
+                (:attr:`registration_var_`). So new façades are extracted from as many
+                points as with fixed batches (small pools give partial walls that stay
+                façades of their own), and the comparison's cost follows the points, not
+                the number of updates; the points of a wall with no façade yet are stored,
+                and the per-point reading answers there.
 
         Returns:
             The labels of the buildings updated (none while points are held back).
@@ -208,7 +218,7 @@ class FacadeMap:
         the arrays and frozen models shared: the map never writes an array it holds)."""
         new = copy.copy(self)
         for name, value in vars(self).items():
-            if isinstance(value, (dict, list)):
+            if isinstance(value, (dict, list, set)):
                 setattr(new, name, copy.copy(value))
         return new
 
@@ -355,6 +365,11 @@ class FacadeMap:
         with one_blas_thread():
             self._map_pending()
             self._learn_registration()
+            if self._unchecked:
+                self.last_update = {'buildings': sorted(self._unchecked), 'facades_new': [], 'facades_refitted': [],
+                                    'facades_updated': [], 'updated_cells': 0, 'registration_seconds': 0.0}
+                self._check_pools()
+            self._since_full = 0
             done = []
             if consolidate:
                 done = self._consolidate()
@@ -419,8 +434,13 @@ class FacadeMap:
                     compare: bool = True) -> list[int]:
         t0 = time.perf_counter()
         self._queue_registration(xyz, scan)
-        if compare or sum(len(q[0]) for q in self._registration_queue) >= self.params.update.batch_points:
+        # A batch's worth of points (update.batch_points) since the last full round, or a
+        # full update asked for: compare the scans, and look for new façades in the pools.
+        self._since_full += len(xyz)
+        full = compare or self._since_full >= self.params.update.batch_points
+        if full:
             self._learn_registration()
+            self._since_full = 0
         learnt = time.perf_counter()
         labels = self._labels(xyz, building_id)
         self.last_update = {'buildings': [], 'facades_new': [], 'facades_refitted': [], 'facades_updated': [],
@@ -439,9 +459,13 @@ class FacadeMap:
         self.last_update['thinned'] = thinned
         for done, b in enumerate(changed, 1):
             if b in firsts:  # nothing to do for a building whose new points were all thinned
-                self._update_building(b, firsts[b])
+                self._update_building(b, firsts[b], full)
+                if not full:
+                    self._unchecked.add(b)
             if progress is not None:
                 progress(done, len(changed))
+        if full:
+            self._check_pools(set(firsts))
         self.last_update['buildings'] = changed
         self.last_update['seconds'] = time.perf_counter() - t0
         return changed
@@ -651,9 +675,18 @@ class FacadeMap:
                 out.append((f.frame, xyz[np.abs(f.frame.to_local(xyz)[:, 2]) <= thr]))
         return out
 
-    def _update_building(self, b: int, first: int) -> None:
-        """Allocate a building's points from ``first`` on, extract new façades from its pool,
-        and update the façades that received points."""
+    def _check_pools(self, done: set[int] = frozenset()) -> None:
+        """Look for new façades in the pools of the buildings that received points in
+        updates that were not full ones (``map_now``), but for those in ``done``."""
+        todo, self._unchecked = sorted(self._unchecked - set(done)), set()
+        for b in todo:
+            if b in self.points:
+                self._update_building(b, len(self.points[b]), True)
+
+    def _update_building(self, b: int, first: int, extract: bool = True) -> None:
+        """Allocate a building's points from ``first`` on, extract new façades from its pool
+        (``extract``: in a full update, see :meth:`add_points`), and update the façades that
+        received points."""
         ex, params = self.params.extraction, self.params
         pts = self.points[b]
         n = len(pts)
@@ -665,7 +698,7 @@ class FacadeMap:
         pool = np.flatnonzero(owner < 0)
         checked = self.pool_checked.get(b, 0)
         step = max(ex.min_facade_points, params.update.extraction_growth * checked)
-        if len(pool) >= ex.min_facade_points and len(pool) >= checked + step:
+        if extract and len(pool) >= ex.min_facade_points and len(pool) >= checked + step:
             rng = np.random.default_rng([params.seed, b, n])
             so = self.sensor_origins.get(b)
             context, labels = (None, None) if so is not None else self._context(b, rng)

@@ -293,16 +293,33 @@ def fit_facade(extracted: ExtractedFacade, params: MapParams, rng: np.random.Gen
         plane_extent=tuple(extracted.plane_extent), anchor=anchor, fitted_points=len(depth), relief=relief)
 
 
-def _changed_cells(old: FacadeModel, offset: tuple[int, int], facet: np.ndarray, layer_of_facet: np.ndarray
-                   ) -> np.ndarray:
-    """(H, W) bool: cells of the new raster whose facet changed since ``old``'s.
+def _changed_cells(old: FacadeModel, offset: tuple[int, int], facet: np.ndarray, layer_of_facet: np.ndarray,
+                   centres: np.ndarray, anchor: np.ndarray, layer_sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cells of the new raster whose GP must be computed again because the facets changed since ``old``'s.
 
-    A cell changed if it is new, if its layer changed, or if its facet was split, merged
-    or joined (facet ids are renumbered at every update; a facet is the same if, over the
-    cells that kept their layer, it pairs with exactly one facet of the other raster: a
-    facet that only lost cells to another layer, such as a new balcony on a wall, is the
-    same facet, and the cells around the lost ones are computed again by the caller's
-    block reach).
+    Facet ids are renumbered at every update, and a block's GP is trained on the points of
+    its own facet in its extended block (itself and its 8 neighbours, paper Section III.D).
+    So a cell's prediction changes with the facets only if its layer changed (its prior
+    mean and block grid), or if the points that share a facet within its block's extended
+    block are not the same ones as before: facets merged or split *there*. A merge far away
+    (a wall's two parts joined by new points at one end) relabels the rest without changing
+    any of its GPs.
+
+    Args:
+        old: the façade before the update.
+        offset: (rows, columns) of ``old``'s raster within the new one.
+        facet: (H, W) new facet of each cell (-1: none).
+        layer_of_facet: (F,) layer of each new facet.
+        centres: (H * W, 2) cell centres, metres, façade frame.
+        anchor: (2,) corner of the block grids, metres.
+        layer_sizes: (K, 2) block sides per layer, metres (the layers' length scales are kept).
+
+    Returns:
+        ``(layer_changed, regrouped)``: (H, W) bool each; cells that are new, lost their facet
+        or changed layer (the caller computes one block around them again: their points may
+        have moved between facets, which changes the extended blocks of their neighbours);
+        and cells of a block whose extended block's same-facet membership changed (merged
+        or split facets within reach), to compute again as they are.
     """
     h0, w0 = old.surface.facet.shape
     r0, c0 = offset
@@ -310,14 +327,39 @@ def _changed_cells(old: FacadeModel, offset: tuple[int, int], facet: np.ndarray,
     old_facet[r0:r0 + h0, c0:c0 + w0] = old.surface.facet
     old_layer = np.where(old_facet >= 0, old.facets.layer_of_facet[np.maximum(old_facet, 0)], old_facet)
     new_layer = np.where(facet >= 0, layer_of_facet[np.maximum(facet, 0)], -1)
-    changed = (old_layer != new_layer) & ~((old_facet == -2) & (facet < 0))
-    both = (old_facet >= 0) & (facet >= 0) & ~changed
-    pairs = np.unique(old_facet[both] * (1 << 31) + facet[both])
-    old_ids, new_ids = pairs >> 31, pairs & ((1 << 31) - 1)
-    o, oc = np.unique(old_ids, return_counts=True)
-    n, nc = np.unique(new_ids, return_counts=True)
-    changed |= np.isin(old_facet, o[oc > 1]) | np.isin(facet, n[nc > 1])
-    return changed
+    layer_changed = (old_layer != new_layer) & ~((old_facet == -2) & (facet < 0))
+    # Cells that kept their layer and a facet: (layer, block) in the layer's grid, old and new facet.
+    both = ((old_facet >= 0) & (facet >= 0) & ~layer_changed).ravel()
+    regrouped = np.zeros(facet.size, dtype=bool)
+    if not both.any():
+        return layer_changed, regrouped.reshape(facet.shape)
+    k = new_layer.ravel()[both].astype(np.int64)
+    blk = np.floor((centres[both] - anchor) / layer_sizes[k]).astype(np.int64)
+    blk -= blk.min(axis=0) - 1  # from 1: a neighbour's index stays >= 0
+    n_u, n_v = int(blk[:, 0].max()) + 2, int(blk[:, 1].max()) + 2
+    o = old_facet.ravel()[both]
+    f = facet.ravel()[both].astype(np.int64)
+    n_o, n_f = int(o.max()) + 1, int(f.max()) + 1
+    if float(k.max() + 1) * n_u * n_v * n_o * n_f > 2.0 ** 62:  # keys would overflow: compute all again
+        regrouped[both] = True
+        return layer_changed, regrouped.reshape(facet.shape)
+    # One int64 per (layer, block, old facet, new facet): 1-D sorts instead of row-wise ones.
+    block = (k * n_u + blk[:, 0]) * n_v + blk[:, 1]
+    rows = np.unique((block * n_o + o) * n_f + f)
+    # Each row seen from the 9 blocks whose extended block holds its block.
+    shifts = (np.array([-1, 0, 1])[:, None] * n_v + np.array([-1, 0, 1])[None, :]).ravel() * n_o * n_f
+    seen = np.unique((rows[:, None] + shifts[None, :]).ravel())
+    window, of = np.divmod(seen, n_o * n_f)
+    so, sf = np.divmod(of, n_f)
+    # Per window and new facet, more than one old facet: merged there; per window and old
+    # facet, more than one new facet: split there.
+    dirty = np.zeros(len(seen), dtype=bool)
+    for key in (window * n_f + sf, window * n_o + so):
+        _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+        dirty |= counts[inverse] > 1
+    bad = np.unique(window[dirty] * n_f + sf[dirty])  # (window = block, new facet) to compute again
+    regrouped[np.flatnonzero(both)] = in_sorted(block * n_f + f, bad)
+    return layer_changed, regrouped.reshape(facet.shape)
 
 
 def update_facade(model: FacadeModel, extracted: ExtractedFacade, new: np.ndarray, params: MapParams,
@@ -369,10 +411,12 @@ def update_facade(model: FacadeModel, extracted: ExtractedFacade, new: np.ndarra
     # What must be computed again: the blocks near new training points, and the cells
     # whose facet changed with one block's reach around them (their points may have moved
     # between facets, which changes the extended blocks of their neighbours).
-    changed = _changed_cells(model, offset, cell_facet, facets.layer_of_facet)
+    changed, regrouped = _changed_cells(model, offset, cell_facet, facets.layer_of_facet, centres, anchor,
+                                        block_size(model.lengthscale2_, params.gp.c_min))
     reach = int(np.ceil(setup.sizes.max() / cell)) if facets.n_facets else 0
     if reach and changed.any():
         changed = ndimage.maximum_filter(changed, size=2 * reach + 1)
+    changed |= regrouped
     inside = cell_facet.ravel() >= 0
     cell_codes = np.full(len(centres), -1, dtype=np.int64)
     cell_codes[inside] = block_codes(centres[inside], cell_facet.ravel()[inside], anchor, setup.sizes)
@@ -382,6 +426,7 @@ def update_facade(model: FacadeModel, extracted: ExtractedFacade, new: np.ndarra
     dirty = np.union1d((train_codes[fresh][:, None] + _NEIGHBOURS[None, :]).ravel(),
                        cell_codes[changed.ravel() & inside])
     test = inside & in_sorted(cell_codes, dirty)  # dirty: sorted and unique (union1d)
+    near_new = inside & in_sorted(cell_codes, np.unique((train_codes[fresh][:, None] + _NEIGHBOURS[None, :]).ravel()))
     # Training data: the dirty blocks' extended blocks. Points removed before keep their
     # verdict unless they are tested again (own points of a dirty block).
     own = used & in_sorted(train_codes, dirty)
@@ -414,6 +459,7 @@ def update_facade(model: FacadeModel, extracted: ExtractedFacade, new: np.ndarra
     stats = {'points': n, 'training': int(pts.training.sum()), 'planar_in_gp': int(setup.planar.sum()),
              'outliers_removed': int(outliers.sum()), 'layers': layers.n_layers, 'facets': facets.n_facets,
              'updated_cells': int(test.sum()), 'updated_training': int(take.sum()),
+             'cells_near_new': int(near_new.sum()), 'cells_facet_changed': int((changed.ravel() & inside).sum()),
              'seconds': {'setup': t1 - t0, 'gp': t2 - t1}}
     return FacadeModel(
         facade_id=model.facade_id, building=model.building, frame=model.frame, extent=extent, layers=layers,
