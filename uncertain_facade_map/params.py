@@ -584,7 +584,9 @@ class NodeConfig(Section):
     batching: str = param('latency', 'when the mapper maps the clouds it was given: latency (a cloud is mapped as '
                                      'soon as the mapper is free, with the clouds that came while it was busy, up to '
                                      'update.batch_points: a cloud is queryable after one update, and under load '
-                                     'the batches grow with the backlog) or fixed (points are held back until '
+                                     'the batches grow with the backlog; a mapper busy nearly all of the last '
+                                     'seconds cannot keep up and waits for whole batches: mapping.worker.LOAD_SHARE) '
+                                     'or fixed (points are held back until '
                                      'update.batch_points have come: the map then depends only on the clouds, not '
                                      "on their timing, and equals the offline replay's bit for bit)",
                           allowed=Options(('latency', 'fixed')))

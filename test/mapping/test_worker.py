@@ -275,3 +275,36 @@ def test_latency_batching_maps_a_lone_cloud_at_once_and_fixed_batching_holds_it_
     import pytest
     with pytest.raises(ValueError, match='batching'):
         MapWorker(FacadeMap(params), batching='soon')
+
+
+def test_a_busy_mapper_waits_for_whole_batches_even_with_latency_batching():
+    """node.batching 'latency' maps a lone cloud at once only while the mapper keeps up: busy
+    over LOAD_SHARE of the last LOAD_WINDOW seconds, its clouds wait for update.batch_points
+    (a small update after every full one would lower the throughput it lacks)."""
+    import time
+
+    import numpy as np
+
+    from uncertain_facade_map.mapping import worker as wk
+    from uncertain_facade_map.mapping.facade_map import FacadeMap
+    from uncertain_facade_map.params import MapParams, UpdateParams
+
+    w = wk.MapWorker(FacadeMap(MapParams(update=UpdateParams(batch_points=100_000))), idle_flush=0.0,
+                     batching='latency')
+    try:
+        now = time.monotonic()
+        assert w.busy_share(now) == 0.0
+        with w._cond:
+            w._work.append((now - wk.LOAD_WINDOW, now))  # busy the whole window
+        rng = np.random.default_rng(1)
+        xyz = np.c_[rng.uniform(0, 5, 500), np.full(500, 10.0), rng.uniform(0, 5, 500)]
+        w.put(wk.Cloud(xyz, np.zeros(500, np.int64)))
+        assert w.wait_idle(60)
+        assert w.pending_points == 500 and w.snapshot.stored == 0  # held back: the mapper was loaded
+        with w._cond:
+            w._work.clear()
+        w.put(wk.Cloud(xyz + [0.0, 0.0, 5.0], np.zeros(500, np.int64)))
+        assert w.wait_idle(60)
+        assert w.pending_points == 0 and w.snapshot.stored == 1000  # idle again: mapped at once
+    finally:
+        w.stop()

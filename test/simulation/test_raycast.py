@@ -92,7 +92,15 @@ def test_cylinder_against_marching(seed):
     t = ray_vertical_cylinder(origins, dirs, centre, radius, z0, z1)
     oracle = first_inside_by_marching(origins, dirs, inside, t_max=30.0)
     both = np.isfinite(oracle)
-    np.testing.assert_array_equal(np.isfinite(t), both)
+    # A ray grazing the cylinder (its chord shorter than the oracle's 1 mm step) can fall
+    # between the oracle's samples: a hit the oracle misses counts if the hit point is on the
+    # cylinder and the ray leaves it within a step (seed 64354 found one).
+    grazing = np.isfinite(t) & ~both
+    for i in np.flatnonzero(grazing):
+        on = origins[i] + t[i] * dirs[i]
+        assert abs(np.hypot(*(on[:2] - centre)) - radius) < 1e-6 or min(abs(on[2] - z0), abs(on[2] - z1)) < 1e-6
+        assert not inside((origins[i] + (t[i] + 1e-3) * dirs[i])[None])[0]
+    np.testing.assert_array_equal(np.isfinite(t) & ~grazing, both)
     np.testing.assert_allclose(t[both], oracle[both], atol=2e-3)
 
 

@@ -56,7 +56,8 @@ class MapView:
         params: the map's modelling parameters.
         pending: points held back for the next batch update.
         block_updated: a façade was updated block by block since its last whole fit
-            (:attr:`FacadeMap.needs_consolidation`).
+            (:attr:`FacadeMap.needs_consolidation`), or pools and scans wait for a full
+            update (:attr:`FacadeMap.needs_full_update`): what the idle flush does.
         stored: number of building points stored (the rest were thinned).
         cpu_seconds: CPU time of the last item in the process that did it (all its threads;
             in the node's own process, :class:`LocalEngine`, the node's other threads count
@@ -98,7 +99,7 @@ def view_of(fmap: FacadeMap, cpu_seconds: float = 0.0) -> MapView:
     origin = np.asarray(fmap.map_origin, dtype=np.float64).copy()
     origin.setflags(write=False)  # the façade models' arrays are read-only already
     return MapView(tuple(fmap.facades), origin, len(fmap.points), fmap.n_points, fmap.params, fmap.n_pending,
-                   fmap.needs_consolidation,
+                   fmap.needs_consolidation or fmap.needs_full_update,
                    fmap.n_stored, cpu_seconds, array_bytes(fmap), fmap.occupancy_, dict(fmap.points),
                    fmap.registration_var_)
 

@@ -327,6 +327,13 @@ class FacadeMap:
         return any(f.fitted_points != len(f.point_index) for f in self.facades)
 
     @property
+    def needs_full_update(self) -> bool:
+        """Whether pools or scans wait for a full update (:meth:`add_points` with
+        ``map_now``): buildings whose pool was not looked at since they received points, or
+        scans not compared yet; :meth:`flush` does both."""
+        return bool(self._unchecked or self._registration_queue)
+
+    @property
     def n_pending(self) -> int:
         """Number of points held back."""
         return int(sum(len(p[0]) for p in self.pending))

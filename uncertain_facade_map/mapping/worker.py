@@ -53,6 +53,12 @@ __all__ = ['Cloud', 'MapSnapshot', 'MapWorker', 'ReplaceMap', 'ReplaySummary', '
 
 #: Clouds whose arrival-to-map latency :attr:`MapWorker.latencies` keeps.
 LATENCY_WINDOW = 200
+#: Seconds over which the mapper's busy share is measured (batching 'latency').
+LOAD_WINDOW = 5.0
+#: Busy share of the mapper above which clouds wait for a whole batch even with 'latency'
+#: batching: mapping each backlog at once, when the mapper cannot keep up anyway, would add
+#: a small update after every full one (the backlog's remainder) and lower the throughput.
+LOAD_SHARE = 0.85
 
 
 @dataclass(frozen=True)
@@ -171,7 +177,10 @@ class MapWorker:
         nice: niceness added to the child process's.
         batching: ``'fixed'``: points are held back until ``update.batch_points`` have come
             (the map depends only on the clouds); ``'latency'``: a cloud with no other cloud
-            waiting behind it is mapped at once, with the points held back (``node.batching``).
+            waiting behind it is mapped at once, with the points held back, while the mapper
+            was busy less than :data:`LOAD_SHARE` of the last :data:`LOAD_WINDOW` seconds
+            (beyond, it cannot keep up and batches grow to ``update.batch_points``)
+            (``node.batching``).
     """
 
     def __init__(self, fmap: FacadeMap, queue_size: int = 20,
@@ -187,6 +196,7 @@ class MapWorker:
         if batching not in ('fixed', 'latency'):
             raise ValueError(f"batching must be 'fixed' or 'latency', got {batching!r}")
         self._latency = batching == 'latency'
+        self._work: deque[tuple[float, float]] = deque()  # (start, end) of the latest items, monotonic
         self._engine: LocalEngine | ProcessEngine = ProcessEngine(fmap, nice) if process else LocalEngine(fmap)
         self._queue: deque[Cloud | _Command] = deque()
         self._clouds = 0
@@ -388,6 +398,7 @@ class MapWorker:
                     self._points -= len(item.xyz)
                     self._working = item
                 self._busy = True
+            began = time.monotonic()
             try:
                 if isinstance(item, Cloud):
                     self._map_cloud(item)
@@ -401,9 +412,19 @@ class MapWorker:
                 with self._cond:
                     self.pending_points = self._engine.view.pending
                     self._idle_since = time.monotonic()
+                    self._work.append((began, self._idle_since))
                     self._working = None
                     self._busy = False
                     self._cond.notify_all()
+
+    def busy_share(self, now: float | None = None) -> float:
+        """Share of the last :data:`LOAD_WINDOW` seconds the mapper spent on clouds and
+        commands (0-1)."""
+        now = time.monotonic() if now is None else now
+        start = now - LOAD_WINDOW
+        while self._work and self._work[0][1] < start:
+            self._work.popleft()
+        return sum(min(end, now) - max(begin, start) for begin, end in self._work) / LOAD_WINDOW
 
     def _needs_flush(self) -> bool:
         return self._engine.view.needs_flush
@@ -424,8 +445,8 @@ class MapWorker:
 
     def _map_cloud(self, cloud: Cloud) -> None:
         started = time.perf_counter()
-        with self._cond:  # nothing waits behind it: map it now (batching 'latency')
-            now = self._latency and not self._clouds
+        with self._cond:  # nothing waits behind it and the mapper keeps up: map it now (batching 'latency')
+            now = self._latency and not self._clouds and self.busy_share() < LOAD_SHARE
         try:
             updated = self._engine.add_points(cloud.xyz, cloud.building_id, cloud.sensor_origins, now)
         except Exception as exc:  # noqa: BLE001 - reported, the node keeps running
