@@ -422,9 +422,10 @@ class MapWorker:
         commands (0-1)."""
         now = time.monotonic() if now is None else now
         start = now - LOAD_WINDOW
-        while self._work and self._work[0][1] < start:
-            self._work.popleft()
-        return sum(min(end, now) - max(begin, start) for begin, end in self._work) / LOAD_WINDOW
+        with self._cond:  # reentrant: also called by the worker under it
+            while self._work and self._work[0][1] < start:
+                self._work.popleft()
+            return sum(min(end, now) - max(begin, start) for begin, end in self._work) / LOAD_WINDOW
 
     def _needs_flush(self) -> bool:
         return self._engine.view.needs_flush
