@@ -170,7 +170,7 @@ def _guarded(callback: Callable[..., Any]) -> Callable[..., Any]:
         try:
             return callback(self, *args)
         except Exception as exc:  # noqa: BLE001 - the node must live on
-            if getattr(self, '_stopping', False) or not self.context.ok():
+            if self._stopping or not self.context.ok():
                 # Shutting down (Ctrl-C): the context, publishers and helper processes are going, not broken.
                 return args[1] if len(args) == 2 else None
             self._event('callback_error', f'{callback.__name__} failed: {type(exc).__name__}: {exc}')
@@ -223,6 +223,7 @@ class FacadeMapperNode(Node):
         self._interval = self._new_interval()  # what the next summary line tells
         self._summary_version = -1  # the map version the last summary line told of (set at the end)
         self._summary_mapped = 0  # the worker's clouds mapped at the last summary line
+        self._stopping = False  # set by destroy_node: callbacks still running then fail quietly
         self._grid: tuple[int, Any] | None = None
         self._facades_size: tuple[int, float] = (-1, 0.0)  # (snapshot version, MB of its façade arrays)
         self._published_bytes = 0  # of the latest published maps (serialized; the grid's cells)

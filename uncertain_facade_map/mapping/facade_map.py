@@ -207,7 +207,8 @@ class FacadeMap:
             self.pending.append((xyz, building_id, sensor_origins))
             if self.n_pending < self.params.update.batch_points and not map_now:
                 return []
-            return self._map_pending(progress, compare=self.n_pending >= self.params.update.batch_points)
+            # A full update once update.batch_points points have come since the last one (_add_points).
+            return self._map_pending(progress, compare=False)
         if self.pending:
             self.pending.append((xyz, building_id, sensor_origins))
             return self._map_pending(progress, scan)
@@ -373,8 +374,7 @@ class FacadeMap:
             self._map_pending()
             self._learn_registration()
             if self._unchecked:
-                self.last_update = {'buildings': sorted(self._unchecked), 'facades_new': [], 'facades_refitted': [],
-                                    'facades_updated': [], 'updated_cells': 0, 'registration_seconds': 0.0}
+                self.last_update = _update_record(sorted(self._unchecked))
                 self._check_pools()
             self._since_full = 0
             done = []
@@ -450,8 +450,7 @@ class FacadeMap:
             self._since_full = 0
         learnt = time.perf_counter()
         labels = self._labels(xyz, building_id)
-        self.last_update = {'buildings': [], 'facades_new': [], 'facades_refitted': [], 'facades_updated': [],
-                            'updated_cells': 0, 'registration_seconds': learnt - t0}
+        self.last_update = _update_record([], learnt - t0)
         changed = [int(b) for b in np.unique(labels)]
         # Every building's points first: without sensor origins the others' points turn a
         # building's walls (``_context``), whichever building comes first.
@@ -605,12 +604,12 @@ class FacadeMap:
         first = 0 if old is None else len(old)
         pts = xyz if old is None else np.vstack([old, xyz])
         self.points[b] = pts
-        if old is not None and len(old) and b not in self._bounds:
-            self._bounds[b] = (old.min(axis=0), old.max(axis=0))
-        if len(xyz):
-            held = self._bounds.get(b) if old is not None else None
+        if len(xyz):  # the bounds grow with the new points (those of the old taken once if missing)
             lo, hi = xyz.min(axis=0), xyz.max(axis=0)
-            self._bounds[b] = (lo, hi) if held is None else (np.minimum(held[0], lo), np.maximum(held[1], hi))
+            if old is not None and len(old):
+                held = self._bounds.get(b) or (old.min(axis=0), old.max(axis=0))
+                lo, hi = np.minimum(held[0], lo), np.maximum(held[1], hi)
+            self._bounds[b] = (lo, hi)
         old_so = self.sensor_origins.get(b)
         self.sensor_origins[b] = origins if old is None else (None if origins is None or old_so is None
                                                               else np.vstack([old_so, origins]))
@@ -685,7 +684,7 @@ class FacadeMap:
     def _check_pools(self, done: set[int] = frozenset()) -> None:
         """Look for new façades in the pools of the buildings that received points in
         updates that were not full ones (``map_now``), but for those in ``done``."""
-        todo, self._unchecked = sorted(self._unchecked - set(done)), set()
+        todo, self._unchecked = sorted(self._unchecked - done), set()
         for b in todo:
             if b in self.points:
                 self._update_building(b, len(self.points[b]), True)
@@ -902,6 +901,12 @@ def _same_state(a: tuple, b: tuple) -> bool:
     """Whether two ``(façade models, (label, points) pairs)`` states hold the same objects."""
     return (len(a[0]) == len(b[0]) and len(a[1]) == len(b[1]) and all(x is y for x, y in zip(a[0], b[0]))
             and all(x[0] == y[0] and x[1] is y[1] for x, y in zip(a[1], b[1])))
+
+
+def _update_record(buildings: list[int], registration_seconds: float = 0.0) -> dict:
+    """A fresh :attr:`FacadeMap.last_update` (the lists filled as the update goes)."""
+    return {'buildings': buildings, 'facades_new': [], 'facades_refitted': [], 'facades_updated': [],
+            'updated_cells': 0, 'registration_seconds': registration_seconds}
 
 
 def _plane_corners_in(e: ExtractedFacade, frame: FacadeFrame) -> np.ndarray:

@@ -423,10 +423,10 @@ def update_facade(model: FacadeModel, extracted: ExtractedFacade, new: np.ndarra
     train_codes = np.full(n, -1, dtype=np.int64)
     train_codes[used] = block_codes(pts.uv[used], pts.point_facet[used], anchor, setup.sizes)
     fresh = used & new
-    dirty = np.union1d((train_codes[fresh][:, None] + _NEIGHBOURS[None, :]).ravel(),
-                       cell_codes[changed.ravel() & inside])
+    near = np.unique((train_codes[fresh][:, None] + _NEIGHBOURS[None, :]).ravel())  # blocks near new training points
+    dirty = np.union1d(near, cell_codes[changed.ravel() & inside])
     test = inside & in_sorted(cell_codes, dirty)  # dirty: sorted and unique (union1d)
-    near_new = inside & in_sorted(cell_codes, np.unique((train_codes[fresh][:, None] + _NEIGHBOURS[None, :]).ravel()))
+    near_new = inside & in_sorted(cell_codes, near)
     # Training data: the dirty blocks' extended blocks. Points removed before keep their
     # verdict unless they are tested again (own points of a dirty block).
     own = used & in_sorted(train_codes, dirty)
