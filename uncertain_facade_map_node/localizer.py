@@ -21,7 +21,8 @@ The prior of a scan is the newest ``prior_pose`` when it is at most ``localizer.
 seconds from the scan's stamp and newer than the last estimate; otherwise the last estimate
 moved on by the last estimated motion (constant velocity over the stamps' gap), its
 covariance grown by ``localizer.motion_std_*`` per second. With neither, the scan waits
-for a prior (counted as ``scans_without_prior``).
+for a prior (counted once as ``scans_without_prior``): it is localised when a prior pose
+arrives (a prior often comes a little after its scan) and given up when a newer scan comes.
 
 No exception escapes a callback: a failure (the map service missing, a bad scan or prior)
 is logged and counted, and the node goes on with the next scan.
@@ -71,6 +72,7 @@ class FacadeLocalizerNode(Node):
         self._last: tuple[int, np.ndarray, np.ndarray] | None = None  # (stamp ns, pose, covariance)
         self._velocity: np.ndarray | None = None  # (6,) twist of the last motion per second, sensor frame
         self._pending: Any = None  # the newest scan waiting
+        self._waiting: Any = None  # a scan that found no prior, tried again when one arrives
         self._wake = threading.Event()
         self.last_estimate: PoseEstimate | None = None
 
@@ -115,6 +117,9 @@ class FacadeLocalizerNode(Node):
         with self._lock:
             self.counters['priors_received'] += 1
             self._prior = prior
+            waiting = self._waiting is not None
+        if waiting:
+            self._wake.set()
 
     def scan_callback(self, msg: Any) -> None:
         """Hand the scan to the localising thread (a scan still waiting is replaced)."""
@@ -123,6 +128,9 @@ class FacadeLocalizerNode(Node):
             if self._pending is not None:
                 self.counters['scans_skipped'] += 1
             self._pending = msg
+            if self._waiting is not None:  # the scan waiting for a prior is given up for the newer one
+                self.counters['scans_skipped'] += 1
+                self._waiting = None
         self._wake.set()
 
     def diagnostics_callback(self) -> None:
@@ -147,10 +155,23 @@ class FacadeLocalizerNode(Node):
             self._wake.clear()
             with self._lock:
                 msg, self._pending = self._pending, None
+                retry = msg is None
+                if retry:
+                    msg, self._waiting = self._waiting, None
             if msg is None:
                 continue
             try:
-                self._localise(msg)
+                if not self._localise(msg):
+                    with self._lock:
+                        if self._pending is None:
+                            self._waiting = msg
+                        else:
+                            self.counters['scans_skipped'] += 1
+                        if not retry:
+                            self.counters['scans_without_prior'] += 1
+                    if not retry:
+                        self.get_logger().warning('scan waits for a prior pose on "prior_pose"',
+                                                  throttle_duration_sec=5.0)
             except Exception as exc:  # noqa: BLE001 - the thread must live on: logged and counted
                 with self._lock:
                     self.counters['scans_failed'] += 1
@@ -175,16 +196,14 @@ class FacadeLocalizerNode(Node):
         growth = np.r_[np.full(3, cfg.motion_std_position) ** 2, np.full(3, np.deg2rad(cfg.motion_std_rotation)) ** 2]
         return pose, last[2] + np.diag(growth) * max(dt, 1e-3)
 
-    def _localise(self, msg: Any) -> None:
+    def _localise(self, msg: Any) -> bool:
+        """Localise the scan and publish its pose; False (nothing done) when it has no prior."""
         stamp = _stamp_ns(msg.header)
         xyz = points_xyz(ma.structured_from_pointcloud2(msg))
         xyz = xyz[np.isfinite(xyz).all(axis=1)]
         prior = self._prior_for(stamp)
         if prior is None:
-            with self._lock:
-                self.counters['scans_without_prior'] += 1
-            self.get_logger().warning('scan waits for a prior pose on "prior_pose"', throttle_duration_sec=5.0)
-            return
+            return False
         estimate = localise(xyz, prior[0], prior[1], self._query, self.config.localise)
         self.last_estimate = estimate
         with self._lock:
@@ -204,6 +223,7 @@ class FacadeLocalizerNode(Node):
             self.pub_tf.publish(mt.tf_message([t], self.types))
         self.get_logger().debug(f'scan at {stamp * 1e-9:.3f} s: {estimate.points_used} points, '
                                 f'{estimate.iterations} iterations, {estimate.seconds * 1e3:.0f} ms')
+        return True
 
     def _query(self, xyz: np.ndarray) -> Any:
         """Ask the map at (M, 3) map-frame points through the service (blocking this thread)."""
