@@ -370,19 +370,15 @@ class LocalSurface:
         # points read the same cells while they are in the cache (2-3 x faster than random order).
         ijk = np.clip(np.floor((xyz - g.corner) / (g.cell * np.array([TILE, TILE, 1.0]))), -1, 1 << 20).astype(np.int64)
         order = np.argsort(((ijk[:, 0] + 1) << 42) | ((ijk[:, 1] + 1) << 21) | (ijk[:, 2] + 1))
-        everything = (fid, s, scatter, plane_var, normal, rho, nearest, status)
+        x = np.ascontiguousarray(xyz, dtype=np.float64)
         for coarse in (False, True):  # the few points far from K + 1 stored points: again, on coarser cells
             grid = self.coarse_grid if coarse else g
             labels, inverse = self._in_grid_order(grid, inverse=skip is not None)
-            sk = np.full(len(order), -1, np.int64) if skip is None else inverse[skip[order]]
-            outs = [a[order] for a in everything]
+            sk = np.full(n, -1, np.int64) if skip is None else inverse[skip]
             kernel = local_planes if len(order) >= SERIAL_BELOW else local_planes_serial
-            kernel(np.ascontiguousarray(xyz[order], dtype=np.float64), sk, labels, *grid.arrays(),
-                         self.neighbours, min(NEAR, self.neighbours) - 1, MAX_RING, normals, float(radius), MIN_VAR,
-                         *outs)
-            for a, b in zip(everything, outs):
-                a[order] = b
-            order = order[outs[-1] == 2]
+            kernel(order, x, sk, labels, *grid.arrays(), self.neighbours, min(NEAR, self.neighbours) - 1, MAX_RING,
+                   normals, float(radius), MIN_VAR, fid, s, scatter, plane_var, normal, rho, nearest, status)
+            order = order[status[order] == 2]
             if not len(order):
                 break
         far = np.flatnonzero(status == 2)
