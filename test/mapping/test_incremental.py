@@ -63,6 +63,18 @@ def test_same_batches_give_the_same_map(tmp_path, drive, incremental):
     assert_same_maps(save_map(incremental, tmp_path / 'a.npz'), save_map(again, tmp_path / 'b.npz'))
 
 
+def test_kept_point_readings_change_nothing(tmp_path, drive, incremental):
+    """The per-façade readings an update keeps for the next (uvd, depth, layer per point)
+    give bit for bit the map of updates that compute them all again."""
+    batches, origin = drive
+    fresh = FacadeMap(MapParams(), origin)
+    for xyz, ids, origins in batches:
+        fresh._facade_points.clear()
+        fresh.add_points(xyz, ids, origins)
+    assert incremental._facade_points  # the live map kept them
+    assert_same_maps(save_map(incremental, tmp_path / 'kept.npz'), save_map(fresh, tmp_path / 'fresh.npz'))
+
+
 def test_saved_map_goes_on_like_the_live_one(tmp_path, drive):
     batches, origin = drive
     half = len(batches) // 2

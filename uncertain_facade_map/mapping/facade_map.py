@@ -84,6 +84,30 @@ from .calibration import (
 _CONTEXT_POINTS = 20_000
 
 
+@dataclass(frozen=True, eq=False)
+class _FacadePoints:
+    """A façade's points as its last update read them (:meth:`FacadeMap._extracted_for_update`).
+
+    Attributes:
+        frame, relief, layers: the façade's, when they were read (identity tells a whole
+            refit, which changes them).
+        index: (N,) sorted building indices of the points.
+        uvd: (N, 3) their (u, v, d) in ``frame``, metres.
+        cos: (N,) |cos| of the angle between each point's normal and the façade normal.
+        depth: (N,) depth from the relief, ``d - relief(u, v)``, metres.
+        labels: (N,) int64 most responsible layer of each depth.
+    """
+
+    frame: FacadeFrame
+    relief: object
+    layers: object
+    index: np.ndarray
+    uvd: np.ndarray
+    cos: np.ndarray
+    depth: np.ndarray
+    labels: np.ndarray
+
+
 @dataclass(eq=False)
 class FacadeMap:
     """Façade models of all buildings, built incrementally from building points.
@@ -150,6 +174,10 @@ class FacadeMap:
     #: Per building label, its occupied storage voxels: (V,) sorted int64 keys and (V,) int32
     #: counts of stored points (rebuilt from ``points`` when missing, e.g. after loading).
     _voxels: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, init=False, repr=False)
+    #: Per façade id, what an update reads of each of its points and that does not change
+    #: while its frame, relief and layers stay (:class:`_FacadePoints`): computed for the new
+    #: points only (rebuilt when missing, e.g. after loading, or after a whole refit).
+    _facade_points: dict[int, _FacadePoints] = field(default_factory=dict, init=False, repr=False)
 
     def add_points(self, xyz: np.ndarray, building_id: np.ndarray | None = None,
                    sensor_origins: np.ndarray | None = None,
@@ -647,6 +675,41 @@ class FacadeMap:
         cos = np.minimum(np.abs(self.normals[b][index] @ frame.normal), 1.0)
         return ExtractedFacade(frame, index, uvd, cos, _extent(uvd[:, :2]), plane_extent)
 
+    def _extracted_for_update(self, b: int, index: np.ndarray, model: FacadeModel,
+                              plane_extent: tuple[float, float, float, float]
+                              ) -> tuple[ExtractedFacade, np.ndarray, np.ndarray]:
+        """:meth:`_extracted` of façade ``model``'s points ``index`` (sorted building indices)
+        in its frame, with (N,) their depths from its relief (metres) and (N,) their layers:
+        read from :attr:`_facade_points` for the points it holds, computed for the others (the
+        same values, point by point: the stored points, their normals, the frame, relief and
+        layers do not change between whole fits)."""
+        frame, pts = model.frame, self.points[b]
+        held = self._facade_points.get(model.facade_id)
+        if held is not None and not (held.frame is frame and held.relief is model.relief
+                                     and held.layers is model.layers):
+            held = None
+        n = len(index)
+        have = np.zeros(n, dtype=bool)
+        pos = np.zeros(n, dtype=np.int64)
+        if held is not None and len(held.index):
+            pos = np.minimum(np.searchsorted(held.index, index), len(held.index) - 1)
+            have = held.index[pos] == index
+        uvd, cos = np.empty((n, 3)), np.empty(n)
+        depth, labels = np.empty(n), np.empty(n, dtype=np.int64)
+        if have.any():
+            at = pos[have]
+            uvd[have], cos[have], depth[have], labels[have] = held.uvd[at], held.cos[at], held.depth[at], held.labels[at]
+        todo = np.flatnonzero(~have)
+        if len(todo):
+            rows = index[todo]
+            uvd[todo] = frame.to_local(pts[rows])
+            cos[todo] = np.minimum(np.abs(self.normals[b][rows] @ frame.normal), 1.0)
+            depth[todo] = uvd[todo, 2] - model.relief.at(uvd[todo, :2])
+            labels[todo] = model.layers.predict(depth[todo])
+        self._facade_points[model.facade_id] = _FacadePoints(frame, model.relief, model.layers, index, uvd, cos,
+                                                             depth, labels)
+        return ExtractedFacade(frame, index, uvd, cos, _extent(uvd[:, :2]), plane_extent), depth, labels
+
     def _context(self, b: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """(C, 3) points of the other buildings (at most ``_CONTEXT_POINTS``, a random draw),
         metres, map frame, and (C,) int64 their buildings: they turn the normals of walls
@@ -748,7 +811,8 @@ class FacadeMap:
                 updated = self._refit_whole(b, fid, index, plane)
             else:
                 rng = self._rng(b, fid, len(index))
-                updated = update_facade(model, self._extracted(b, index, model.frame, plane), fresh, params, rng)
+                extracted, depth, labels = self._extracted_for_update(b, index, model, plane)
+                updated = update_facade(model, extracted, fresh, params, rng, depth=depth, labels=labels)
                 self.facades[fid] = updated
             key = 'facades_refitted' if updated.fitted_points == len(index) else 'facades_updated'
             self.last_update[key].append(fid)

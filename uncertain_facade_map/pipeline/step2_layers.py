@@ -185,8 +185,9 @@ def find_facets(uv: np.ndarray, labels: np.ndarray, n_layers: int, extent: tuple
     height = max(1, int(np.ceil((extent[3] - extent[2]) / cell)))
     col = np.clip(grid_index(uv[:, 0], origin[0], cell), 0, width - 1)
     row = np.clip(grid_index(uv[:, 1], origin[1], cell), 0, height - 1)
-    votes = np.zeros((height * width, n_layers), dtype=np.int32)
-    np.add.at(votes, (row * width + col, labels), 1)
+    # Votes per (cell, layer): one bincount (np.add.at is ~10x slower on many points).
+    votes = np.bincount((row * width + col) * n_layers + labels,
+                        minlength=height * width * n_layers).astype(np.int32).reshape(height * width, n_layers)
     voted = votes.sum(axis=1) > 0
     layer = np.where(voted, votes.argmax(axis=1), -1).reshape(height, width)
     layer = _despeckle(layer, n_layers)

@@ -119,12 +119,15 @@ class _LayeredPoints:
 
 
 def _layered_points(extracted: ExtractedFacade, depth: np.ndarray, layers: DepthLayers,
-                    raster_extent: tuple[float, float, float, float], params: MapParams) -> _LayeredPoints:
+                    raster_extent: tuple[float, float, float, float], params: MapParams,
+                    labels: np.ndarray | None = None) -> _LayeredPoints:
     """Facets of the layers on the raster, and the GP training points (eqs. 7 and 8).
 
-    ``depth``: (N,) the points' depths from the wall's relief, metres."""
+    ``depth``: (N,) the points' depths from the wall's relief, metres; ``labels``: (N,)
+    their most responsible layers if known (``layers.predict(depth)``)."""
     uv = extracted.uvd[:, :2]
-    facets = find_facets(uv, layers.predict(depth), layers.n_layers, raster_extent, params.layers)
+    labels = layers.predict(depth) if labels is None else labels
+    facets = find_facets(uv, labels, layers.n_layers, raster_extent, params.layers)
     point_facet = facets.facet_at(uv)
     has_facet = point_facet >= 0
     point_layer = np.where(has_facet, facets.layer_of_facet[np.maximum(point_facet, 0)], layers.main_)
@@ -363,7 +366,8 @@ def _changed_cells(old: FacadeModel, offset: tuple[int, int], facet: np.ndarray,
 
 
 def update_facade(model: FacadeModel, extracted: ExtractedFacade, new: np.ndarray, params: MapParams,
-                  rng: np.random.Generator, raster_margin: float = 1.0) -> FacadeModel:
+                  rng: np.random.Generator, raster_margin: float = 1.0, depth: np.ndarray | None = None,
+                  labels: np.ndarray | None = None) -> FacadeModel:
     """Update a façade with new points, recomputing only what they change.
 
     The caller decides when a façade has grown enough to be fitted whole instead
@@ -383,6 +387,9 @@ def update_facade(model: FacadeModel, extracted: ExtractedFacade, new: np.ndarra
         params: modelling parameters.
         rng: random source (block caps).
         raster_margin: the raster reaches this far beyond the points' extent, metres.
+        depth: (N,) the points' depths from the model's relief, metres, if the caller keeps
+            them (``d - model.relief.at(u, v)``); None: computed here.
+        labels: (N,) their most responsible layers (``model.layers.predict(depth)``), or None.
 
     Returns:
         The updated model (same id, building, frame and anchor).
@@ -399,7 +406,8 @@ def update_facade(model: FacadeModel, extracted: ExtractedFacade, new: np.ndarra
     raster_extent = _raster_extent(extent, raster_margin, anchor, cell, cover=old_extent)
     # Steps 2-3 with the relief, noise and layers kept: facets found again, training points (eqs. 7, 8).
     params = _with_noise(params, float(np.sqrt(model.noise_var)))
-    pts = _layered_points(extracted, extracted.uvd[:, 2] - model.relief.at(uv), layers, raster_extent, params)
+    depth = extracted.uvd[:, 2] - model.relief.at(uv) if depth is None else depth
+    pts = _layered_points(extracted, depth, layers, raster_extent, params, labels)
     # Step 4 with the length scales kept.
     setup = _gp_setup(pts, layers, model.lengthscale2_, anchor, params, rng)
     facets, used = pts.facets, setup.used
