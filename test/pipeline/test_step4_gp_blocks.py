@@ -219,3 +219,28 @@ def test_in_sorted_is_isin_for_any_keys():
                                       np.isin(values, keys))
 
     check()
+
+
+def test_capped_draw_keeps_what_sorting_by_block_and_key_keeps():
+    """The compiled capped draw (the planar training points per block) keeps the points
+    that a stable sort by (block code, key) keeps as each block's first ``cap``, for any
+    codes (negative, huge, repeated), keys with ties and caps."""
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    from uncertain_facade_map.pipeline._gp_kernels import capped_draw
+    from uncertain_facade_map.pipeline.step4_gp_blocks import _ranks
+
+    @settings(max_examples=300, deadline=None)
+    @given(st.lists(st.tuples(st.sampled_from([-(2 ** 62), -7, 0, 1, 3, 2 ** 40 + 1, 2 ** 62]),
+                              st.sampled_from([0.0, 0.25, 0.5, 0.75, 0.999])), max_size=60),
+           st.integers(1, 5))
+    def check(rows, cap):
+        codes = np.array([c for c, _ in rows], dtype=np.int64)
+        key = np.array([k for _, k in rows], dtype=np.float64)
+        order = np.lexsort((key, codes))
+        want = np.zeros(len(rows), dtype=bool)
+        want[order[_ranks(codes[order]) < cap]] = True
+        np.testing.assert_array_equal(capped_draw(codes, key, cap), want)
+
+    check()

@@ -190,3 +190,75 @@ def gather_capped(start: np.ndarray, count: np.ndarray, order: np.ndarray, centr
             out_rank[out] = r
             out += 1
     return out_block, out_point, out_rank
+
+
+@njit(cache=True, nogil=True)
+def capped_draw(codes: np.ndarray, key: np.ndarray, cap: int) -> np.ndarray:  # pragma: no cover - compiled
+    """(N,) bool: per block code, the ``cap`` points of smallest ``key`` (ties: the first).
+
+    The selection of sorting by ``(codes, key)`` (``np.lexsort((key, codes))``, stable) and
+    keeping each code's first ``cap``, in O(N) instead of a sort of all N: codes are
+    grouped through an open-addressing table, and only the points of a block holding more
+    than ``cap`` are sorted, among themselves.
+
+    Args:
+        codes: (N,) int64 block codes.
+        key: (N,) float64 random keys.
+        cap: points kept per code at most (>= 1).
+    """
+    n = len(codes)
+    size = 16
+    while size < 2 * n:
+        size *= 2
+    mask = size - 1
+    table = np.full(size, -1, np.int64)  # slot -> group
+    group_code = np.empty(n, np.int64)
+    group = np.empty(n, np.int64)
+    n_groups = 0
+    for i in range(n):
+        c = codes[i]
+        s = np.int64((np.uint64(c) * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(32)) & mask
+        while True:
+            g = table[s]
+            if g < 0:
+                table[s] = n_groups
+                group_code[n_groups] = c
+                group[i] = n_groups
+                n_groups += 1
+                break
+            if group_code[g] == c:
+                group[i] = g
+                break
+            s = (s + 1) & mask
+    count = np.zeros(n_groups, np.int64)
+    for i in range(n):
+        count[group[i]] += 1
+    keep = np.ones(n, np.bool_)
+    full = 0
+    for g in range(n_groups):
+        if count[g] > cap:
+            full += 1
+    if full == 0:
+        return keep
+    # The members of the full groups, group by group in index order (a counting sort).
+    start = np.zeros(n_groups + 1, np.int64)
+    for g in range(n_groups):
+        start[g + 1] = start[g] + (count[g] if count[g] > cap else 0)
+    fill = start[:-1].copy()
+    members = np.empty(start[-1], np.int64)
+    for i in range(n):
+        g = group[i]
+        if count[g] > cap:
+            members[fill[g]] = i
+            fill[g] += 1
+    for g in range(n_groups):
+        if count[g] <= cap:
+            continue
+        m = members[start[g]:start[g + 1]]
+        k = np.empty(len(m))
+        for t in range(len(m)):
+            k[t] = key[m[t]]
+        order = np.argsort(k, kind='mergesort')
+        for t in range(cap, len(m)):
+            keep[m[order[t]]] = False
+    return keep
