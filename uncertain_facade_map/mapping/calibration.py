@@ -46,6 +46,7 @@ import numpy as np
 from ..datatypes import FacadeModel
 from ..errors import InputError
 from ..params import MapParams
+from ..pipeline._gp_kernels import capped_draw
 from ..pipeline.step7_local_surface import LocalSurface
 from ..pipeline.step7_queries import PointQuery, query_points
 from ..pipeline.step8_occupancy import FIT_BAND, PLSC, facade_half_depth, fit_carving, fit_plsc
@@ -368,7 +369,7 @@ def _trimmed_moments(s: np.ndarray, var: np.ndarray) -> tuple[float, float]:
 
 def scan_disagreement(xyz: np.ndarray, scan: np.ndarray, earlier: np.ndarray, k: int = 12,
                       max_points: int = 2000, rng: np.random.Generator | None = None,
-                      inner: float = 0.2) -> np.ndarray:
+                      inner: float = 0.2, store_voxel: float = 0.0, store_per_voxel: int = 0) -> np.ndarray:
     """How far scans lie off each other's surface beyond what the map's reading predicts, as sums.
 
     For each scan of the new points (at most :data:`MAX_SCANS`, a seeded draw), up to
@@ -401,6 +402,12 @@ def scan_disagreement(xyz: np.ndarray, scan: np.ndarray, earlier: np.ndarray, k:
         rng: the draw (default: seeded 0).
         inner: a point counts where a stored point lies within this (``query.local_inner``),
             metres.
+        store_voxel, store_per_voxel: the map's storage rule (``update.store_voxel``,
+            ``update.store_per_voxel``): the other scans' points are read as the map would
+            store them, at most ``store_per_voxel`` per voxel, ``earlier`` first, then the
+            new points in arrival order (a car lidar's scans repeat the same walls: most of
+            their points are never stored, and reading them all cost as much as mapping).
+            0: all are read.
 
     Returns:
         (3,) float: [n, n * E[s^2], n * E[variance + noise]] with n the points that counted
@@ -432,6 +439,9 @@ def scan_disagreement(xyz: np.ndarray, scan: np.ndarray, earlier: np.ndarray, k:
         mine = _near_cells(xyz[pick])
         in_cells = np.isin(new_keys, mine)
         others = np.vstack([near_old[np.isin(old_keys, mine)], xyz[near_new[in_cells & (scan[near_new] != s)]]])
+        if store_voxel > 0 and store_per_voxel > 0 and len(others):
+            others = others[capped_draw(wrapped_keys(others, store_voxel), np.arange(len(others), dtype=np.float64),
+                                        store_per_voxel)]
         if len(others) <= k:
             continue
         p = xyz[pick]

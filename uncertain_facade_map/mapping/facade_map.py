@@ -538,7 +538,7 @@ class FacadeMap:
         rng = np.random.default_rng([self.params.seed, self._registration_mapped, len(xyz)])
         reading = QueryConfig()  # the map does not know how it will be queried: the default local reading
         found = scan_disagreement(xyz, labels, earlier, reading.local_neighbours, up.registration_points, rng,
-                                  reading.local_inner)
+                                  reading.local_inner, up.store_voxel, up.store_per_voxel)
         if found[0]:
             self.registration_sums_ = self.registration_sums_ + found
             self.registration_var_ = registration_variance(self.registration_sums_, up.registration_max_std)
