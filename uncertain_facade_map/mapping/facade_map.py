@@ -82,6 +82,10 @@ from .calibration import (
 
 #: Points of the other buildings at most that turn the normals of a wall without sensor origins.
 _CONTEXT_POINTS = 20_000
+#: A full update comes at the latest after this many batches (``update.batch_points``) of
+#: received points, however few were stored (a parked car's scans: the comparison's queue
+#: stays bounded).
+FULL_AFTER_RECEIVED = 10
 
 
 @dataclass(frozen=True, eq=False)
@@ -165,8 +169,10 @@ class FacadeMap:
     _registration_base: dict[int, np.ndarray] | None = field(default=None, init=False, repr=False)
     #: Building points mapped before the queued scans (the seed of the comparison's draw).
     _registration_mapped: int = field(default=0, init=False, repr=False)
-    #: Points added since the last full update (see ``map_now`` in :meth:`add_points`).
+    #: Points stored since the last full update (see ``map_now`` in :meth:`add_points`).
     _since_full: int = field(default=0, init=False, repr=False)
+    #: Points received (stored or not) since the last full update.
+    _received_since_full: int = field(default=0, init=False, repr=False)
     #: Buildings that received points since their pool was last looked at (in a full update).
     _unchecked: set[int] = field(default_factory=set, init=False, repr=False)
     #: Per building label, (lo (3,), hi (3,)) bounds of its stored points, metres, map frame.
@@ -206,8 +212,10 @@ class FacadeMap:
                 when nothing waits behind this cloud: its points are queryable at once; under
                 load the batches grow with the backlog, up to ``update.batch_points``). Such
                 an update allocates the points to the façades and updates those; once
-                ``update.batch_points`` points have come since the last full update (or at
-                :meth:`flush`), an update is a full one: it also looks for new façades in
+                ``update.batch_points`` points have been stored since the last full update
+                (points landing in full voxels are not: new information, not the sensor's
+                rate, sets the pace; at the latest after :data:`FULL_AFTER_RECEIVED` batches
+                received), or at :meth:`flush`, an update is a full one: it also looks for new façades in
                 the buildings' pools (RANSAC) and compares the scans with the stored points
                 (:attr:`registration_var_`). So new façades are extracted from as many
                 points as with fixed batches (small pools give partial walls that stay
@@ -404,7 +412,7 @@ class FacadeMap:
             if self._unchecked:
                 self.last_update = _update_record(sorted(self._unchecked))
                 self._check_pools()
-            self._since_full = 0
+            self._since_full = self._received_since_full = 0
             done = []
             if consolidate:
                 done = self._consolidate()
@@ -469,16 +477,8 @@ class FacadeMap:
                     compare: bool = True) -> list[int]:
         t0 = time.perf_counter()
         self._queue_registration(xyz, scan)
-        # A batch's worth of points (update.batch_points) since the last full round, or a
-        # full update asked for: compare the scans, and look for new façades in the pools.
-        self._since_full += len(xyz)
-        full = compare or self._since_full >= self.params.update.batch_points
-        if full:
-            self._learn_registration()
-            self._since_full = 0
-        learnt = time.perf_counter()
         labels = self._labels(xyz, building_id)
-        self.last_update = _update_record([], learnt - t0)
+        self.last_update = _update_record([])
         changed = [int(b) for b in np.unique(labels)]
         # Every building's points first: without sensor origins the others' points turn a
         # building's walls (``_context``), whichever building comes first.
@@ -491,6 +491,19 @@ class FacadeMap:
             if len(sel) or b not in self.points:
                 firsts[b] = self._append(b, xyz[sel], None if sensor_origins is None else sensor_origins[sel])
         self.last_update['thinned'] = thinned
+        # A batch's worth of stored points (update.batch_points) since the last full round
+        # (new information: a car lidar's points mostly land in full voxels and are never
+        # stored), FULL_AFTER_RECEIVED batches received, or a full update asked for: compare
+        # the scans, and look for new façades in the pools.
+        batch = self.params.update.batch_points
+        self._since_full += len(xyz) - thinned
+        self._received_since_full += len(xyz)
+        full = compare or self._since_full >= batch or self._received_since_full >= FULL_AFTER_RECEIVED * batch
+        if full:
+            started = time.perf_counter()
+            self._learn_registration()  # against the stored points of before the scans queued
+            self.last_update['registration_seconds'] = time.perf_counter() - started
+            self._since_full = self._received_since_full = 0
         for done, b in enumerate(changed, 1):
             if b in firsts:  # nothing to do for a building whose new points were all thinned
                 self._update_building(b, firsts[b], full)
