@@ -145,7 +145,8 @@ def solve_predict_blocks(first: int, last: int, uv: np.ndarray, y: np.ndarray, s
 @njit(cache=True, nogil=True)
 def gather_capped(start: np.ndarray, count: np.ndarray, order: np.ndarray, central: np.ndarray, key: np.ndarray,
                   cap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
-    """Members of each block's extended block, at most ``cap``, ordered by a random key.
+    """Members of each block's extended block, at most ``cap``: the block's own points
+    first, then its neighbours'; where more than ``cap``, those of lowest random key.
 
     Args:
         start, count: (B, 9) where each of a block's 9 neighbour blocks starts in ``order``
@@ -176,19 +177,41 @@ def gather_capped(start: np.ndarray, count: np.ndarray, order: np.ndarray, centr
     out = 0
     for b in range(n_blocks):
         n = count[b].sum()
-        c = 0
+        n_own = 0
         for j in range(9):
-            for t in range(count[b, j]):
-                cand[c] = order[start[b, j] + t]
-                ck[c] = key[pos] + (0.0 if central[j] else 1.0)
-                c += 1
-                pos += 1
-        arrange = np.argsort(ck[:n], kind='mergesort')
-        for r in range(kept[b]):
-            out_block[out] = b
-            out_point[out] = cand[arrange[r]]
-            out_rank[out] = r
-            out += 1
+            if central[j]:
+                n_own = count[b, j]
+        # Own points first, then the neighbours': only a block over the cap is sorted, and
+        # only the part of it that the cap cuts (R&W's blocks hold a few dozen points; most
+        # extended blocks are under the cap and need no order at all).
+        base = pos
+        c = 0
+        for own_pass in (True, False):
+            off = base
+            for j in range(9):
+                if central[j] == own_pass:
+                    for t in range(count[b, j]):
+                        cand[c] = order[start[b, j] + t]
+                        ck[c] = key[off + t]
+                        c += 1
+                off += count[b, j]
+        pos = base + n
+        if n > cap:
+            if n_own >= cap:
+                arrange = np.argsort(ck[:n_own], kind='mergesort')
+            else:
+                arrange = np.concatenate((np.arange(n_own), n_own + np.argsort(ck[n_own:n], kind='mergesort')))
+            for r in range(cap):
+                out_block[out] = b
+                out_point[out] = cand[arrange[r]]
+                out_rank[out] = r
+                out += 1
+        else:
+            for r in range(n):
+                out_block[out] = b
+                out_point[out] = cand[r]
+                out_rank[out] = r
+                out += 1
     return out_block, out_point, out_rank
 
 
