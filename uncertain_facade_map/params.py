@@ -381,8 +381,9 @@ class UpdateParams(Section):
     extraction_growth: float = param(0.5, "RANSAC runs again on a building's unallocated points once they have "
                                           'grown by this share (and by at least min_facade_points) since the last '
                                           'run', allowed=_positive(1e3))
-    normal_reach: float = param(1.0, "new points' normals use the building's points within this distance of the "
-                                     "new points' bounding box", unit='m', allowed=_positive(1e3))
+    normal_reach: float = param(1.0, "new points' normals use the building's points in the cells of this side "
+                                     "that hold new points and in their neighbours (all within this distance of a "
+                                     "new point)", unit='m', allowed=_positive(1e3))
     batch_points: int = param(100000, 'live mapping (add_points(..., defer=True)) holds new points back until at '
                                       'least this many have arrived, then maps them in one update: an update '
                                       'recomputes every block near a new training point, and the points of a few '

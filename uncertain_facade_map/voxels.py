@@ -45,6 +45,18 @@ def wrapped_keys(xyz: np.ndarray, side: float) -> np.ndarray:
     return (c[:, 0] << (2 * _BITS)) | (c[:, 1] << _BITS) | c[:, 2]
 
 
+def near_keys(xyz: np.ndarray, side: float) -> np.ndarray:
+    """Sorted unique :func:`wrapped_keys` of the ``side``-metre cells of (N, 3) points,
+    metres, and of their 26 neighbours: the cells of every point within ``side`` of one of
+    them."""
+    mask = (1 << _BITS) - 1
+    keys = np.unique(wrapped_keys(xyz, side))
+    cells = np.stack([keys >> (2 * _BITS), (keys >> _BITS) & mask, keys & mask], axis=1)
+    off = np.stack(np.meshgrid(*([np.arange(-1, 2)] * 3), indexing='ij'), axis=-1).reshape(-1, 3)
+    c = (cells[:, None, :] + off[None]).reshape(-1, 3) & mask
+    return np.unique((c[:, 0] << (2 * _BITS)) | (c[:, 1] << _BITS) | c[:, 2])
+
+
 def pack_keys(index: np.ndarray, unit: str = 'voxels') -> np.ndarray:
     """(N,) int64 key of (N, 3) voxel indices (one number per voxel, for np.unique).
 

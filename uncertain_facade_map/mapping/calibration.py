@@ -47,10 +47,20 @@ from ..datatypes import FacadeModel
 from ..errors import InputError
 from ..params import MapParams
 from ..pipeline._gp_kernels import capped_draw
+from ..pipeline.step4_gp_blocks import in_sorted
 from ..pipeline.step7_local_surface import LocalSurface
 from ..pipeline.step7_queries import PointQuery, query_points
 from ..pipeline.step8_occupancy import FIT_BAND, PLSC, facade_half_depth, fit_carving, fit_plsc
-from ..voxels import ReferenceVoxels, pack_keys, ray_crossings, reference_voxels, unpack_keys, voxel_index, wrapped_keys
+from ..voxels import (
+    ReferenceVoxels,
+    near_keys,
+    pack_keys,
+    ray_crossings,
+    reference_voxels,
+    unpack_keys,
+    voxel_index,
+    wrapped_keys,
+)
 
 __all__ = ['HeldOut', 'Settings', 'fit_free_space', 'fit_occupancy', 'hold_out', 'registration_variance',
            'scan_disagreement', 'scan_voxels', 'surface_terms']
@@ -323,10 +333,7 @@ def _cell_keys(xyz: np.ndarray, side: float = _CROP_CELL) -> np.ndarray:
 
 def _near_cells(sample: np.ndarray) -> np.ndarray:
     """Sorted keys of the crop cells of (S, 3) points and of their 26 neighbours."""
-    c = np.floor(sample / _CROP_CELL).astype(np.int64)
-    off = np.stack(np.meshgrid(*([np.arange(-1, 2)] * 3), indexing='ij'), axis=-1).reshape(-1, 3)
-    return np.unique(_cell_keys((np.unique(c, axis=0)[:, None, :] + off[None]).reshape(-1, 3) * _CROP_CELL
-                                + 0.5 * _CROP_CELL))
+    return near_keys(sample, _CROP_CELL)
 
 
 def _clustered_sample(index: np.ndarray, xyz: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -430,15 +437,15 @@ def scan_disagreement(xyz: np.ndarray, scan: np.ndarray, earlier: np.ndarray, k:
     cells = _near_cells(sample)  # the sample's cells and their neighbours
     lo, hi = sample.min(axis=0) - 2 * _CROP_CELL, sample.max(axis=0) + 2 * _CROP_CELL
     near_new = np.flatnonzero(np.all((xyz >= lo) & (xyz <= hi), axis=1))
-    near_new = near_new[np.isin(_cell_keys(xyz[near_new]), cells)]
+    near_new = near_new[in_sorted(_cell_keys(xyz[near_new]), cells)]  # cells: sorted, unique
     near_old = earlier[np.all((earlier >= lo) & (earlier <= hi), axis=1)] if len(earlier) else np.empty((0, 3))
-    near_old = near_old[np.isin(_cell_keys(near_old), cells)]
+    near_old = near_old[in_sorted(_cell_keys(near_old), cells)]
     new_keys = _cell_keys(xyz[near_new])
     old_keys = _cell_keys(near_old)
     for s, pick in zip(labels, picks):
         mine = _near_cells(xyz[pick])
-        in_cells = np.isin(new_keys, mine)
-        others = np.vstack([near_old[np.isin(old_keys, mine)], xyz[near_new[in_cells & (scan[near_new] != s)]]])
+        in_cells = in_sorted(new_keys, mine)
+        others = np.vstack([near_old[in_sorted(old_keys, mine)], xyz[near_new[in_cells & (scan[near_new] != s)]]])
         if store_voxel > 0 and store_per_voxel > 0 and len(others):
             others = others[capped_draw(wrapped_keys(others, store_voxel), np.arange(len(others), dtype=np.float64),
                                         store_per_voxel)]

@@ -68,7 +68,7 @@ from ..pipeline.step7_local_surface import LocalSurface, for_query
 from ..pipeline.step7_queries import PointQuery, query_map
 from ..pipeline.step8_occupancy import FIXED, PLSC
 from ..threads import one_blas_thread
-from ..voxels import wrapped_keys
+from ..voxels import near_keys, wrapped_keys
 from .calibration import (
     HeldOut,
     Settings,
@@ -659,10 +659,14 @@ class FacadeMap:
             normals = _point_normals(pts - pts.mean(axis=0), min(k, len(pts))) if len(pts) >= 3 else \
                 np.tile([0.0, 0.0, 1.0], (len(pts), 1))
         else:
-            # Neighbours from the building's points near the new ones only.
+            # Neighbours from the building's points near the new ones only: in the cells
+            # (side normal_reach) of the new points and their neighbours, which hold every
+            # point within normal_reach of one (a 360-degree sweep's bounding box holds
+            # most of the building, its cells only the walls it saw).
             reach = self.params.update.normal_reach
             lo, hi = xyz.min(axis=0) - reach, xyz.max(axis=0) + reach
             near = np.flatnonzero(np.all((old >= lo) & (old <= hi), axis=1))
+            near = near[in_sorted(wrapped_keys(old[near], reach), near_keys(xyz, reach))]
             local = np.vstack([old[near], xyz])
             centre = local.mean(axis=0)
             normals = np.vstack([self.normals[b], np.zeros((len(xyz), 3))])
