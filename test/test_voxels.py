@@ -53,3 +53,22 @@ def test_carving_takes_log_odds_per_ray_and_its_weight_is_learnt():
     labels = rng.random(n) < carve(p0, k, 0.8)
     assert fit_carving(labels, np.ones(n), p0, k) == pytest.approx(0.8, abs=0.08)
     assert fit_carving(labels, np.ones(n), p0, np.zeros(n, int)) == 0.0
+
+
+def test_near_keys_hold_every_point_within_a_cell_side():
+    """The cells near_keys gives hold every point within ``side`` of one of the points (the
+    old points a new point's normal may need), wrapped keys included, and no cell more
+    than one cell away."""
+    from uncertain_facade_map.voxels import near_keys, wrapped_keys
+
+    rng = np.random.default_rng(12)
+    for side, offset in ((1.0, 0.0), (0.1, -3.0e4), (0.5, 5.2e5)):
+        xyz = offset + rng.uniform(-5.0, 5.0, (300, 3))
+        keys = near_keys(xyz, side)
+        assert np.all(keys[1:] > keys[:-1]), 'sorted and unique'
+        direction = rng.normal(size=(300, 3))
+        within = xyz + direction / np.linalg.norm(direction, axis=1)[:, None] * rng.uniform(0, side, (300, 1))
+        assert np.isin(wrapped_keys(within, side), keys).all()
+        far = xyz + np.array([2.01 * side, 0.0, 0.0])
+        lonely = np.linalg.norm(far[:, None] - xyz[None], axis=2).min(axis=1) > 3.5 * side
+        assert not np.isin(wrapped_keys(far[lonely], side), keys).any()
