@@ -41,7 +41,12 @@ def wrapped_keys(xyz: np.ndarray, side: float) -> np.ndarray:
     """(N,) int64 keys of the ``side``-metre cells of (N, 3) points, metres: 21 bits per axis
     that wrap, so keys repeat only 2^21 cells apart (105 km at 0.05 m), further than the
     points compared by key lie; unlike :func:`pack_keys`, never refused."""
-    c = np.floor(xyz / side).astype(np.int64) & ((1 << _BITS) - 1)
+    return _wrap(np.floor(xyz / side).astype(np.int64))
+
+
+def _wrap(cells: np.ndarray) -> np.ndarray:
+    """(N,) int64 :func:`wrapped_keys` of (N, 3) int64 cell indices (21 bits per axis that wrap)."""
+    c = cells & ((1 << _BITS) - 1)
     return (c[:, 0] << (2 * _BITS)) | (c[:, 1] << _BITS) | c[:, 2]
 
 
@@ -53,8 +58,7 @@ def near_keys(xyz: np.ndarray, side: float) -> np.ndarray:
     keys = np.unique(wrapped_keys(xyz, side))
     cells = np.stack([keys >> (2 * _BITS), (keys >> _BITS) & mask, keys & mask], axis=1)
     off = np.stack(np.meshgrid(*([np.arange(-1, 2)] * 3), indexing='ij'), axis=-1).reshape(-1, 3)
-    c = (cells[:, None, :] + off[None]).reshape(-1, 3) & mask
-    return np.unique((c[:, 0] << (2 * _BITS)) | (c[:, 1] << _BITS) | c[:, 2])
+    return np.unique(_wrap((cells[:, None, :] + off[None]).reshape(-1, 3)))
 
 
 def pack_keys(index: np.ndarray, unit: str = 'voxels') -> np.ndarray:

@@ -437,11 +437,13 @@ def scan_disagreement(xyz: np.ndarray, scan: np.ndarray, earlier: np.ndarray, k:
     cells = _near_cells(sample)  # the sample's cells and their neighbours
     lo, hi = sample.min(axis=0) - 2 * _CROP_CELL, sample.max(axis=0) + 2 * _CROP_CELL
     near_new = np.flatnonzero(np.all((xyz >= lo) & (xyz <= hi), axis=1))
-    near_new = near_new[in_sorted(_cell_keys(xyz[near_new]), cells)]  # cells: sorted, unique
-    near_old = earlier[np.all((earlier >= lo) & (earlier <= hi), axis=1)] if len(earlier) else np.empty((0, 3))
-    near_old = near_old[in_sorted(_cell_keys(near_old), cells)]
     new_keys = _cell_keys(xyz[near_new])
+    keep = in_sorted(new_keys, cells)  # cells: sorted, unique
+    near_new, new_keys = near_new[keep], new_keys[keep]
+    near_old = earlier[np.all((earlier >= lo) & (earlier <= hi), axis=1)] if len(earlier) else np.empty((0, 3))
     old_keys = _cell_keys(near_old)
+    keep = in_sorted(old_keys, cells)
+    near_old, old_keys = near_old[keep], old_keys[keep]
     for s, pick in zip(labels, picks):
         mine = _near_cells(xyz[pick])
         in_cells = in_sorted(new_keys, mine)

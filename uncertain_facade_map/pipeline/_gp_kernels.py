@@ -177,15 +177,12 @@ def gather_capped(start: np.ndarray, count: np.ndarray, order: np.ndarray, centr
     out = 0
     for b in range(n_blocks):
         n = count[b].sum()
-        n_own = 0
-        for j in range(9):
-            if central[j]:
-                n_own = count[b, j]
         # Own points first, then the neighbours': only a block over the cap is sorted, and
         # only the part of it that the cap cuts (R&W's blocks hold a few dozen points; most
         # extended blocks are under the cap and need no order at all).
         base = pos
         c = 0
+        n_own = 0
         for own_pass in (True, False):
             off = base
             for j in range(9):
@@ -195,23 +192,20 @@ def gather_capped(start: np.ndarray, count: np.ndarray, order: np.ndarray, centr
                         ck[c] = key[off + t]
                         c += 1
                 off += count[b, j]
+            if own_pass:
+                n_own = c
         pos = base + n
         if n > cap:
             if n_own >= cap:
-                arrange = np.argsort(ck[:n_own], kind='mergesort')
+                arrange = np.argsort(ck[:n_own], kind='mergesort')[:cap]
             else:
-                arrange = np.concatenate((np.arange(n_own), n_own + np.argsort(ck[n_own:n], kind='mergesort')))
-            for r in range(cap):
-                out_block[out] = b
-                out_point[out] = cand[arrange[r]]
-                out_rank[out] = r
-                out += 1
-        else:
-            for r in range(n):
-                out_block[out] = b
-                out_point[out] = cand[r]
-                out_rank[out] = r
-                out += 1
+                arrange = np.concatenate((np.arange(n_own), n_own + np.argsort(ck[n_own:n], kind='mergesort')))[:cap]
+            cand[:cap] = cand[arrange]
+        for r in range(kept[b]):
+            out_block[out] = b
+            out_point[out] = cand[r]
+            out_rank[out] = r
+            out += 1
     return out_block, out_point, out_rank
 
 
