@@ -680,6 +680,15 @@ class PersistenceConfig(Section):
                               'services ("" for none)')
     autosave_period: float = param(0.0, 'save the map to map_path this often when it changed (0: never)', unit='s',
                                    allowed=_closed(0.0, 1e6))
+    map_dir: str = param('', 'the map folder: the save_map and load_map services resolve their path in it and '
+                             'refuse any that leads out of it (absolute, "..", a symbolic link out); "": the folder '
+                             'of map_path, or "maps" under the working directory when map_path is empty')
+    allow_any_path: bool = param(False, 'let save_map and load_map use any path the node\'s user may write or '
+                                        'read: any participant of the DDS domain can then overwrite that user\'s '
+                                        'files with a map (ROS 2 without SROS2 authenticates nobody)')
+    max_load_mb: float = param(4096.0, 'load_map refuses a map file, or a tiled map\'s manifest, larger than this '
+                                       '(on disk or unpacked) before reading it', unit='MB',
+                               allowed=_closed(0.001, 1e7))
 
 
 @dataclass(frozen=True)

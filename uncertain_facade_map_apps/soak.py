@@ -135,7 +135,9 @@ QUICK_CASES = (
     'pose_zero_quaternion', 'pose_non_unit_quaternion', 'pose_nan_translation', 'pose_huge_translation', 'pose_valid',
     'query_nan_x', 'query_resolution_negative', 'query_resolution_nan', 'query_empty',
     'save_missing_folder', 'save_sys', 'save_onto_directory',
+    'save_absolute_outside', 'save_dotdot', 'save_symlink_out', 'save_over_text_file',
     'load_missing', 'load_truncated_half', 'load_random_bytes', 'load_wrong_version',
+    'load_dotdot', 'load_symlink_out', 'load_oversized', 'load_manifest_escaping',
     'get_map_wide_200m')
 QUICK['cases'] = QUICK_CASES
 
@@ -541,7 +543,8 @@ class Session:
         """Start the node (on ``map_path`` when given) and wait until it is up; raises NodeDied."""
         if self.node is not None and self.node.alive():
             self.node.stop()
-        overrides = list(self.opts.overrides)
+        # The node's map folder (save_map and load_map are confined to it): this run's folder.
+        overrides = [f'persistence.map_dir:={self.out.resolve()}', *self.opts.overrides]
         if map_path is not None:
             overrides.append(f'persistence.map_path:={map_path}')
         self.starts += 1
@@ -1410,8 +1413,59 @@ def load_cases() -> list[Case]:
         file_case('load_meta_not_json', meta_text, 'meta that is not JSON'),
         file_case('load_missing_arrays', without_facades, 'meta lists façades whose arrays are missing'),
         file_case('load_other_npz', lambda c: {'x': np.arange(10)}, 'an NPZ of something else'),
+        Case('load_absolute_outside', 'load', False, lambda c: load(c, _outside_copy(c)),
+             about='a valid map outside the map folder, by its absolute path'),
+        Case('load_dotdot', 'load', False, lambda c: load(c, f'{c.folder.name}/../../{_outside_copy(c).name}'),
+             about='a valid map outside the map folder, through ".."'),
+        Case('load_symlink_out', 'load', False, lambda c: load(c, _link_out(c, 'map_link.npz', _outside_copy(c))),
+             about='a link in the map folder to a valid map outside it'),
+        Case('load_oversized', 'load', False, lambda c: load(c, _sparse(c, 'huge.npz', 2**43)),
+             about='an 8 TB (sparse) file: refused before it is read (persistence.max_load_mb)'),
+        Case('load_manifest_escaping', 'load', False, lambda c: load(c, _escaping_tiled(c)),
+             about="a tiled map in the map folder whose tile's file links to a map outside it"),
         Case('load_baseline', 'load', True, lambda c: load(c, c.baseline), about='the baseline map itself (valid)'),
     ]
+
+
+def _outside_copy(c: FuzzContext) -> Path:
+    """A copy of the baseline map next to the run's folder, outside the node's map folder."""
+    outside = c.session.out.resolve().parent / f'{c.session.out.name}_outside.npz'
+    if not outside.exists():
+        shutil.copyfile(c.baseline, outside)
+    return outside
+
+
+def _link_out(c: FuzzContext, name: str, target: Path) -> Path:
+    link = c.folder / name
+    link.unlink(missing_ok=True)
+    link.symlink_to(target)
+    return link
+
+
+def _sparse(c: FuzzContext, name: str, size: int) -> Path:
+    path = c.folder / name
+    with open(path, 'wb') as fh:
+        fh.truncate(size)
+    return path
+
+
+def _escaping_tiled(c: FuzzContext) -> Path:
+    """A tiled map in the map folder whose one tile's file is a link to a map outside it."""
+    from uncertain_facade_map.io.map_file import load_map
+    from uncertain_facade_map.tiling.manifest import Manifest, TileRecord, sha256_file, write_manifest
+
+    folder = c.folder / 'escaping_tiles'
+    (folder / 'tiles').mkdir(parents=True, exist_ok=True)
+    outside = _outside_copy(c)
+    _link_out(c, 'escaping_tiles/tiles/tile_0_0.npz', outside)
+    fmap = load_map(outside)
+    record = TileRecord('tile_0_0', (0, 0), (0.0, 0.0, 50.0, 50.0), (0.0,) * 6, 'tiles/tile_0_0.npz',
+                        sha256_file(outside), [int(b) for b in fmap.buildings], len(fmap.facades), fmap.n_stored, '')
+    from uncertain_facade_map.params import map_params_record
+
+    write_manifest(folder, Manifest(50.0, tuple(float(x) for x in fmap.map_origin), map_params_record(fmap.params),
+                                    {'tile_0_0': record}))
+    return folder
 
 
 def save_cases() -> list[Case]:
@@ -1422,6 +1476,19 @@ def save_cases() -> list[Case]:
         folder = Path(path).parent
         with contextlib.suppress(OSError):
             out['tmp_left'] = sorted(p.name for p in folder.glob('.*.tmp'))
+        return out
+
+    def victim(c: FuzzContext, name: str) -> Path:
+        path = c.folder / name
+        path.write_text('a file of someone else\n')
+        return path
+
+    def save_over(c: FuzzContext, path: Path) -> dict:
+        """Save over ``path``, which must stay as it was: flagged as accepted if it changed."""
+        before = path.read_bytes()
+        out = save(c, path)
+        if path.read_bytes() != before:
+            return {**out, 'success': True, 'message': f'{path} was changed: {out.get("message")}'}
         return out
 
     def parent_is_file(c: FuzzContext) -> dict:
@@ -1441,6 +1508,14 @@ def save_cases() -> list[Case]:
         ('save_proc', lambda c: save(c, '/proc/soak_map.npz'), 'unwritable: /proc'),
         ('save_sys', lambda c: save(c, '/sys/soak_map.npz'), 'unwritable: /sys'),
         ('save_name_too_long', lambda c: save(c, c.folder / ('m' * 300 + '.npz')), 'a file name of 304 characters'),
+        ('save_absolute_outside', lambda c: save_over(c, _outside_copy(c)),
+         'an existing map outside the map folder, by its absolute path'),
+        ('save_dotdot', lambda c: save(c, f'{c.folder.name}/../../escaped.npz'), 'a name leading out through ".."'),
+        ('save_symlink_out', lambda c: save(c, _link_out(c, 'dir_link', c.session.out.resolve().parent) / 'out.npz'),
+         'a name through a link in the map folder to a folder outside it'),
+        ('save_over_text_file', lambda c: save_over(c, victim(c, 'victim.npz')),
+         'an existing file that is not a map file (its bytes must stay)'),
+        ('save_other_suffix', lambda c: save(c, c.folder / 'victim.txt'), 'a name without the .npz suffix'),
     ]
     out = [Case(name, 'save', False, act, about=about) for name, act, about in cases]
     out.append(Case('save_valid', 'save', True, lambda c: save(c, c.folder / 'saved.npz'),

@@ -77,6 +77,7 @@ from msg_adapters.published_maps import published_map_messages
 from uncertain_facade_map.datatypes import array_bytes
 from uncertain_facade_map.errors import FacadeMapError, InputError, TransformError
 from uncertain_facade_map.io.map_file import remove_stale_temporaries, save_map
+from uncertain_facade_map.io.map_folder import MapFolder
 from uncertain_facade_map.io.scans import Scan, ScanPoints
 from uncertain_facade_map.mapping import products as mp
 from uncertain_facade_map.mapping.allocator import limit_heap_growth, release_free_memory
@@ -247,6 +248,9 @@ class FacadeMapperNode(Node):
         self._tiled_lock = threading.Lock()
         self._follow_frame = ''  # the frame whose pose the follower takes (latest sensor_pose / odometry child)
         self._cloud_frame = ''  # the frame of the latest cloud (the follower's fallback)
+        per = cfg.persistence
+        # Where save_map and load_map read and write (any DDS participant may call them).
+        self.map_folder = MapFolder.of(per.map_dir, per.map_path, per.allow_any_path, per.max_load_mb)
         tiled_start = bool(cfg.persistence.map_path) and is_tiled_map(cfg.persistence.map_path)
         for stale in remove_stale_temporaries(cfg.persistence.map_path) if cfg.persistence.map_path \
                 and not tiled_start else ():
@@ -1029,18 +1033,26 @@ class FacadeMapperNode(Node):
         return response
 
     def _path(self, given: str) -> str:
+        """``persistence.map_path`` (the operator's) when no path is given."""
         path = given or self.config.persistence.map_path
         if not path:
             raise InputError('no path given and the parameter persistence.map_path is empty')
         return path
 
     def _save_path(self, given: str) -> str:
-        """Where save_map writes the live map: never into a tiled map (served read-only)."""
-        path = self._path(given)
-        if self._tiled_target(path):
-            raise InputError(f'{path} is a tiled map, served read-only: save_map writes the live map to a map '
-                             'file; give it another path')
+        """Where save_map writes the live map: in the map folder (:class:`MapFolder`), over
+        nothing but a map file, never into a tiled map (served read-only)."""
+        path = str(self.map_folder.save_path(given)) if given else self._path(given)
+        if self._tiled_target(path) or any(is_tiled_map(p) for p in Path(path).parents):
+            raise InputError(f'{path} is a tiled map or lies in one, read-only: save_map writes the live map to a '
+                             'map file of its own; give it another path')
+        if Path(path).parent == self.map_folder.root:
+            self.map_folder.root.mkdir(parents=True, exist_ok=True)
         return path
+
+    def _load_path(self, given: str) -> str:
+        """What load_map reads: in the map folder, within persistence.max_load_mb."""
+        return str(self.map_folder.load_path(given)) if given else self._path(given)
 
     def _save(self, path: str) -> tuple[int, int]:
         """Save the map as it stands now, without waiting for the queue (the worker keeps a
@@ -1051,7 +1063,7 @@ class FacadeMapperNode(Node):
         """
         with self._save_lock:
             fmap, version, waiting = self.worker.committed()
-            save_map(fmap, path)
+            save_map(fmap, path, replace_only_maps=True)
             self._saved_version = version
             with self._count_lock:
                 self.counters['saves'] += 1
@@ -1078,7 +1090,7 @@ class FacadeMapperNode(Node):
         """Replace the map by a map file, or serve a tiled map (read-only; the live map starts
         empty beside it); a bad file or a folder without a manifest leaves everything as it is."""
         try:
-            path = self._path(request.path)
+            path = self._load_path(request.path)
             opened = self._open_map(path)
             if isinstance(opened, TiledMap):
                 self.worker.call(functools.partial(replace_with, self._live_map_for(opened), None), COMMAND_TIMEOUT)

@@ -10,6 +10,7 @@ the same queries.
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -66,7 +67,8 @@ def node_config(tmp: Path, **overrides) -> Path:
     # A long idle time: a loaded machine (CI) must not pause the stream long enough for a
     # flush in the middle, which would make another map than the offline core's; fixed
     # batches: the map depends on the clouds only, not on when they came (node.batching).
-    node = {'node.qos': 'reliable', 'node.queue_size': 10000, 'node.idle_flush': 5.0, 'node.batching': 'fixed'}
+    node = {'node.qos': 'reliable', 'node.queue_size': 10000, 'node.idle_flush': 5.0, 'node.batching': 'fixed',
+            'persistence.map_dir': str(tmp)}  # save_map and load_map are confined to it
     path = tmp / f'params_{len(list(tmp.glob("params_*")))}.yaml'
     path.write_text(dump_config(scenario_config(**{**node, **overrides})))
     return path
@@ -621,6 +623,78 @@ def test_a_loaded_map_answers_with_its_own_bands(client, mapped, scans, workdir)
     assert restored.success, restored.message
 
 
+def _escaping_tiled_map(folder: Path, tile_file: str, link_to: Path | None, fmap: FacadeMap) -> Path:
+    """A tiled map's folder whose one tile is ``tile_file`` (a link to ``link_to`` when given)."""
+    from uncertain_facade_map.params import map_params_record
+    from uncertain_facade_map.tiling.manifest import Manifest, TileRecord, write_manifest
+
+    (folder / 'tiles').mkdir(parents=True)
+    if link_to is not None:
+        (folder / tile_file).symlink_to(link_to)
+    record = TileRecord('tile_0_0', (0, 0), (0.0, 0.0, 50.0, 50.0), (0.0,) * 6, tile_file, '0' * 64,
+                        [int(b) for b in fmap.buildings], len(fmap.facades), fmap.n_stored, '')
+    write_manifest(folder, Manifest(50.0, (0.0, 0.0, 0.0), map_params_record(fmap.params), {'tile_0_0': record}))
+    return folder
+
+
+def test_services_are_confined_to_the_map_folder(client, mapped, scans, workdir, tmp_path_factory):
+    """Issue 38: save_map and load_map, called as any DDS participant may, refuse every path
+    that leads out of the map folder (persistence.map_dir, here the work folder), a save over
+    a file that is not a map, a name without .npz, a file over persistence.max_load_mb and a
+    tiled map whose tiles leave its folder, each with a message naming the rule; the node
+    lives on, its answers are unchanged and no file outside the folder is touched. A
+    relative name saves into the folder."""
+    from uncertain_facade_map.srv import LoadMap, QueryPoints, SaveMap
+
+    outside = tmp_path_factory.mktemp('outside')
+    xyz = probe_points(offline_map(scans), 1000)
+    before = answers_of(client.call(QueryPoints, 'query_points', query_request(xyz)))
+    saved = client.call(SaveMap, 'save_map', SaveMap.Request(path='confined.npz'))
+    assert saved.success and saved.path == str((workdir / 'confined.npz').resolve()), saved.message
+    shutil.copyfile(workdir / 'confined.npz', outside / 'map.npz')
+    (outside / 'victim.txt').write_text('a shell profile\n')
+    (outside / 'victim.npz').write_text('not a map\n')
+    (workdir / 'notes.npz').write_text('my notes\n')
+    (workdir / 'link_out').symlink_to(outside)
+    (workdir / 'map_link.npz').symlink_to(outside / 'map.npz')
+    with open(workdir / 'huge.npz', 'wb') as fh:
+        fh.truncate(2**43)  # 8 TB, sparse: refused before it is read
+    fmap = load_map(outside / 'map.npz')
+    _escaping_tiled_map(workdir / 'linked_tiles', 'tiles/tile_0_0.npz', outside / 'map.npz', fmap)
+    _escaping_tiled_map(workdir / 'dotted_tiles', '../confined.npz', None, fmap)
+    up = f'../{outside.name}'
+    outside_rule = 'leads outside the map folder'
+    cases = [
+        (SaveMap, str(outside / 'victim.txt'), outside_rule),
+        (SaveMap, str(outside / 'victim.npz'), outside_rule),
+        (SaveMap, str(outside / 'new.npz'), outside_rule),
+        (SaveMap, f'{up}/new.npz', outside_rule),
+        (SaveMap, 'link_out/new.npz', outside_rule),
+        (SaveMap, 'notes.npz', 'not a map file'),
+        (SaveMap, 'notes.txt', '*.npz only'),
+        (LoadMap, str(outside / 'map.npz'), outside_rule),
+        (LoadMap, f'{up}/map.npz', outside_rule),
+        (LoadMap, 'map_link.npz', outside_rule),
+        (LoadMap, 'huge.npz', 'persistence.max_load_mb'),
+        (LoadMap, 'linked_tiles', "tiles must lie in its folder"),
+        (LoadMap, 'dotted_tiles', 'must be a path inside the map folder'),
+    ]
+    for srv, path, rule in cases:
+        response = client.call(srv, srv.__name__.replace('Map', '_map').lower(), srv.Request(path=path))
+        assert not response.success and rule in response.message, (srv.__name__, path, response.message)
+        assert mapped.alive()
+    assert (outside / 'victim.txt').read_text() == 'a shell profile\n'
+    assert (outside / 'victim.npz').read_text() == 'not a map\n'
+    assert (workdir / 'notes.npz').read_text() == 'my notes\n'
+    assert sorted(p.name for p in outside.iterdir()) == ['map.npz', 'victim.npz', 'victim.txt']
+    assert_answers_equal(answers_of(client.call(QueryPoints, 'query_points', query_request(xyz))), before)
+    # A map file in the folder is replaced; a relative name loads from it.
+    assert client.call(SaveMap, 'save_map', SaveMap.Request(path='confined.npz')).success
+    loaded = client.call(LoadMap, 'load_map', LoadMap.Request(path='confined.npz'))
+    assert loaded.success, loaded.message
+    assert_answers_equal(answers_of(client.call(QueryPoints, 'query_points', query_request(xyz))), before)
+
+
 def test_save_reset_load_and_restart_answer_the_same(client, mapped, env, workdir, scans):
     from std_srvs.srv import Trigger
 
@@ -637,7 +711,7 @@ def test_save_reset_load_and_restart_answer_the_same(client, mapped, env, workdi
     (workdir / 'junk.npz').write_bytes(b'not a map')
     junk = client.call(LoadMap, 'load_map', LoadMap.Request(path=str(workdir / 'junk.npz')))
     assert not junk.success and 'not a map file' in junk.message
-    nowhere = client.call(SaveMap, 'save_map', SaveMap.Request(path='/nonexistent/dir/map.npz'))
+    nowhere = client.call(SaveMap, 'save_map', SaveMap.Request(path=str(workdir / 'nonexistent' / 'map.npz')))
     assert not nowhere.success and 'does not exist' in nowhere.message
     assert_answers_equal(answers_of(client.call(QueryPoints, 'query_points', query_request(xyz))), before)
     # Reset empties the map; load brings it back.

@@ -57,11 +57,14 @@ def temporary_name(path: Path) -> tuple[str, str]:
     return f'.{path.name}.', '.tmp'
 
 
-def atomic_write(path: PathLike, write: Callable[[str], None], mode: int | None = None) -> Path:
+def atomic_write(path: PathLike, write: Callable[[str], None], mode: int | None = None,
+                 before_replace: Callable[[Path], None] | None = None) -> Path:
     """Write ``path`` atomically: ``write(name)`` fills a temporary file next to it
     (:func:`temporary_name`), which is flushed to disk, given ``mode`` (None: the permissions
     the process's umask allows, as ``open`` would give them) and renamed over ``path``. A
     failure deletes the temporary file; a kill leaves it (the writers' own clean-ups remove it).
+    ``before_replace(path)``, if given, runs just before the rename and may refuse it by
+    raising (what the rename would replace is checked as late as possible).
 
     Returns:
         The path written.
@@ -75,6 +78,8 @@ def atomic_write(path: PathLike, write: Callable[[str], None], mode: int | None 
         with open(tmp, 'rb+') as fh:
             os.fsync(fh.fileno())
         os.chmod(tmp, 0o666 & ~umask() if mode is None else mode)
+        if before_replace is not None:
+            before_replace(path)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

@@ -31,6 +31,7 @@ Saving is atomic: the file is written next to the target and renamed over it.
 from __future__ import annotations
 
 import json
+import os
 import zipfile
 from pathlib import Path
 from typing import Any, Callable
@@ -107,17 +108,25 @@ def _write_npz(fh, arrays: dict[str, np.ndarray]) -> None:
                 np.lib.format.write_array(out, np.asanyarray(value), allow_pickle=False)
 
 
-def save_map(fmap: FacadeMap, path: str | Path) -> Path:
+#: Largest ``meta`` record :func:`is_map_file` reads, bytes (a map's is a few kB per façade).
+_META_MAX = 256 * 2**20
+
+
+def save_map(fmap: FacadeMap, path: str | Path, replace_only_maps: bool = False) -> Path:
     """Write the map atomically to ``path`` (conventionally ``*.npz``): into a temporary
     file next to it, then renamed; the file gets the permissions the process's umask
     allows (as ``open`` would give it). A failure deletes the temporary file; a kill
     leaves it, for :func:`remove_stale_temporaries`.
+
+    ``replace_only_maps``: refuse to replace an existing file that is not a map file
+    (:func:`is_map_file`, checked just before the rename; the node's ``save_map`` service).
 
     Returns:
         The path written.
 
     Raises:
         OSError: the folder is missing or not writable.
+        InputError: ``replace_only_maps`` and ``path`` is something else than a map file.
     """
     path = Path(path)
     meta: dict[str, Any] = {
@@ -164,8 +173,44 @@ def save_map(fmap: FacadeMap, path: str | Path) -> Path:
         with open(name, 'wb') as fh:
             _write_npz(fh, arrays)
 
-    atomic_write(path, write)
+    atomic_write(path, write, before_replace=_only_maps if replace_only_maps else None)
     return path
+
+
+def _only_maps(path: Path) -> None:
+    if os.path.lexists(path) and not is_map_file(path):
+        raise InputError(f'{path} exists and is not a map file of uncertain_facade_map: not replaced '
+                         '(save_map replaces map files only)')
+
+
+def is_map_file(path: str | Path) -> bool:
+    """Whether ``path`` is a regular file (not a link) holding a map file's ``meta`` record
+    (any version): read from the archive's directory and that one member, not the whole file."""
+    path = Path(path)
+    if path.is_symlink() or not path.is_file() or not zipfile.is_zipfile(path):
+        return False
+    try:
+        with zipfile.ZipFile(path) as zf:
+            info = zf.getinfo('meta.npy')
+            if info.file_size > _META_MAX:
+                return False
+            with zf.open(info) as fh:
+                meta = json.loads(str(np.lib.format.read_array(fh, allow_pickle=False)))
+    except (KeyError, ValueError, OSError, EOFError, zipfile.BadZipFile, json.JSONDecodeError):
+        return False
+    return isinstance(meta, dict) and meta.get('format') == FORMAT
+
+
+def unpacked_bytes(path: str | Path) -> int:
+    """Bytes a map file holds once read: its size on disk, or the sum of its archive's
+    members when larger (read from the zip's directory only)."""
+    path = Path(path)
+    size = path.stat().st_size
+    try:
+        with zipfile.ZipFile(path) as zf:
+            return max(size, sum(i.file_size for i in zf.infolist()))
+    except (zipfile.BadZipFile, OSError, ValueError):
+        return size
 
 
 def load_map(path: str | Path) -> FacadeMap:
