@@ -496,9 +496,9 @@ class SelectionConfig(Section):
                                              "sensor's vertical field of view (selection.fov_margin, "
                                              'selection.min_cut_distance)', unit='m', allowed=_closed(0.0, 1000.0))
     fov_margin: float = param(0.5, 'with sensor origins: a window with a band point within this angle below the top '
-                                   "of the sensor's vertical field of view (the highest elevation of the points from "
-                                   'their origins, when seen all around) is cut off by it: seen as high as the sensor '
-                                   'could see there, a wall however low (0: no such rule)', unit='degrees',
+                                   "of the sensor's vertical field of view (the line, height over range, that the "
+                                   'highest points seen all around follow) is cut off by it: seen as high as the '
+                                   'sensor could see there, a wall however low (0: no such rule)', unit='degrees',
                               allowed=_closed(0.0, 10.0))
     min_cut_distance: float = param(7.0, 'a window cut off by the field of view is a wall only if its plane passes at '
                                          'least this far from the sensor: the side of a van parked along the road '

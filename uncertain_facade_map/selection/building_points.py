@@ -30,11 +30,13 @@ their sensor origins) in any frame with z up, and keeps the points of façades:
    A car's lidar sees a wall only as high as its vertical field of view reaches: a
    Velodyne HDL-64E 1.73 m up with its top beam at +2 degrees sees a house 10 m away up
    to 2.1 m, below ``min_structure_height``. So, when the points have sensor origins, the
-   selection finds the top of the field of view: the 10th highest elevation of the points
-   from their origins (of those at least 3 m away in x, y), if the points within
-   ``fov_margin`` below it lie in at least 90 distinct degrees of azimuth (a
-   spinning lidar's top beam hits walls all around; the top of one tall object alone, or
-   a profile scanner's zenith, is no such edge). A window with a band point within
+   selection finds the top of the field of view: the line (height over range from the
+   origins, of the points at least 3 m away in x, y) that the highest point of each degree
+   of azimuth follows, by quantile regression, if the sensor sees almost nothing above it,
+   a quarter of those points lie on it and the points within ``fov_margin`` below it lie in
+   at least 90 distinct degrees of azimuth (a spinning lidar's top beam hits walls all
+   around; the top of one tall object alone, or a profile scanner's zenith, is no such
+   edge; :func:`_field_of_view`). A window with a band point within
    ``fov_margin`` below that top is **cut off by the field of view**: the sensor saw it as
    high as it could see at that distance, so it may be a wall however low it looks. It
    passes ``min_structure_height`` if its plane passes at least ``min_cut_distance`` from
@@ -89,7 +91,8 @@ from dataclasses import dataclass, field
 from typing import Iterator
 
 import numpy as np
-from scipy.sparse import coo_matrix
+from scipy.optimize import linprog
+from scipy.sparse import coo_matrix, csr_matrix, hstack, identity
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
@@ -110,9 +113,24 @@ _STDOUT_LOCK = threading.Lock()
 #: The top of the field of view is sought among the points at least this far (m, in x, y)
 #: from their origins (closer, a centimetre of noise or quantisation turns the elevation).
 _FOV_MIN_RANGE = 3.0
-#: It is the elevation of the ``_FOV_RANK``-th highest of them (a few stray returns aside) ...
-_FOV_RANK = 10
-#: ... if the points within ``fov_margin`` below it lie in at least this many distinct
+#: Its line (height above the origin against range) is the quantile regression of the
+#: highest point of each degree of azimuth, at the first of these levels whose line passes
+#: the tests below. Those points are the top beam's returns where it hits something, lower
+#: beams' where it does not (open road: at the start of the simulated residential street two
+#: thirds of the degrees, where only the first level fits the beam), and a few strays above it
+#: (4 % of the degrees tilt the first level's line through them; the second fits the beam).
+_FOV_QUANTILES = (0.95, 0.85)
+#: It is a top only if at most this share of those highest points lie above it by more than
+#: ``fov_margin`` (a sensor sees nothing above its top beam but a few strays) ...
+_FOV_MAX_ABOVE = 0.05
+#: ... and at least this share lie within ``fov_margin`` of it (a beam's returns line up;
+#: the tops of walls do not: 3-6 % on the Argoverse sweeps, 33-87 % on car lidars) ...
+_FOV_MIN_ON_LINE = 0.25
+#: ... and its height at the origin lies within this many metres of the origin's (the beams'
+#: apex: a lidar's upper lasers sit some centimetres above its frame, a base frame given as
+#: the origin a metre or two below it) ...
+_FOV_MAX_APEX = 3.0
+#: ... and the points within ``fov_margin`` below it lie in at least this many distinct
 #: degrees of azimuth around their origins: a spinning lidar's top beam hits walls all
 #: around, while the top of one tall object alone is no field of view.
 _FOV_MIN_AZIMUTH = 90
@@ -411,6 +429,13 @@ def _field_of_view(xyz: np.ndarray, origins: np.ndarray | None, params: Selectio
     """The top of the sensor's vertical field of view, if the cloud shows one (see the
     module docstring, step 3).
 
+    The top beam is a cone whose apex sits near, not at, the origin (the HDL-64E's upper
+    lasers about 0.2 m above its frame): seen from the origin its returns rise from 2.1
+    degrees at 60 m to 2.9 at 12 m. So the top is a line, the height ``apex + r tan(top)``
+    above the origin at range r, fitted to the highest point of each degree of azimuth by
+    quantile regression (:data:`_FOV_QUANTILES`), not the highest elevation seen: a few
+    returns above the top beam, or a base frame as the origin, do not move it.
+
     Args:
         xyz: (N, 3) points, metres, z up.
         origins: (N, 3) or (3,) their sensor origins, same frame; None if unknown.
@@ -425,17 +450,51 @@ def _field_of_view(xyz: np.ndarray, origins: np.ndarray | None, params: Selectio
     origins = np.broadcast_to(origins, xyz.shape)
     rel = xyz - origins
     reach = np.hypot(rel[:, 0], rel[:, 1])
-    elevation = np.arctan2(rel[:, 2], reach)
     far = np.flatnonzero(reach >= _FOV_MIN_RANGE)
-    if len(far) < _FOV_RANK:
+    if len(far) < _FOV_MIN_AZIMUTH:
         return None
-    top = float(np.partition(elevation[far], len(far) - _FOV_RANK)[len(far) - _FOV_RANK])
-    at_top = elevation >= top - math.radians(params.fov_margin)
-    near = far[at_top[far]]
-    azimuth = np.floor(np.degrees(np.arctan2(rel[near, 1], rel[near, 0]))).astype(np.int64) % 360
-    if np.count_nonzero(np.bincount(azimuth, minlength=360)) < _FOV_MIN_AZIMUTH:
+    elevation = np.arctan2(rel[far, 2], reach[far])
+    azimuth = np.floor(np.degrees(np.arctan2(rel[far, 1], rel[far, 0]))).astype(np.int64) % 360
+    # The highest point of each degree of azimuth (the first, if several are as high).
+    top_of = np.full(360, -np.inf)
+    np.maximum.at(top_of, azimuth, elevation)
+    tops = np.flatnonzero(elevation == top_of[azimuth])
+    highest = far[tops[np.unique(azimuth[tops], return_index=True)[1]]]
+    if len(highest) < _FOV_MIN_AZIMUTH:
         return None
-    return _View(top, at_top, origins[:, :2])
+    r = np.maximum(reach, 1e-6)
+    elevation = np.arctan2(rel[:, 2], r)
+    margin = math.radians(params.fov_margin)
+    for level in _FOV_QUANTILES:
+        fit = _quantile_line(reach[highest], rel[highest, 2], level)
+        if fit is None or abs(fit[0]) > _FOV_MAX_APEX:
+            continue
+        apex, slope = fit
+        below_top = elevation - np.arctan2(apex + slope * r, r)  # radians, at each point's range
+        off = below_top[highest]
+        if np.mean(off > margin) > _FOV_MAX_ABOVE or np.mean(np.abs(off) <= margin) < _FOV_MIN_ON_LINE:
+            continue  # not a line the sensor sees nothing above: the tops of walls, not a beam
+        at_top = below_top >= -margin
+        near = far[at_top[far]]
+        degrees = np.floor(np.degrees(np.arctan2(rel[near, 1], rel[near, 0]))).astype(np.int64) % 360
+        if np.count_nonzero(np.bincount(degrees, minlength=360)) >= _FOV_MIN_AZIMUTH:
+            return _View(math.atan(slope), at_top, origins[:, :2])
+    return None
+
+
+def _quantile_line(x: np.ndarray, y: np.ndarray, q: float) -> tuple[float, float] | None:
+    """(a, b) of the line ``a + b x`` that minimises the quantile (check) loss at level
+    ``q`` of (n,) samples y at (n,) x: a linear programme (Koenker and Bassett 1978), solved
+    by HiGHS; None if it fails."""
+    n = len(x)
+    cost = np.concatenate([[0.0, 0.0], np.full(n, q), np.full(n, 1.0 - q)])
+    eye = identity(n, format='csr')
+    a_eq = hstack([csr_matrix(np.column_stack([np.ones(n), x])), eye, -eye], format='csc')
+    bounds = [(None, None)] * 2 + [(0.0, None)] * (2 * n)
+    res = linprog(cost, A_eq=a_eq, b_eq=y, bounds=bounds, method='highs')
+    if not res.success:
+        return None
+    return float(res.x[0]), float(res.x[1])
 
 
 # ----------------------------------------------------------------------------------------

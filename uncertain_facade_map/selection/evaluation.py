@@ -1,7 +1,8 @@
 """Figures of the selection on real sweeps, against an independent wall picker.
 
 ``python -m uncertain_facade_map.selection.evaluation [PLY ...] [--map] [--simulated]`` prints, for each
-cloud (default: the Argoverse sweeps in ``../shared/data/real/`` beside the repository),
+cloud (default: the Argoverse sweeps in ``../shared/data/real/`` beside the repository and
+the KITTI car lidar's in its ``car_lidar/``),
 the points in and selected, the ground, the share of the picked wall points the selection
 keeps (recall), the share of the selected points within 0.4 m of a picked wall point
 (precision; a lower bound: the picker looks only within 40 m and for at most 12 walls),
@@ -218,7 +219,7 @@ def main(argv: list[str] | None = None) -> int:
     """Print the figures of each cloud (see the module docstring)."""
     parser = argparse.ArgumentParser(prog='python -m uncertain_facade_map.selection.evaluation',
                                      description=__doc__.split('\n\n')[0])
-    parser.add_argument('clouds', nargs='*', type=Path, help='cloud files (default: ../shared/data/real/*.ply)')
+    parser.add_argument('clouds', nargs='*', type=Path, help='cloud files (default: ../shared/data/real/*.ply and car_lidar/*.ply)')
     parser.add_argument('--map', action='store_true', help='also build maps from all and from the selected points')
     parser.add_argument('--simulated', action='store_true',
                         help='the figures on simulated clouds against their truth instead (see above)')
@@ -234,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
                       f'share of the non-ground points {r["kept_share"]:.3f}, {r["seconds"]:.2f} s a cloud (median)',
                       flush=True)
         return 0
-    paths = args.clouds or sorted(REAL_DATA.glob('*.ply'))
+    paths = args.clouds or sorted(REAL_DATA.glob('*.ply')) + sorted(REAL_DATA.glob('car_lidar/*.ply'))
     if not paths:
         print(f'no clouds given and none in {REAL_DATA}', file=sys.stderr)
         return 2
