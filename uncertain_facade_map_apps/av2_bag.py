@@ -159,7 +159,9 @@ def write_av2_bag(raw_dir: str | Path, out: str | Path, *, storage: str, poses: 
 
     Returns:
         A summary: ``{'bag': path, 'topics': {topic: count}, 'sweeps': n, 'points': n,
-        'map_origin': [x, y, z], 'reference': path or None}``.
+        'map_origin': [x, y, z], 'reference': path or None, 'warnings': [line, ...]}``
+        (``warnings``: what was assumed, e.g. the documented lidar layout for a log without
+        ``calibration/``).
 
     Raises:
         InputError: unreadable log, unknown storage or poses mode, ``out`` exists.
@@ -179,7 +181,8 @@ def write_av2_bag(raw_dir: str | Path, out: str | Path, *, storage: str, poses: 
                                             map_origin=contents['map_origin'])
     return {'bag': path, 'topics': topics, 'sweeps': len(log.sweeps),
             'points': sum(len(p) for _s, p, _f in contents['scans']),
-            'map_origin': contents['map_origin'].tolist(), 'reference': written_reference}
+            'map_origin': contents['map_origin'].tolist(), 'reference': written_reference,
+            'warnings': list(log.warnings)}
 
 
 def write_reference(log: Av2Log, path: str | Path, *, storage: str = 'mcap', map_frame: str = 'map',
@@ -215,7 +218,8 @@ def write_reference(log: Av2Log, path: str | Path, *, storage: str = 'mcap', map
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split('\n')[0])
-    parser.add_argument('raw_dir', metavar='RAW_DIR', help='Argoverse 2 log folder (sensors/lidar, poses, calibration)')
+    parser.add_argument('raw_dir', metavar='RAW_DIR', help='Argoverse 2 log folder (sensors/lidar, poses, calibration; without '
+                                                             "calibration/ the cars' documented lidar layout, with a warning)")
     parser.add_argument('out', metavar='OUT', help='bag to create: a folder (mcap, sqlite3) or a .bag file (rosbag1)')
     parser.add_argument('--storage', choices=STORAGES, default='mcap', help='bag storage (default mcap)')
     parser.add_argument('--poses', choices=POSE_MODES, default='tf',
@@ -238,6 +242,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _write(args: argparse.Namespace) -> int:
     summary = write_av2_bag(args.raw_dir, args.out, storage=args.storage, poses=args.poses,
                             map_frame=args.map_frame, reference=args.reference)
+    for warning in summary['warnings']:
+        print(f'{PROG}: warning: {warning}', file=sys.stderr)
     origin = ' '.join(f'{v:g}' for v in summary['map_origin'])
     print(f'wrote {summary["bag"]}: {summary["sweeps"]} sweeps, {summary["points"]:,} points, map origin {origin}')
     for topic, count in sorted(summary['topics'].items()):

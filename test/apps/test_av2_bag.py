@@ -265,6 +265,20 @@ def test_reference_outputs_and_the_command(tmp_path, log, reference, capsys):
     assert clouds.map_origin.tolist() == MAP_ORIGIN
     assert [(s, p.tobytes()) for s, p in clouds.scans] == [(s, reference[s].tobytes()) for s in SWEEPS]
 
+    # A log without calibration/ (some public sample logs): the documented lidar layout, a
+    # warning, and the same points (the sweeps are in the ego frame; the lidar frames' float32
+    # rounding aside, only the sensor origins move, by 4.1 cm at most on this car).
+    bare = tmp_path / 'bare'
+    bare.mkdir()
+    (bare / 'sensors').symlink_to(RAW / 'sensors')
+    (bare / 'city_SE3_egovehicle.feather').symlink_to(RAW / 'city_SE3_egovehicle.feather')
+    assert main([str(bare), str(tmp_path / 'bare_bag'), '--reference', str(tmp_path / 'bare.npz')]) == 0
+    err = capsys.readouterr().err
+    assert err.count('\n') == 1 and 'warning:' in err and 'no calibration/ folder' in err
+    bare_cloud = read_npz(tmp_path / 'bare.npz')
+    np.testing.assert_allclose(xyz(bare_cloud.points), xyz(cloud.points), rtol=0, atol=5e-5)
+    assert np.abs(xyz(bare_cloud.points, 'origin_') - xyz(cloud.points, 'origin_')).max() < 0.05
+
     # Errors a user can make: one line, exit status 2.
     assert main([str(RAW), str(out), '--storage', 'rosbag1']) == 2
     assert 'exists already' in capsys.readouterr().err

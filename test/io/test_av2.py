@@ -169,3 +169,30 @@ def test_errors(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, 'pyarrow.feather', None)
     with pytest.raises(InputError, match='needs pyarrow'):
         read_av2_log(write_log(tmp_path / 'fine'))
+
+
+def test_a_log_without_calibration_takes_the_documented_lidar_layout(tmp_path):
+    import shutil
+
+    from uncertain_facade_map.io.av2 import DOCUMENTED_LIDARS
+
+    root = write_log(tmp_path / 'sample')
+    shutil.rmtree(root / 'calibration')
+    log = read_av2_log(root)
+    assert sorted(log.extrinsics) == ['down_lidar', 'up_lidar']
+    for name, (t, q) in DOCUMENTED_LIDARS.items():
+        assert log.extrinsics[name].translation.tolist() == list(t)
+        assert log.extrinsics[name].quaternion.tolist() == list(q)
+    assert len(log.warnings) == 1 and 'no calibration/ folder' in log.warnings[0]
+    # av2-api's example: the upper lidar upright, the lower one upside down (z flipped).
+    up, down = (rotation_matrices(np.array(DOCUMENTED_LIDARS[n][1])) for n in ('up_lidar', 'down_lidar'))
+    assert up[2, 2] > 0.999 and down[2, 2] < -0.999
+    # The clouds are placed by it: each lidar's points back in the ego frame exactly.
+    clouds = lidar_clouds(log, log.sweeps[0])
+    ref = reference_clouds(log)[0][1]
+    assert len(clouds['up_lidar']) + len(clouds['down_lidar']) == len(ref)
+    # A calibration folder without its file is an error, as before: the user meant to give one.
+    (root / 'calibration').mkdir()
+    with pytest.raises(InputError, match='egovehicle_SE3_sensor.feather not found'):
+        read_av2_log(root)
+    assert read_av2_log(write_log(tmp_path / 'calibrated')).warnings == ()

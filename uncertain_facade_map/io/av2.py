@@ -32,7 +32,7 @@ import numpy as np
 
 from ..errors import InputError
 
-__all__ = ['LIDARS', 'LASERS_PER_LIDAR', 'LIDAR_DTYPE', 'REFERENCE_DTYPE', 'Av2Extrinsic', 'Av2Log', 'Av2Poses',
+__all__ = ['DOCUMENTED_LIDARS', 'LIDARS', 'LASERS_PER_LIDAR', 'LIDAR_DTYPE', 'REFERENCE_DTYPE', 'Av2Extrinsic', 'Av2Log', 'Av2Poses',
            'Av2Sweep', 'lidar_clouds', 'map_origin_of', 'read_av2_log', 'reference_clouds', 'rotation_matrices']
 
 #: The lidars of an Argoverse 2 sweep, in laser-number order (lasers 0-31, then 32-63).
@@ -48,6 +48,16 @@ REFERENCE_DTYPE = np.dtype([('x', 'f8'), ('y', 'f8'), ('z', 'f8'), ('origin_x', 
                             ('origin_z', 'f8'), ('intensity', 'f4'), ('ring', 'u2')])
 
 _POSE_COLUMNS = ('tx_m', 'ty_m', 'tz_m', 'qx', 'qy', 'qz', 'qw')
+#: The lidars' extrinsics of an Argoverse 2 car as av2-api documents them (the example
+#: ``calibration/egovehicle_SE3_sensor.feather`` of src/av2/datasets/sensor/README.md: the
+#: upper lidar upright 1.64 m up, the lower one upside down 1.57 m up, both 1.35 m ahead of
+#: the ego origin): what :func:`read_av2_log` takes for a log without ``calibration/`` (some
+#: public sample logs ship without it). The cars differ by millimetres and tenths of a
+#: degree (log 7fab2350: the lower lidar 1.53 m up, rolled 5.9 degrees further).
+DOCUMENTED_LIDARS = {
+    'up_lidar': ((1.350180, 0.0, 1.640420), (0.0, 0.0, -0.002848, 0.999996)),
+    'down_lidar': ((1.355162, 0.000133, 1.565252), (-0.994497, 0.104767, 0.000243, -0.000089)),
+}
 _SWEEP_COLUMNS = ('x', 'y', 'z', 'intensity', 'laser_number', 'offset_ns')
 
 
@@ -139,12 +149,15 @@ class Av2Log:
         poses: the ego poses.
         extrinsics: sensor name (``'up_lidar'``, ``'down_lidar'``, ``'ring_front_center'``,
             ...) -> its extrinsic.
+        warnings: what was assumed in reading it (e.g. the documented lidar layout for a
+            log without ``calibration/``), one line each, for the user to see.
     """
 
     path: Path
     sweeps: list[Av2Sweep]
     poses: Av2Poses
     extrinsics: dict[str, Av2Extrinsic] = field(default_factory=dict)
+    warnings: tuple[str, ...] = ()
 
 
 def rotation_matrices(quaternions: np.ndarray) -> np.ndarray:
@@ -193,7 +206,8 @@ def read_av2_log(path: str | Path, *, max_sweeps: int | None = None) -> Av2Log:
 
     Args:
         path: the log folder (with ``sensors/lidar/``, ``city_SE3_egovehicle.feather`` and
-            ``calibration/egovehicle_SE3_sensor.feather``).
+            ``calibration/egovehicle_SE3_sensor.feather``; without the ``calibration/``
+            folder the lidars take :data:`DOCUMENTED_LIDARS`, said in ``warnings``).
         max_sweeps: read only the first sweeps (by stamp); None for all.
 
     Returns:
@@ -227,11 +241,23 @@ def read_av2_log(path: str | Path, *, max_sweeps: int | None = None) -> Av2Log:
                      translations=np.stack([cols[c] for c in ('tx_m', 'ty_m', 'tz_m')], 1).astype(np.float64)[order],
                      quaternions=np.stack([cols[c] for c in ('qx', 'qy', 'qz', 'qw')], 1).astype(np.float64)[order])
 
-    cols = _read_table(root / 'calibration' / 'egovehicle_SE3_sensor.feather', ('sensor_name',) + _POSE_COLUMNS)
-    extrinsics = {str(name): Av2Extrinsic(translation=np.array([cols[c][k] for c in ('tx_m', 'ty_m', 'tz_m')], float),
-                                          quaternion=np.array([cols[c][k] for c in ('qx', 'qy', 'qz', 'qw')], float))
-                  for k, name in enumerate(cols['sensor_name'])}
-    return Av2Log(path=root, sweeps=sweeps, poses=poses, extrinsics=extrinsics)
+    calibration = root / 'calibration' / 'egovehicle_SE3_sensor.feather'
+    warnings: tuple[str, ...] = ()
+    if not calibration.exists() and not calibration.parent.exists():
+        # Some public sample logs ship without calibration/: the documented layout, said so.
+        extrinsics = {name: Av2Extrinsic(np.array(t, float), np.array(q, float))
+                      for name, (t, q) in DOCUMENTED_LIDARS.items()}
+        warnings = (f'{root} has no calibration/ folder: the lidars are placed as av2-api documents an Argoverse 2 '
+                    f"car's (up_lidar 1.64 m, down_lidar 1.57 m above the ego origin, 1.35 m ahead); this car's may "
+                    f'differ by millimetres and tenths of a degree',)
+    else:
+        cols = _read_table(calibration, ('sensor_name',) + _POSE_COLUMNS)
+        extrinsics = {str(name): Av2Extrinsic(translation=np.array([cols[c][k] for c in ('tx_m', 'ty_m', 'tz_m')],
+                                                                   float),
+                                              quaternion=np.array([cols[c][k] for c in ('qx', 'qy', 'qz', 'qw')],
+                                                                  float))
+                      for k, name in enumerate(cols['sensor_name'])}
+    return Av2Log(path=root, sweeps=sweeps, poses=poses, extrinsics=extrinsics, warnings=warnings)
 
 
 def _lidar_extrinsics(log: Av2Log) -> list[Av2Extrinsic]:
