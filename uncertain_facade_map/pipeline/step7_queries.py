@@ -358,18 +358,17 @@ def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: fl
         reading = local.read(xyz[part]) if local is not None else None
         if reading is not None:
             # Points the raster's bands miss but dense stored points hold: their nearest
-            # stored point's façade, read in its frame. Off that façade's raster (a piece
-            # of wall too small to be a façade, beside it) the raster says nothing: the
-            # local reading answers alone there, up to the radius.
+            # stored point's façade, read in its frame. The raster says nothing there (off
+            # its cells: a piece of wall too small to be a façade, beside it; beyond its
+            # band: another wall behind or before it, which the raster would read as
+            # metres off its own surface): the local reading answers alone, up to the radius.
             weight = reading.weight.copy()
             adopt = (which < 0) & (reading.facade >= 0)
             which[adopt] = reading.facade[adopt]
+            weight[adopt] = 1.0
             for i in np.unique(which[adopt]):
                 sel = np.flatnonzero(adopt & (which == i))
                 uvd[sel] = facades[i].frame.to_local(xyz[part][sel])
-                u0, u1, v0, v1 = raster_bounds(facades[i].surface)
-                off = (uvd[sel, 0] < u0) | (uvd[sel, 0] > u1) | (uvd[sel, 1] < v0) | (uvd[sel, 1] > v1)
-                weight[sel[off]] = 1.0
         answer, grad = _raster_answer_compiled(rasters, which, uvd)
         if reading is not None:
             answer, grad = _blend(answer, reading, weight, grad)
