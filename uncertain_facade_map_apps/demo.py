@@ -149,7 +149,8 @@ def main(argv: list[str] | None = None) -> int:
         print('[5/6] saving the map and drawing it', flush=True)
         from uncertain_facade_map.srv import SaveMap
 
-        saved = loc.call(SaveMap, 'save_map', SaveMap.Request(path=str(out / 'map.npz')))
+        # A name in the node's map folder (persistence.map_dir: the folder of its map_path, out).
+        saved = loc.call(SaveMap, 'save_map', SaveMap.Request(path='map.npz'))
         if not saved.success:
             raise RuntimeError(saved.message)
         figures = _figures(out)

@@ -55,7 +55,10 @@ def test_offset_between_two_scans_is_recovered(shift, yaw_deg):
     both = scan_disagreement(np.vstack([a, b]), np.repeat([0, 1], len(a)), np.empty((0, 3)),
                              rng=np.random.default_rng(0))
     for sums in (later, both):
-        assert sums[0] >= 1900  # nearly every sampled point overlaps
+        # Most sampled points count: those whose other-scan neighbours lie around them on a
+        # patch (measured 1,751-1,784 of 2,000; 1,900 and more before the tests of spread and
+        # of the point lying among them, which the random walls' edges and gaps fail).
+        assert sums[0] >= 1700
         # The excess over the local reading's calibrated variance, which covers a little
         # more than the wall's own noise (measured: 2.78-2.84 cm for 3 cm, 3.48-3.50 cm
         # for 3.61 cm, 9.82-9.85 cm for 10 cm).
@@ -254,7 +257,7 @@ def test_dense_scans_are_read_at_the_maps_storage_density():
         a, b = _wall(rng, n), _wall(rng, n, 0.03)
         sums = scan_disagreement(np.vstack([a, b]), np.repeat([0, 1], n), np.empty((0, 3)),
                                  rng=np.random.default_rng(0), **store)
-        assert sums[0] >= 1900
+        assert sums[0] >= 1700  # measured 1,839 thinned (see above)
         return np.sqrt(registration_variance(sums, 0.3))
 
     thinned = offset(100_000, store_voxel=0.2, store_per_voxel=4)

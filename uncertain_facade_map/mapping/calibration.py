@@ -299,12 +299,20 @@ def fit_free_space(h: HeldOut, facades: Sequence[FacadeModel], plsc: PLSC, param
 
 #: Scan disagreement: a sampled point counts where its other-scan neighbours lie within
 #: :data:`_REACH` (metres), spread over a surface (middle eigenvalue at least :data:`_SPREAD`
-#: times the largest: not one scan line) no thicker than :data:`_THICK` (rms along the
-#: normal, metres: a wall both scans see, not foliage). The bounds are absolute, not
-#: relative to the neighbourhood's extent, which shrinks as the map grows denser.
+#: times the largest: a patch, not one or two scan lines) no thicker than :data:`_THICK` (rms
+#: along the normal, metres: a wall both scans see, not foliage), and the point lies among
+#: them (its offset from their centroid within their plane at most :data:`_INSIDE` times
+#: their largest standard deviation: read, not extrapolated). A plane through neighbours along one or two scan lines,
+#: or read beyond their end, misses a later scan by more than its variance says whatever the
+#: poses: on the simulated street streamed live (no registration error), points with a spread
+#: under 0.2 or an offset over 1.5 deviations missed by 5.7-11 cm rms against 3-4 cm
+#: predicted, and the map learnt a scan-to-scan std of 2.8 cm from them (0 with these tests).
+#: The bounds are absolute, not relative to the neighbourhood's extent, which shrinks as the
+#: map grows denser.
 _REACH = 1.0
-_SPREAD = 0.05
+_SPREAD = 0.3
 _THICK = 0.1
+_INSIDE = 1.0
 #: Residuals beyond this many robust standard deviations (1.4826 x the median absolute
 #: residual) are left out of a second moment (edges, the other side of a thin wall); for
 #: Gaussian residuals the moment loses 0.1 %.
@@ -460,9 +468,13 @@ def scan_disagreement(xyz: np.ndarray, scan: np.ndarray, earlier: np.ndarray, k:
                                inner)
         d_o, i_o = surface.tree.query(p, k)
         nb = others[i_o]  # (S, k, 3)
-        dev = nb - nb.mean(axis=1)[:, None]
-        w = np.linalg.eigvalsh(np.einsum('ski,skj->sij', dev, dev))
-        ok = (d_o[:, -1] <= _REACH) & (w[:, 1] >= _SPREAD * w[:, 2]) & (w[:, 0] <= k * _THICK ** 2)
+        centre = nb.mean(axis=1)
+        dev = nb - centre[:, None]
+        w, axes = np.linalg.eigh(np.einsum('ski,skj->sij', dev, dev))  # k x the scatter's eigenvalues
+        off = p - centre
+        in_plane = np.sum(np.square(off), axis=1) - np.square(np.einsum('si,si->s', off, axes[:, :, 0]))
+        inside = in_plane <= _INSIDE ** 2 * w[:, 2] / k
+        ok = (d_o[:, -1] <= _REACH) & (w[:, 1] >= _SPREAD * w[:, 2]) & (w[:, 0] <= k * _THICK ** 2) & inside
         if ok.sum() < 10:
             continue
         surface.calibrate(max_points=_CALIBRATION_POINTS)
