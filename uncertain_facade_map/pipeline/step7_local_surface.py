@@ -72,6 +72,11 @@ AGREEMENT = 3.0
 #: Leave-one-out sigmas (uncalibrated) beyond which a chi-squared outlier of the façade
 #: model stands alone and is left out of the local reading.
 OUTLIER_Z = 3.0
+#: Metres in front of its façade's mean surface beyond which a chi-squared outlier of the
+#: façade model is left out of the local reading whatever its neighbours: a window's frame,
+#: a sill or a reveal stands a few centimetres to decimetres off the wall; a parked car, a
+#: person or a bin before it is no façade, and a later scan passes through where it stood.
+CLUTTER_FRONT = 0.5
 #: Floor of the agreement factor: bounds the blend's slope in the weight (1 / it).
 MIN_AGREEMENT = 0.05
 #: Points read at once (bounds the (B, K + 1, 3) neighbour arrays: about 20 MB each at K = 12).
@@ -170,7 +175,8 @@ class LocalSurface:
     """The stored building points of a map, read per query point (see the module's text).
 
     Attributes:
-        points: (M, 3) stored building points (the chi-squared outliers that stand alone
+        points: (M, 3) stored building points (the chi-squared outliers that stand alone or
+            more than :data:`CLUTTER_FRONT` in front of their façade
             left out, :meth:`of`), metres, map frame.
         facade: (M,) int32 façade id of each (of the nearest point on a façade for those on
             none).
@@ -222,16 +228,20 @@ class LocalSurface:
                 leave them at -1 (a part of a larger map, which joins them over its own points:
                 a tiled map's views, :mod:`~uncertain_facade_map.tiling.views`).
         """
-        parts, ids, flags = [], [], []
+        parts, ids, flags, fronts = [], [], [], []
         for b in sorted(points):
             pts = points[b]
             label = np.full(len(pts), -1, dtype=np.int32)
             flagged = np.zeros(len(pts), bool)
+            front = np.zeros(len(pts), bool)
             for f in facades:
                 if f.building == b and len(f.point_index):
                     label[f.point_index[f.point_index < len(pts)]] = f.facade_id
-                    flagged[f.outlier_index[f.outlier_index < len(pts)]] = True
+                    out_idx = f.outlier_index[f.outlier_index < len(pts)]
+                    flagged[out_idx] = True
+                    front[out_idx[_in_front(f, pts[out_idx])]] = True
             flags.append(flagged)
+            fronts.append(front)
             mapped = np.flatnonzero(label >= 0)
             if len(mapped) and len(mapped) < len(pts):
                 # A stored point on no façade (a wall piece too small to be one, a reveal)
@@ -254,13 +264,14 @@ class LocalSurface:
         if len(flagged) and len(xyz) > neighbours + 2:
             # The chi-squared test's outliers (step 5) stay where the stored points around
             # them hold them on a surface (a reveal, a face the raster cannot hold: most of
-            # them on real walls) and go where they stand alone (clutter, a stray return).
+            # them on real walls) and go where they stand alone (clutter, a stray return)
+            # or well in front of their façade (CLUTTER_FRONT: a car, a person before it).
             z = np.empty(len(flagged))
             for start in range(0, len(flagged), CHUNK):
                 p = flagged[start:start + CHUNK]
                 _, s, scatter, plane_var, _, _, _ = out._raw(xyz[p], skip=p)
                 z[start:start + CHUNK] = np.abs(s) / np.sqrt(scatter + plane_var)
-            alone = flagged[z > OUTLIER_Z]
+            alone = flagged[(z > OUTLIER_Z) | np.concatenate(fronts)[flagged]]
             if len(alone):
                 keep = np.ones(len(xyz), bool)
                 keep[alone] = False
@@ -449,6 +460,18 @@ class LocalSurface:
             out.normal[part] = normal
             out.weight[part] = w
         return out
+
+
+def _in_front(facade: FacadeModel, xyz: np.ndarray) -> np.ndarray:
+    """(N,) bool: the (N, 3) points (metres, map frame) lie more than :data:`CLUTTER_FRONT`
+    in front of the façade's mean surface (its raster's nearest cell; off the raster, the
+    nearest edge cell's)."""
+    r = facade.surface
+    uvd = facade.frame.to_local(xyz)
+    h, w = r.mean.shape
+    col = np.clip(((uvd[:, 0] - r.origin[0]) / r.cell).astype(np.int64), 0, w - 1)
+    row = np.clip(((uvd[:, 1] - r.origin[1]) / r.cell).astype(np.int64), 0, h - 1)
+    return uvd[:, 2] - r.mean[row, col] > CLUTTER_FRONT
 
 
 def for_query(facades: Sequence[FacadeModel], points: dict[int, np.ndarray], config: QueryConfig
