@@ -543,6 +543,11 @@ class QueryConfig(Section):
     local_inner: float = param(0.2, 'the local plane alone answers where the nearest stored point lies within '
                                     'this; between it and local_radius the two blend (equal: a switch, not a blend)', unit='m',
                                allowed=_closed(0.0, 100.0))
+    local_reach: float = param(1.5, 'where no façade raster answers a point (off every raster and band), the local '
+                                    'plane of its nearest stored points still answers it if the nearest lies within '
+                                    "this, its variance widened by the façade's prior variance (0 or at most "
+                                    'local_radius: no answer beyond local_radius)', unit='m',
+                               allowed=_closed(0.0, 100.0))
 
     relations: ClassVar[tuple[Relation, ...]] = (
         Relation(('local_inner', 'local_radius'), lambda inner, radius: inner <= radius, 'local_inner <= local_radius'),

@@ -199,3 +199,25 @@ def test_outliers_well_in_front_of_the_wall_are_not_surface(scene):
     assert kept[len(main):len(main) + len(patch)].all()  # the sill, 0.1 m in front: kept
     assert not kept[len(main) + len(patch):].any()  # the car's side, 1 m in front: left out
     assert 0.1 < CLUTTER_FRONT < 1.0
+
+
+def test_off_every_raster_the_local_plane_answers_up_to_its_reach_with_the_prior_variance(scene):
+    """A point off every raster and band, 0.5-1.5 m from a wall piece with no façade of its
+    own: answered from the piece's local plane (query.local_reach), never tightly (the
+    façade's prior variance added); beyond the reach, or with reach 0, not at all."""
+    model, _, frame, *_ = scene
+    rng = np.random.default_rng(6)
+    uv = rng.uniform([11.0, 0.0], [13.0, 3.0], (200, 2))  # beyond the raster's u extent (0-10 m)
+    piece = frame.to_world(np.c_[uv, rng.normal(0, NOISE, len(uv))])
+    main = frame.to_world(np.c_[rng.uniform([0, 0], [10, 6], (1800, 2)), rng.normal(0, NOISE, 1800)])
+    model = type(model)(**{**{k: getattr(model, k) for k in model.__dataclass_fields__},
+                           'point_index': np.arange(len(main))})
+    local = LocalSurface.of([model], {0: main, 1: piece})
+    probe = frame.to_world(np.array([[12.0, 1.5, 1.0], [12.0, 1.5, -0.8], [12.0, 1.5, 3.0]]))
+    near = query_points([model], probe, 0.1, 1.0, 0.2, local=local, event='surface', reach=1.5)
+    assert near.facade[:2].tolist() == [0, 0] and near.facade[2] == -1
+    np.testing.assert_allclose(near.signed_distance[:2], [1.0, -0.8], atol=0.05)
+    assert np.all(near.variance[:2] >= model.global_var_)
+    assert np.all(near.p_occupied[:2] < 0.05)  # 1 m and 0.8 m from a determined plane: free
+    none = query_points([model], probe, 0.1, 1.0, 0.2, local=local, event='surface', reach=0.0)
+    assert np.all(none.facade == -1) and np.all(none.p_occupied == 0.5)

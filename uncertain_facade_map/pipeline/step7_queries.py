@@ -305,8 +305,8 @@ def assign_facades(facades: Sequence[FacadeModel], xyz: np.ndarray, band_back: f
 
 def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: float, band_back: float,
                  band_front: float, occupancy: PLSC = FIXED, local: LocalSurface | None = None,
-                 event: str = 'solid', registration_var: float = 0.0, rasters: PackedRasters | None = None
-                 ) -> PointQuery:
+                 event: str = 'solid', registration_var: float = 0.0, rasters: PackedRasters | None = None,
+                 reach: float = 0.0) -> PointQuery:
     """Answer the 3D point query for (N, 3) points in the map frame.
 
     Args:
@@ -326,6 +326,11 @@ def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: fl
         rasters: ``facades`` packed (:class:`~.raster_kernels.PackedRasters`) when the caller
             keeps them (a tiled map's views); None: :func:`~.raster_kernels.packed`'s, cached
             for the few most recent maps.
+        reach: metres (``query.local_reach``): a point that neither a raster nor the local
+            reading within its radius answers is read from the local plane of its nearest
+            stored points if the nearest lies within this, with the variance of the plane
+            plus its façade's prior variance (``global_var_``): off every raster, an answer
+            about where the surface is, never a tight one far from the data. 0: none.
 
     Returns:
         The answers; NaN depth, variance, noise variance and distance, and occupancy 0.5,
@@ -379,6 +384,9 @@ def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: fl
         if reading is not None:
             use_local = weight >= 0.5
             normal[part][use_local] = reading.normal[use_local]
+            if reach > local.radius:
+                _answer_far(facades, local, xyz, np.arange(part.start, part.stop)[which < 0], reach, facade, mean,
+                            var, noise, dist, surface_normal, normal)
     var = var + registration_var  # scan-to-scan disagreement (FacadeMap.registration_var_), m^2
     noise0 = np.where(np.isfinite(noise), noise, 0.0)
     if event == 'solid':
@@ -386,6 +394,32 @@ def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: fl
     else:
         p = occupancy.surface(dist, var, noise0, half_depth(normal, resolution), outside=UNKNOWN)
     return PointQuery(facade, mean, var, noise, dist, p, surface_normal)
+
+
+def _answer_far(facades: Sequence[FacadeModel], local: LocalSurface, xyz: np.ndarray, idx: np.ndarray, reach: float,
+                facade: np.ndarray, mean: np.ndarray, var: np.ndarray, noise: np.ndarray, dist: np.ndarray,
+                surface_normal: np.ndarray, normal: np.ndarray) -> None:
+    """Answer the points ``idx`` of (N, 3) ``xyz`` (none answered yet) whose nearest stored
+    point lies within ``reach`` metres from the local plane of their nearest stored points
+    (see :func:`query_points`), in place in the (N,) and (N, 3) answer arrays."""
+    if not len(idx):
+        return
+    fid, s, scatter, plane_var, n, _, nearest = local._raw(xyz[idx], radius=reach)
+    ok = (fid >= 0) & (nearest < reach) & np.isfinite(s)
+    idx, fid, s, scatter, plane_var, n = idx[ok], fid[ok], s[ok], scatter[ok], plane_var[ok], n[ok]
+    if not len(idx):
+        return
+    c2 = local.calibration_ ** 2
+    prior = np.array([f.global_var_ for f in facades])[fid]
+    depth = np.einsum('ni,ni->n', xyz[idx] - np.array([facades[i].frame.origin for i in fid]),
+                      np.array([facades[i].frame.normal for i in fid]))
+    facade[idx] = fid
+    dist[idx] = s
+    var[idx] = c2 * plane_var + prior
+    noise[idx] = c2 * scatter
+    mean[idx] = depth - s
+    surface_normal[idx] = n
+    normal[idx] = n
 
 
 def _assign(rasters: PackedRasters, boxes: tuple[np.ndarray, np.ndarray], xyz: np.ndarray, band_back: float,
@@ -482,4 +516,4 @@ def query_map(facades: Sequence[FacadeModel], stored_points: dict[int, np.ndarra
     if local is True:
         local = for_query(facades, stored_points, config)
     return query_points(facades, xyz, resolution, band_back, band_front, occupancy_model(learnt, config.occupancy),
-                        local or None, config.occupancy_event, registration_var, rasters)
+                        local or None, config.occupancy_event, registration_var, rasters, config.local_reach)
