@@ -206,8 +206,8 @@ CHECKER = SHARED / 'tools' / 'real_check.py'
 def test_real_av2_two_lidars_then_the_next_sweep():
     """AV2 sweep 0's wall points (the checker's wall pick), its up lidar (rings 0-31) and
     down lidar (32-63) as two scans (1.73 cm between them beyond the local reading); sweep
-    1's wall points against that map, 95 % coverage with the default (local) reading: 0.890
-    without the term, 0.980 with it: ABOVE the 93-97 % aimed at (0.903 and 0.990 before
+    1's wall points against that map, 95 % coverage with the default (local) reading: 0.936
+    without the term, 0.978 with it: ABOVE the 93-97 % aimed at (0.903 and 0.990 before
     issue 39). Sweep 1 repeats both
     lidars (its points' nearest stored points are 57 % of the same lidar), so it does not
     miss the map by the offset between the lidars, which the map's leave-one-out calibration
@@ -243,8 +243,10 @@ def test_real_av2_two_lidars_then_the_next_sweep():
             ok = q.facade >= 0
             coverage[reading, v > 0] = np.mean(np.abs(q.signed_distance[ok])
                                                <= 1.96 * np.sqrt(q.variance[ok] + q.noise_variance[ok]))
-    assert 0.89 <= coverage['local', False] <= 0.92
-    # Measured 0.980 (0.990 until issue 39: the points of sweep 1 up to query.local_reach from
+    # Measured 0.936: the local planes' scatter floored at a quarter of the façade's noise
+    # variance (issue 39: float16 coordinates put neighbours exactly on a plane); 0.890 before.
+    assert 0.925 <= coverage['local', False] <= 0.95
+    # Measured 0.978 (0.990 until issue 39: the points of sweep 1 up to query.local_reach from
     # the stored points are now answered, and cover less): the term still overshoots here.
     assert 0.975 <= coverage['local', True] <= 0.995
     assert 0.93 <= coverage['raster', False] < coverage['raster', True] <= 0.97

@@ -77,6 +77,12 @@ OUTLIER_Z = 3.0
 #: a sill or a reveal stands a few centimetres to decimetres off the wall; a parked car, a
 #: person or a bin before it is no façade, and a later scan passes through where it stood.
 CLUTTER_FRONT = 0.5
+#: Share of its façade's noise variance (``noise_var``, sigma_eta^2, learnt on the whole
+#: façade) below which a local plane's scatter is not believed: neighbours that lie exactly on
+#: a plane are quantised coordinates (Argoverse's float16: 7.8-15.6 mm steps, a wall along an
+#: axis on one value), not a surface known to a millimetre; such planes answered held-out
+#: points in the AV2 sweep's occlusions 10-20 cm off with a 0.5-1.3 mm standard deviation.
+NOISE_FLOOR = 0.25
 #: Floor of the agreement factor: bounds the blend's slope in the weight (1 / it).
 MIN_AGREEMENT = 0.05
 #: Points read at once (bounds the (B, K + 1, 3) neighbour arrays: about 20 MB each at K = 12).
@@ -190,6 +196,8 @@ class LocalSurface:
             1 until then).
         source: (M,) int64 index of each point in the map's stored points concatenated in
             building label order (:meth:`of`; None: the points as given).
+        noise_floor: (F,) per façade, the least scatter a local plane on it is read with, m^2
+            (:func:`noise_floor_of`; None: no floor).
     """
 
     points: np.ndarray
@@ -200,6 +208,7 @@ class LocalSurface:
     inner: float = 0.2
     calibration_: float = 1.0
     source: np.ndarray | None = field(default=None, repr=False)
+    noise_floor: np.ndarray | None = field(default=None, repr=False)
     _tree: cKDTree | None = field(default=None, init=False, repr=False)
     _grid: PointGrid | None = field(default=None, init=False, repr=False)
     _coarse: PointGrid | None = field(default=None, init=False, repr=False)
@@ -259,7 +268,8 @@ class LocalSurface:
             free = np.flatnonzero(fid < 0)
             fid[free] = fid[mapped[cKDTree(xyz[mapped]).query(xyz[free])[1]]]
         normals = np.array([f.frame.normal for f in facades]).reshape(-1, 3)
-        out = cls(xyz, fid, normals, neighbours, radius, inner)
+        floor = noise_floor_of(facades)
+        out = cls(xyz, fid, normals, neighbours, radius, inner, noise_floor=floor)
         flagged = np.flatnonzero(np.concatenate(flags)) if flags else np.empty(0, np.int64)
         if len(flagged) and len(xyz) > neighbours + 2:
             # The chi-squared test's outliers (step 5) stay where the stored points around
@@ -269,14 +279,15 @@ class LocalSurface:
             z = np.empty(len(flagged))
             for start in range(0, len(flagged), CHUNK):
                 p = flagged[start:start + CHUNK]
-                _, s, scatter, plane_var, _, _, _ = out._raw(xyz[p], skip=p)
+                _, s, scatter, plane_var, _, _, _ = out.raw(xyz[p], skip=p)
                 z[start:start + CHUNK] = np.abs(s) / np.sqrt(scatter + plane_var)
             alone = flagged[(z > OUTLIER_Z) | np.concatenate(fronts)[flagged]]
             if len(alone):
                 keep = np.ones(len(xyz), bool)
                 keep[alone] = False
                 grid = out.grid
-                out = cls(xyz[keep], fid[keep], normals, neighbours, radius, inner, source=np.flatnonzero(keep))
+                out = cls(xyz[keep], fid[keep], normals, neighbours, radius, inner, source=np.flatnonzero(keep),
+                          noise_floor=floor)
                 out._grid = grid.subset(keep)
         if out.source is None:
             out.source = np.arange(len(xyz))
@@ -293,7 +304,7 @@ class LocalSurface:
             return self
         grid = copy.copy(self.grid)  # the arrays shared; this one's order is the identity
         out = LocalSurface(grid.points, self.facade[grid.order].astype(np.int32), self.normals, self.neighbours,
-                           self.radius, self.inner, self.calibration_)
+                           self.radius, self.inner, self.calibration_, noise_floor=self.noise_floor)
         grid.order = np.arange(len(grid.points), dtype=np.int32)
         out._grid = grid
         out._orders[id(grid)] = [grid, out.facade, None]  # the labels in the grid's order: its own
@@ -399,6 +410,17 @@ class LocalSurface:
                 a[far] = b
         return fid, s, scatter, plane_var, normal, rho, nearest
 
+    def raw(self, xyz: np.ndarray, skip: np.ndarray | None = None, radius: float = np.inf) -> tuple[np.ndarray, ...]:
+        """:meth:`_raw` with the scatter (and the plane's variance with it) floored at the
+        façade's :attr:`noise_floor` (uncalibrated, m^2)."""
+        fid, s, scatter, plane_var, normal, rho, nearest = self._raw(xyz, skip, radius)
+        if self.noise_floor is not None and len(self.noise_floor):
+            floor = np.where(fid >= 0, self.noise_floor[np.maximum(fid, 0)], 0.0)
+            ratio = np.maximum(scatter, floor) / np.maximum(scatter, MIN_VAR)
+            ratio = np.where(np.isfinite(ratio) & (ratio > 1.0), ratio, 1.0)
+            scatter, plane_var = scatter * ratio, plane_var * ratio
+        return fid, s, scatter, plane_var, normal, rho, nearest
+
     def _raw_kd(self, xyz: np.ndarray, skip: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
         """:meth:`_raw` by the KD-tree and numpy (the reference the kernels reproduce)."""
         dist, idx = self._neighbours(xyz, skip)
@@ -427,7 +449,7 @@ class LocalSurface:
         z = []
         for start in range(0, len(pick), CHUNK):
             p = pick[start:start + CHUNK]
-            _, s, scatter, plane_var, _, rho, _ = self._raw(self.points[p], skip=p)
+            _, s, scatter, plane_var, _, rho, _ = self.raw(self.points[p], skip=p)
             used = rho <= self.inner
             z.append(np.abs(s[used]) / np.sqrt(scatter[used] + plane_var[used]))
         z = np.concatenate(z)
@@ -445,7 +467,7 @@ class LocalSurface:
         c2 = self.calibration_ ** 2
         # Only points with a stored point within the radius are read (the others weigh 0).
         for start in range(0, n, CHUNK):
-            fid, s, scatter, plane_var, normal, rho, nearest = self._raw(xyz[start:start + CHUNK], radius=self.radius)
+            fid, s, scatter, plane_var, normal, rho, nearest = self.raw(xyz[start:start + CHUNK], radius=self.radius)
             near = np.flatnonzero(nearest < self.radius)
             part = start + near
             fid, s, scatter, plane_var, normal, rho = (a[near] for a in (fid, s, scatter, plane_var, normal, rho))
@@ -460,6 +482,12 @@ class LocalSurface:
             out.normal[part] = normal
             out.weight[part] = w
         return out
+
+
+def noise_floor_of(facades: Sequence[FacadeModel]) -> np.ndarray:
+    """(F,) the least scatter a local plane on each façade is read with: :data:`NOISE_FLOOR`
+    times its noise variance, m^2."""
+    return NOISE_FLOOR * np.array([f.noise_var for f in facades], dtype=np.float64)
 
 
 def _in_front(facade: FacadeModel, xyz: np.ndarray) -> np.ndarray:

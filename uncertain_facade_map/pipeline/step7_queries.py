@@ -404,7 +404,7 @@ def _answer_far(facades: Sequence[FacadeModel], local: LocalSurface, xyz: np.nda
     (see :func:`query_points`), in place in the (N,) and (N, 3) answer arrays."""
     if not len(idx):
         return
-    fid, s, scatter, plane_var, n, _, nearest = local._raw(xyz[idx], radius=reach)
+    fid, s, scatter, plane_var, n, _, nearest = local.raw(xyz[idx], radius=reach)
     ok = (fid >= 0) & (nearest < reach) & np.isfinite(s)
     idx, fid, s, scatter, plane_var, n = idx[ok], fid[ok], s[ok], scatter[ok], plane_var[ok], n[ok]
     if not len(idx):

@@ -46,7 +46,7 @@ from ..errors import InputError
 from ..mapping.calibration import registration_variance
 from ..mapping.facade_map import FacadeMap, query_settings, reading_key
 from ..params import MapParams, QueryConfig, TilesConfig, map_params_from_record
-from ..pipeline.step7_local_surface import LocalSurface
+from ..pipeline.step7_local_surface import LocalSurface, noise_floor_of
 from ..pipeline.step7_queries import PointQuery, query_map
 from ..pipeline.step8_occupancy import PLSC
 from .grid import TileGrid
@@ -498,7 +498,7 @@ class TiledMap:
         part = self._part(largest.id, fmap, config)
         normals = np.array([f.frame.normal for f in fmap.facades]).reshape(-1, 3)
         surface = LocalSurface(stored_points(fmap)[0][part.index], part.facade, normals, config.local_neighbours,
-                               config.local_radius, config.local_inner)
+                               config.local_radius, config.local_inner, noise_floor=noise_floor_of(fmap.facades))
         value = float(surface.calibrate())
         with self._lock:
             return self._calibration.setdefault(key, value)

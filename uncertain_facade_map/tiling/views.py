@@ -33,7 +33,7 @@ from ..datatypes import FacadeModel, array_bytes
 from ..mapping.facade_map import FacadeMap
 from ..params import QueryConfig
 from ..pipeline.raster_kernels import PackedRasters, facade_boxes
-from ..pipeline.step7_local_surface import LocalSurface
+from ..pipeline.step7_local_surface import LocalSurface, noise_floor_of
 from ..pipeline.step7_queries import STEP_REACH
 from ..pipeline.step8_occupancy import PLSC
 
@@ -170,6 +170,6 @@ def make_view(key: tuple, tiles: Sequence[str], maps: Sequence[FacadeMap], parts
             labels[free] = labels[mapped[cKDTree(pts[mapped]).query(pts[free])[1]]]
         normals = np.ascontiguousarray(rasters.axes[:, 2])
         surface = LocalSurface(pts, labels, normals, config.local_neighbours, config.local_radius, config.local_inner,
-                               float(calibration)).in_grid_order()
+                               float(calibration), noise_floor=noise_floor_of(facades)).in_grid_order()
     nbytes = array_bytes(rasters) + (array_bytes(surface) if surface is not None else 0)
     return View(key, tuple(tiles), facades, global_ids, rasters, surface, occupancy, float(registration_var), nbytes)
