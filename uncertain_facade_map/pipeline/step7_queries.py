@@ -402,7 +402,7 @@ def _answer_far(facades: Sequence[FacadeModel], local: LocalSurface, xyz: np.nda
     """Answer the points ``idx`` of (N, 3) ``xyz`` (none answered yet) whose nearest stored
     point lies within ``reach`` metres from the local plane of their nearest stored points
     (see :func:`query_points`), in place in the (N,) and (N, 3) answer arrays."""
-    if not len(idx):
+    if not len(idx) or not len(local.points):
         return
     fid, s, scatter, plane_var, n, _, nearest = local.raw(xyz[idx], radius=reach)
     ok = (fid >= 0) & (nearest < reach) & np.isfinite(s)
