@@ -390,6 +390,12 @@ class UpdateParams(Section):
                                       'scans fall all over a façade, so small batches would solve the same blocks '
                                       'again and again (100 000: about 3 s of the street drive; 3x the throughput '
                                       'of 20 000 there)', allowed=_closed(1, 1_000_000_000))
+    step_points: int = param(20000, "live mapping (node.batching latency) updates the façades in pieces between "
+                                    "clouds: one building's stored points, this many a piece at most, so that a "
+                                    'cloud waits for one piece at most before it is stored; a building waits until '
+                                    'this many of its points or 100 clouds have come (an update costs nearly as '
+                                    'much for a few points as for many)',
+                             allowed=_closed(1, 1_000_000_000))
     store_voxel: float = param(0.1, "a building's points are stored at most store_per_voxel per cubic voxel of this "
                                     'side (map frame); a new point whose voxel is full is counted but not stored, so '
                                     'driving the same street again no longer grows the stored map, nor the cost of '
@@ -587,12 +593,11 @@ class NodeConfig(Section):
     mapping_nice: int = param(10, 'niceness added to the mapping process and the process that computes the '
                                   'published maps (node.mapping_process): queries and incoming clouds get the CPU '
                                   'first when both want it; 0: the same priority', allowed=_closed(0, 19))
-    batching: str = param('latency', 'when the mapper maps the clouds it was given: latency (a cloud is mapped as '
-                                     'soon as the mapper is free, with the clouds that came while it was busy, up to '
-                                     'update.batch_points: a cloud is queryable after one update, and under load '
-                                     'the batches grow with the backlog; a mapper busy nearly all of the last '
-                                     'seconds cannot keep up and waits for whole batches: mapping.worker.LOAD_SHARE) '
-                                     'or fixed (points are held back until '
+    batching: str = param('latency', 'when the mapper maps the clouds it was given: latency (two tiers: each cloud '
+                                     'is stored as soon as the mapper is free, with the clouds that came while it '
+                                     'was busy, and is queryable from its stored points at once; its façades are '
+                                     'updated after, in pieces of update.step_points points, whenever no cloud '
+                                     'waits) or fixed (points are held back until '
                                      'update.batch_points have come: the map then depends only on the clouds, not '
                                      "on their timing, and equals the offline replay's bit for bit)",
                           allowed=Options(('latency', 'fixed')))

@@ -14,12 +14,30 @@ from contextlib import AbstractContextManager, nullcontext
 
 
 def one_blas_thread() -> AbstractContextManager:
-    """Context limiting BLAS to one thread (threadpoolctl, a scikit-learn dependency)."""
-    try:
-        from threadpoolctl import threadpool_limits  # noqa: PLC0415 - scikit-learn's dependency
-    except ImportError:  # pragma: no cover - depends on the environment
+    """Context limiting BLAS to one thread (threadpoolctl, a scikit-learn dependency).
+
+    The loaded libraries are looked up once per process (:func:`_controller`): threadpoolctl
+    scans the process's shared objects at every ``threadpool_limits``, 4 ms a call, which
+    live mapping's small pieces paid hundreds of times a lap."""
+    controller = _controller()
+    if controller is None:  # pragma: no cover - depends on the environment
         return nullcontext()
-    return threadpool_limits(limits=1, user_api='blas')
+    return controller.limit(limits=1, user_api='blas')
+
+
+_CONTROLLER: list = []
+
+
+def _controller():  # noqa: ANN202 - threadpoolctl's ThreadpoolController or None
+    """The process's threadpoolctl controller, made at the first call (after numpy and scipy
+    have loaded their BLAS); None without threadpoolctl."""
+    if not _CONTROLLER:
+        try:
+            from threadpoolctl import ThreadpoolController  # noqa: PLC0415 - scikit-learn's dependency
+        except ImportError:  # pragma: no cover - depends on the environment
+            return None
+        _CONTROLLER.append(ThreadpoolController())
+    return _CONTROLLER[0]
 
 
 #: Threads of the map's own parallel parts in this process (k-d tree queries, the GP block

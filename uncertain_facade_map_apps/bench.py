@@ -25,6 +25,8 @@ its peak memory (max RSS) is its own:
   p95, max); peak memory; then the highest rate sustained with no dropped cloud and the surface
   error against the simulated truth of each streamed map beside the batch map of the same
   drive (see :mod:`uncertain_facade_map_apps.bench_stream`);
+- ``stream_laps``: the street driven five times (1 cm of fresh noise a lap), each cloud stored
+  and then modelled until caught up, in one process: CPU, stored points and memory per lap;
 - ``stream_real`` (with ``--real``, or named in ``--stages``; needs ``../shared/data/real``):
   each shared real sweep streamed, scored by ``../shared/tools/real_check.py`` beside the map
   built in one batch.
@@ -200,6 +202,17 @@ def _stream_hdl64(work: Path, scene_name: str, live: bool = False) -> dict:
     return _stream(work, scene_name, 'hdl64', live)
 
 
+def _stream_laps(work: Path, scene_name: str, live: bool = False) -> dict:
+    from uncertain_facade_map.io.npz import read_npz
+
+    from . import bench_stream as bs
+
+    cloud = read_npz(work / 'cloud.npz') if (work / 'cloud.npz').exists() else None
+    d = bs.simulate_drive(scene_name, scene=scene_name, cloud=cloud)
+    del cloud
+    return {'stage': 'stream laps', 'laps': bs.drive_laps(d)}
+
+
 def _stream_real(work: Path, scene_name: str, live: bool = False) -> dict:
     from . import bench_stream as bs
 
@@ -214,9 +227,9 @@ def _stream_real(work: Path, scene_name: str, live: bool = False) -> dict:
 
 STAGES = {'simulate': _simulate, 'build': _build, 'query': _query, 'query_raster': _query_raster,
           'select': _select, 'stream_street': _stream_street, 'stream_av2': _stream_av2, 'stream_hdl64': _stream_hdl64,
-          'stream_real': _stream_real}
+          'stream_laps': _stream_laps, 'stream_real': _stream_real}
 #: Names ``--stages`` takes for several stages.
-GROUPS = {'stream': ('stream_street', 'stream_av2', 'stream_hdl64', 'stream_real'),
+GROUPS = {'stream': ('stream_street', 'stream_av2', 'stream_hdl64', 'stream_laps', 'stream_real'),
           'query_all': ('query', 'query_raster')}
 #: Stages that read what others wrote (added when asked for alone).
 NEEDS = {'build': ('simulate',), 'query': ('build',), 'query_raster': ('build',)}
@@ -273,6 +286,13 @@ def _finite(value: Any) -> Any:
 def _print_stream(r: dict, as_json: bool, live: bool) -> None:
     from . import bench_stream as bs
 
+    if 'laps' in r:
+        if as_json:
+            for one in r['laps']:
+                print(json.dumps(_finite({'stage': f'stream laps {one["lap"]}', **one})))
+        else:
+            print('\n'.join(bs.format_laps(r['laps'])), flush=True)
+        return
     if 'real' in r:
         if as_json:
             for one in r['real']:

@@ -222,6 +222,9 @@ class StreamRun:
             and of the mapping process, MB.
         stopped: why the rate was given up, '' if it ran to the end.
         fmap: the streamed map once settled (None if given up).
+        settle_seconds: from the last cloud's arrival until the map settled (every stored
+            point modelled, the idle flush done: ``node.idle_flush`` of it is the wait for
+            more clouds), s; NaN if given up.
     """
 
     drive: str
@@ -240,6 +243,7 @@ class StreamRun:
     peak_child_mb: float
     stopped: str = ''
     fmap: Any = None
+    settle_seconds: float = float('nan')
 
     @property
     def points_per_second(self) -> float:
@@ -264,7 +268,8 @@ class StreamRun:
                 'building_points_per_s': self.points_per_second,
                 'latency_p50_s': self.latency(0.5), 'latency_p95_s': self.latency(0.95),
                 'latency_max_s': self.latency(1.0), 'peak_mb': self.peak_mb,
-                'peak_parent_mb': self.peak_parent_mb, 'peak_child_mb': self.peak_child_mb, 'stopped': self.stopped}
+                'peak_parent_mb': self.peak_parent_mb, 'peak_child_mb': self.peak_child_mb, 'stopped': self.stopped,
+                'settle_s': self.settle_seconds}
 
 
 def stream_drive(drive: Drive, rate: float, config: Any = None, give_up: float = 60.0,
@@ -327,10 +332,12 @@ def stream_drive(drive: Drive, rate: float, config: Any = None, give_up: float =
                 stopped = f'given up while feeding: the map over {give_up:g} s behind'
                 break
         fed = time.monotonic()
+        settle = float('nan')
         while not stopped:
             acc = worker.accounts()
             if (not acc['clouds_waiting'] and not acc['points_pending'] and len(worker.latencies) >= acc['clouds_mapped']
                     and worker.settled):
+                settle = time.monotonic() - fed
                 break
             now = time.monotonic()
             if behind(now):
@@ -355,7 +362,7 @@ def stream_drive(drive: Drive, rate: float, config: Any = None, give_up: float =
     return StreamRun(drive.name, rate, acc['clouds_in'], acc['clouds_mapped'], acc['clouds_dropped'],
                      acc['clouds_failed'], acc['clouds_waiting'] if stopped else 0, acc['points_in'],
                      acc['points_mapped'], acc['points_dropped'], max(end - first, 1e-9),
-                     latencies, peak_parent, peak_child, stopped, settled)
+                     latencies, peak_parent, peak_child, stopped, settled, settle)
 
 
 # ------------------------------------------------------------------------------------------
@@ -457,13 +464,13 @@ TARGET_P95 = 1.0
 
 
 HEADER = (f'{"rate":>5s} {"clouds":>7s} {"mapped":>7s} {"dropped":>7s} {"bld pts/s":>10s} {"lat p50":>8s} '
-          f'{"p95":>6s} {"max":>6s} {"peak MB":>11s} {"RMSE":>7s} {"cov95":>6s}  note')
+          f'{"p95":>6s} {"max":>6s} {"settled":>8s} {"peak MB":>11s} {"RMSE":>7s} {"cov95":>6s}  note')
 
 
 def format_run(r: dict) -> str:
     """One table line of a run (see :data:`HEADER`)."""
     if 'skipped' in r:
-        return f'{r["rate"]:>4g}x {"-":>7s} {"-":>7s} {"-":>7s} {"-":>10s} {"-":>8s} {"-":>6s} {"-":>6s} {"-":>11s} ' \
+        return f'{r["rate"]:>4g}x {"-":>7s} {"-":>7s} {"-":>7s} {"-":>10s} {"-":>8s} {"-":>6s} {"-":>6s} {"-":>8s} {"-":>11s} ' \
                f'{"-":>7s} {"-":>6s}  {r["skipped"]}'
     acc = r.get('accuracy')
     rmse = f'{acc["rmse_m"] * 100:5.2f}cm' if acc else '      -'
@@ -475,7 +482,8 @@ def format_run(r: dict) -> str:
         note += f' ({r["clouds_discarded"]} waiting discarded)'
     return (f'{r["rate"]:>4g}x {r["clouds_in"]:>7,} {r["clouds_mapped"]:>7,} {r["clouds_dropped"]:>7,} '
             f'{r["building_points_per_s"]:>10,.0f} {r["latency_p50_s"]:>7.2f}s {r["latency_p95_s"]:>5.1f}s '
-            f'{r["latency_max_s"]:>5.1f}s {r["peak_parent_mb"]:>5.0f}+{r["peak_child_mb"]:<5.0f} {rmse} {cov}  {note}')
+            f'{r["latency_max_s"]:>5.1f}s {r.get("settle_s", float("nan")):>7.1f}s '
+            f'{r["peak_parent_mb"]:>5.0f}+{r["peak_child_mb"]:<5.0f} {rmse} {cov}  {note}')
 
 
 def format_drive(result: dict) -> list[str]:
@@ -517,7 +525,60 @@ def format_drive(result: dict) -> list[str]:
                              f'({a["rmse_m"] / acc["rmse_m"]:.2f}x the batch map), coverage {a["coverage95"]:.3f} '
                              f'({a["cells"]:,} cells, {a["facades"]} façades; {r["building_points_mapped"]:,} '
                              f'building points mapped)')
+    lines.append('latency: from a cloud\'s arrival to its points stored and queryable; settled: from the last cloud\'s '
+                 'arrival until every stored point was modelled and the idle flush (node.idle_flush) done')
     lines.append('peak MB: this process (reset per rate; it holds the drive) + the mapping process')
+    return lines
+
+
+# ------------------------------------------------------------------------------------------
+# Laps: the cost of driving the same street again
+# ------------------------------------------------------------------------------------------
+#: Laps of the street the ``stream_laps`` stage drives.
+LAPS = 5
+#: Metres of fresh Gaussian noise on every coordinate of each lap after the first.
+LAP_NOISE = 0.01
+
+
+def drive_laps(drive: Drive, laps: int = LAPS, noise: float = LAP_NOISE, config: Any = None) -> list[dict]:
+    """Drive the same street ``laps`` times through the live path's two tiers, in one process:
+    each cloud stored (``FacadeMap.store_points``), then modelled until the model has caught
+    up (``model_step`` while it has work), as the worker does when no cloud waits. Every lap
+    after the first adds ``noise`` m of fresh Gaussian noise (seeded per lap).
+
+    Returns:
+        Per lap: ``lap``, ``cpu_s`` (process CPU seconds of the lap), ``building_points`` (fed),
+        ``stored`` (building points stored in the map at the lap's end), ``rss_mb`` (this
+        process's resident memory then, MB).
+    """
+    from uncertain_facade_map.mapping.facade_map import FacadeMap
+    from uncertain_facade_map.params import Config, map_params
+
+    cfg = config or Config()
+    fmap = FacadeMap(map_params(cfg), drive.map_origin)
+    step = fmap.params.update.step_points
+    out = []
+    for lap in range(laps):
+        rng = np.random.default_rng([lap])
+        cpu = time.process_time()
+        for cloud in drive.clouds:
+            xyz = cloud.xyz if lap == 0 else cloud.xyz + rng.normal(0.0, noise, cloud.xyz.shape)
+            fmap.store_points(xyz, cloud.building_id, cloud.sensor_origins)
+            while fmap.needs_model:
+                fmap.model_step(step)
+        out.append({'lap': lap + 1, 'cpu_s': time.process_time() - cpu, 'building_points': drive.building_points,
+                    'stored': fmap.n_stored, 'rss_mb': _vm_kb('self', 'VmRSS') / 1024.0})
+    return out
+
+
+def format_laps(rows: list[dict]) -> list[str]:
+    """The laps table (see :func:`drive_laps`)."""
+    lines = ['stream laps (the street driven again, 1 cm of fresh noise a lap; one process: each cloud stored, '
+             'then modelled until caught up)',
+             f'{"lap":>4s} {"CPU s":>7s} {"x lap 1":>8s} {"stored":>11s} {"RSS MB":>7s}']
+    for r in rows:
+        lines.append(f'{r["lap"]:>4d} {r["cpu_s"]:>7.1f} {r["cpu_s"] / rows[0]["cpu_s"]:>7.2f}x {r["stored"]:>11,} '
+                     f'{r["rss_mb"]:>7.0f}')
     return lines
 
 

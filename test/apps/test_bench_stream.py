@@ -136,7 +136,7 @@ def test_real_check_table_is_parsed():
 
 
 def test_stages_option_selects_stages_groups_and_what_they_read():
-    assert stages_of('stream', False) == ['stream_street', 'stream_av2', 'stream_hdl64']
+    assert stages_of('stream', False) == ['stream_street', 'stream_av2', 'stream_hdl64', 'stream_laps']
     assert stages_of('stream', True)[-1] == 'stream_real'
     assert stages_of('query', False) == ['simulate', 'build', 'query']
     assert stages_of(None, False)[:4] == ['simulate', 'build', 'query', 'query_raster']
@@ -154,3 +154,17 @@ def test_json_lines_are_strict_json_one_per_rate_and_one_per_drive(measured, cap
     assert records[0]['items'] == measured['building_points'] and records[0]['unit'] == 'building points'
     assert records[-1]['sustained_rate'] == measured['sustained'] and records[-1]['sustained_rate_p95_1s'] == bs.sustained(measured['runs'], bs.TARGET_P95)
     assert records[-1]['batch']['seconds'] > 0
+
+
+def test_laps_print_their_cost_stored_points_and_memory(drive, capsys):
+    """stream_laps: a lap's CPU, the stored points after it and memory, one JSON line a lap."""
+    from uncertain_facade_map_apps.bench import _print_stream
+
+    rows = bs.drive_laps(drive, laps=2)
+    assert [r['lap'] for r in rows] == [1, 2] and rows[0]['stored'] > 0
+    assert rows[1]['stored'] >= rows[0]['stored'] and all(r['cpu_s'] > 0 for r in rows)
+    _print_stream({'stage': 'stream laps', 'laps': rows, 'peak_mb': 1.0}, as_json=True, live=False)
+    lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert [line['stage'] for line in lines] == ['stream laps 1', 'stream laps 2']
+    text = '\n'.join(bs.format_laps(rows))
+    assert 'x lap 1' in text and f'{rows[1]["stored"]:,}' in text

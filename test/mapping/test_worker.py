@@ -277,10 +277,11 @@ def test_latency_batching_maps_a_lone_cloud_at_once_and_fixed_batching_holds_it_
         MapWorker(FacadeMap(params), batching='soon')
 
 
-def test_a_busy_mapper_waits_for_whole_batches_even_with_latency_batching():
-    """node.batching 'latency' maps a lone cloud at once only while the mapper keeps up: busy
-    over LOAD_SHARE of the last LOAD_WINDOW seconds, its clouds wait for update.batch_points
-    (a small update after every full one would lower the throughput it lacks)."""
+def test_latency_batching_stores_clouds_at_once_and_models_them_while_none_waits():
+    """node.batching 'latency' (issue 37, two tiers): every cloud is stored in the first item
+    after its arrival, with the clouds that came meanwhile (its latency ends there), and the
+    façades are modelled after, in pieces while no cloud waits; the settled map has modelled
+    every stored point and holds the points the clouds give offline."""
     import time
 
     import numpy as np
@@ -289,22 +290,28 @@ def test_a_busy_mapper_waits_for_whole_batches_even_with_latency_batching():
     from uncertain_facade_map.mapping.facade_map import FacadeMap
     from uncertain_facade_map.params import MapParams, UpdateParams
 
-    w = wk.MapWorker(FacadeMap(MapParams(update=UpdateParams(batch_points=100_000))), idle_flush=0.0,
-                     batching='latency')
+    params = MapParams(update=UpdateParams(batch_points=2000, step_points=300))
+    rng = np.random.default_rng(1)
+    clouds = [np.c_[rng.uniform(0, 8, 600), np.full(600, 10.0) + rng.normal(0, 0.01, 600), rng.uniform(0, 6, 600)]
+              for _ in range(8)]
+    seen = []
+    w = wk.MapWorker(FacadeMap(params), queue_size=20, idle_flush=0.2, batching='latency',
+                     on_change=lambda snap: seen.append((snap.stored, len(snap.facades))))
     try:
-        now = time.monotonic()
-        assert w.busy_share(now) == 0.0
-        with w._cond:
-            w._work.append((now - wk.LOAD_WINDOW, now))  # busy the whole window
-        rng = np.random.default_rng(1)
-        xyz = np.c_[rng.uniform(0, 5, 500), np.full(500, 10.0), rng.uniform(0, 5, 500)]
-        w.put(wk.Cloud(xyz, np.zeros(500, np.int64)))
-        assert w.wait_idle(60)
-        assert w.pending_points == 500 and w.snapshot.stored == 0  # held back: the mapper was loaded
-        with w._cond:
-            w._work.clear()
-        w.put(wk.Cloud(xyz + [0.0, 0.0, 5.0], np.zeros(500, np.int64)))
-        assert w.wait_idle(60)
-        assert w.pending_points == 0 and w.snapshot.stored == 1000  # idle again: mapped at once
+        for i, xyz in enumerate(clouds):
+            w.put(wk.Cloud(xyz, np.zeros(600, np.int64), None, i + 1))
+        deadline = time.monotonic() + 120
+        while not w.settled and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert w.settled
+        acc = w.accounts()
+        assert acc['clouds_mapped'] == 8 and acc['points_unmodelled'] == 0 and len(w.latencies) == 8
+        fmap = w.committed()[0]
     finally:
         w.stop()
+    assert any(facades == 0 and stored > 0 for stored, facades in seen)  # stored before modelled
+    assert len(fmap.facades) == 1 and fmap.n_unmodelled == 0
+    offline = FacadeMap(params)
+    for xyz in clouds:
+        offline.add_points(xyz, np.zeros(600, np.int64))
+    np.testing.assert_array_equal(fmap.points[0], offline.points[0])

@@ -15,7 +15,9 @@ An open format any numpy (or any zip + .npy reader) can read, no pickle. It hold
   learnt PLSC parameters (``occupancy``: scale, spread, the voxels they were learnt on and
   the points stored then; the fixed formula's when absent); and the variance of
   scan-to-scan disagreement (``registration``: ``var`` in m^2 and the running ``sums`` it
-  was learnt from, ``FacadeMap.registration_var_``).
+  was learnt from, ``FacadeMap.registration_var_``); per building the first stored row live
+  mapping had not modelled yet (``unmodelled``, absent when none: the rows from it on have NaN
+  normals until modelled, ``FacadeMap.store_points``).
 
 Version 2 added what incremental mapping needs (per façade the wall's ``plane_extent``,
 the block grid's ``anchor`` and the points at the last whole fit; per building the point
@@ -142,6 +144,7 @@ def save_map(fmap: FacadeMap, path: str | Path, replace_only_maps: bool = False)
                      'stats': f.stats} for f in fmap.facades],
         'pool_checked': {str(b): int(n) for b, n in fmap.pool_checked.items()},
         'thinned': {str(b): int(n) for b, n in fmap.thinned.items()},
+        'unmodelled': {str(b): int(n) for b, n in fmap.unmodelled_rows.items()},
         'occupancy': dict(fmap.occupancy_.as_dict(), stored=fmap.occupancy_stored_),
         'registration': {'var': float(fmap.registration_var_),
                          'sums': [float(x) for x in fmap.registration_sums_]},
@@ -291,10 +294,13 @@ def _from_records(meta: dict, arrays: dict[str, np.ndarray]) -> FacadeMap:
     occupancy = dict(meta.get('occupancy', {}))  # absent before issue 14: the fixed formula
     stored = int(occupancy.pop('stored', 0))
     registration = meta['registration']
-    return FacadeMap(params, np.asarray(meta['map_origin'], dtype=np.float64), facades, points, origins, normals,
+    fmap = FacadeMap(params, np.asarray(meta['map_origin'], dtype=np.float64), facades, points, origins, normals,
                      pool, pending=pending, thinned=thinned, occupancy_=PLSC(**occupancy), occupancy_stored_=stored,
                      registration_sums_=np.asarray(registration['sums'], dtype=np.float64).reshape(3),
                      registration_var_=float(registration['var']))
+    # Stored points live mapping had not modelled yet (absent: none), modelled when it goes on.
+    fmap.unmodelled_rows = {int(b): int(n) for b, n in meta.get('unmodelled', {}).items()}
+    return fmap
 
 
 def _upgrade_1(meta: dict, arrays: dict[str, np.ndarray]) -> tuple[dict, dict]:

@@ -382,9 +382,23 @@ def _trimmed_moments(s: np.ndarray, var: np.ndarray) -> tuple[float, float]:
     return float(np.mean(s[keep] ** 2)), float(np.mean(var[keep]))
 
 
+def scans_to_compare(scan: np.ndarray, n_earlier: int, max_points: int, rng: np.random.Generator
+                     ) -> tuple[np.ndarray, int]:
+    """The scans :func:`scan_disagreement` compares (at most :data:`MAX_SCANS` of the (N,)
+    labels ``scan``, a seeded draw; none when there is nothing to compare them with) and the
+    points it samples of each."""
+    labels = np.unique(scan)
+    if max_points <= 0 or (len(labels) < 2 and not n_earlier):
+        return labels[:0], 0
+    if len(labels) > MAX_SCANS:
+        labels = np.sort(rng.choice(labels, MAX_SCANS, replace=False))
+    return labels, max(1, int(max_points) // len(labels))
+
+
 def scan_disagreement(xyz: np.ndarray, scan: np.ndarray, earlier: np.ndarray, k: int = 12,
                       max_points: int = 2000, rng: np.random.Generator | None = None,
-                      inner: float = 0.2, store_voxel: float = 0.0, store_per_voxel: int = 0) -> np.ndarray:
+                      inner: float = 0.2, store_voxel: float = 0.0, store_per_voxel: int = 0, *,
+                      scans: np.ndarray | None = None, per_scan: int | None = None) -> np.ndarray:
     """How far scans lie off each other's surface beyond what the map's reading predicts, as sums.
 
     For each scan of the new points (at most :data:`MAX_SCANS`, a seeded draw), up to
@@ -424,18 +438,21 @@ def scan_disagreement(xyz: np.ndarray, scan: np.ndarray, earlier: np.ndarray, k:
             their points are never stored, and reading them all cost as much as mapping).
             0: all are read.
 
+        scans, per_scan: compare these scans only, ``per_scan`` points of each (a part of a
+            comparison drawn by :func:`scans_to_compare`, done in pieces); None: draw them here.
+
     Returns:
         (3,) float: [n, n * E[s^2], n * E[variance + noise]] with n the points that counted
         (m^2 for the sums); zeros when no scan overlaps another.
     """
     rng = np.random.default_rng(0) if rng is None else rng
     out = np.zeros(3)
-    labels = np.unique(scan)
-    if max_points <= 0 or (len(labels) < 2 and not len(earlier)):
+    if scans is None or per_scan is None:
+        labels, per_scan = scans_to_compare(scan, len(earlier), max_points, rng)
+    else:
+        labels = np.asarray(scans)
+    if not len(labels):
         return out
-    if len(labels) > MAX_SCANS:
-        labels = np.sort(rng.choice(labels, MAX_SCANS, replace=False))
-    per_scan = max(1, int(max_points) // len(labels))
     picks = []
     for s in labels:
         own_idx = np.flatnonzero(scan == s)

@@ -33,7 +33,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ..datatypes import FacadeModel, array_bytes
-from ..errors import FacadeMapError
+from ..errors import FacadeMapError, InputError
 from ..params import MapParams
 from ..pipeline.step8_occupancy import FIXED, PLSC
 from .allocator import limit_heap_growth, release_free_memory
@@ -72,6 +72,8 @@ class MapView:
             (:mod:`~uncertain_facade_map.pipeline.step7_local_surface`).
         registration_var: the map's variance of scan-to-scan disagreement, m^2
             (``FacadeMap.registration_var_``), added to every answer's variance.
+        unmodelled: stored points no model step has allocated yet (``FacadeMap.n_unmodelled``).
+        needs_model: a model step has work (``FacadeMap.needs_model``).
     """
 
     facades: tuple[FacadeModel, ...]
@@ -87,6 +89,8 @@ class MapView:
     occupancy: PLSC = FIXED
     stored_points: dict[int, np.ndarray] = field(default_factory=dict)
     registration_var: float = 0.0
+    unmodelled: int = 0
+    needs_model: bool = False
 
     @property
     def needs_flush(self) -> bool:
@@ -101,7 +105,7 @@ def view_of(fmap: FacadeMap, cpu_seconds: float = 0.0) -> MapView:
     return MapView(tuple(fmap.facades), origin, len(fmap.points), fmap.n_points, fmap.params, fmap.n_pending,
                    fmap.needs_consolidation or fmap.needs_full_update,
                    fmap.n_stored, cpu_seconds, array_bytes(fmap), fmap.occupancy_, dict(fmap.points),
-                   fmap.registration_var_)
+                   fmap.registration_var_, fmap.n_unmodelled, fmap.needs_model)
 
 
 @dataclass(frozen=True)
@@ -144,6 +148,26 @@ class LocalEngine:
             return bool(self._fmap.add_points(xyz, building_id, sensor_origins, defer=True, map_now=map_now)) \
                 or not self._fmap.pending
         return self._item(add)
+
+    def store(self, clouds: list[tuple[np.ndarray, np.ndarray | None, np.ndarray | None]]) -> list[str | None]:
+        """Store clouds of (xyz, building ids or None, sensor origins or None) at once
+        (``FacadeMap.store_points``, each cloud one scan): live mapping's first tier. Returns,
+        per cloud, None or why it was refused (bad input: the others are stored); raises what
+        else the map raised, the map rolled back."""
+        def store() -> list[str | None]:
+            out: list[str | None] = []
+            for xyz, building_id, sensor_origins in clouds:
+                try:
+                    self._fmap.store_points(xyz, building_id, sensor_origins)
+                    out.append(None)
+                except InputError as exc:  # checked before anything changed
+                    out.append(str(exc))
+            return out
+        return self._item(store)
+
+    def model_step(self, max_points: int | None = None) -> list[int]:
+        """One piece of modelling (``FacadeMap.model_step``): live mapping's second tier."""
+        return self._item(lambda: self._fmap.model_step(max_points))
 
     def run(self, fn: Callable[[FacadeMap], Any]) -> tuple[Any, bool]:
         """Run ``fn(map)``; returns (its result, whether the map was replaced)."""
@@ -246,6 +270,10 @@ def _child_main(conn: Any, service: Any, nice: int = 0) -> None:
         try:
             if kind == 'add':
                 result: Any = engine.add_points(*request[1:])
+            elif kind == 'store':
+                result = engine.store(request[1])
+            elif kind == 'model':
+                result = engine.model_step(request[1])
             elif kind == 'run':
                 result = engine.run(request[1])
             elif kind == 'flush':
@@ -259,7 +287,7 @@ def _child_main(conn: Any, service: Any, nice: int = 0) -> None:
         # Only the façade models that changed travel back (the others are the same objects),
         # and of the stored points only the rows appended by a cloud or a flush.
         changed = {i: f for i, f in enumerate(view.facades) if i >= len(sent) or sent[i] is not f}
-        points = _points_delta(sent_points, view.stored_points, appended=kind in ('add', 'flush'))
+        points = _points_delta(sent_points, view.stored_points, appended=kind in ('add', 'flush', 'store', 'model'))
         delta = (len(view.facades), changed, points, dataclasses.replace(view, facades=(), stored_points={}))
         with lock:
             try:
@@ -342,6 +370,14 @@ class ProcessEngine:
                    map_now: bool = False) -> bool:
         """See :meth:`LocalEngine.add_points`."""
         return bool(self._request('add', xyz, building_id, sensor_origins, map_now))
+
+    def store(self, clouds: list[tuple[np.ndarray, np.ndarray | None, np.ndarray | None]]) -> list[str | None]:
+        """See :meth:`LocalEngine.store`."""
+        return self._request('store', clouds)
+
+    def model_step(self, max_points: int | None = None) -> list[int]:
+        """See :meth:`LocalEngine.model_step`."""
+        return self._request('model', max_points)
 
     def run(self, fn: Callable[[FacadeMap], Any]) -> tuple[Any, bool]:
         """See :meth:`LocalEngine.run` (``fn`` must pickle: a module-level function or a

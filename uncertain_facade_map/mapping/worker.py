@@ -12,6 +12,17 @@ cloud that waited longest is the one most likely covered again by what follows. 
 counted (:attr:`MapWorker.counters`). Commands (save, load, reset, any function given to
 :meth:`MapWorker.call`) are never dropped and run in order with the clouds.
 
+**Two tiers** (``batching='latency'``, the node's default). A cloud is *stored* in the first
+item after its arrival, with every cloud that came meanwhile
+(:meth:`FacadeMap.store_points`: labelled, thinned, appended; no façade touched), and its
+latency ends with the snapshot that follows: its points are queryable from there. The
+façades are *modelled* after, one bounded piece at a time
+(:meth:`FacadeMap.model_step`: one building's stored points, at most ``update.step_points``,
+or one scan of the comparison, or one building's pool), whenever no cloud waits, so that a
+cloud waits for one piece at most and the model catches up whenever the input leaves room.
+``batching='fixed'`` holds points back for whole batches instead (the map then depends only
+on the clouds, as offline replay's).
+
 Readers never wait for the worker: after every change the worker publishes an immutable
 :class:`MapSnapshot` (the façade models are frozen), which queries read, and after every
 cloud or command a clone of the whole map (:meth:`MapWorker.committed`, points held back
@@ -53,12 +64,8 @@ __all__ = ['Cloud', 'MapSnapshot', 'MapWorker', 'ReplaceMap', 'ReplaySummary', '
 
 #: Clouds whose arrival-to-map latency :attr:`MapWorker.latencies` keeps.
 LATENCY_WINDOW = 200
-#: Seconds over which the mapper's busy share is measured (batching 'latency').
+#: Seconds over which the mapper's busy share is measured (/diagnostics).
 LOAD_WINDOW = 5.0
-#: Busy share of the mapper above which clouds wait for a whole batch even with 'latency'
-#: batching: mapping each backlog at once, when the mapper cannot keep up anyway, would add
-#: a small update after every full one (the backlog's remainder) and lower the throughput.
-LOAD_SHARE = 0.85
 
 
 @dataclass(frozen=True)
@@ -176,11 +183,9 @@ class MapWorker:
             instead of this worker's thread; :meth:`call` functions must then pickle.
         nice: niceness added to the child process's.
         batching: ``'fixed'``: points are held back until ``update.batch_points`` have come
-            (the map depends only on the clouds); ``'latency'``: a cloud with no other cloud
-            waiting behind it is mapped at once, with the points held back, while the mapper
-            was busy less than :data:`LOAD_SHARE` of the last :data:`LOAD_WINDOW` seconds
-            (beyond, it cannot keep up and batches grow to ``update.batch_points``)
-            (``node.batching``).
+            (the map depends only on the clouds); ``'latency'``: the two tiers (see the
+            module's text): clouds stored at once, façades modelled in pieces while no cloud
+            waits (``node.batching``).
     """
 
     def __init__(self, fmap: FacadeMap, queue_size: int = 20,
@@ -196,6 +201,7 @@ class MapWorker:
         if batching not in ('fixed', 'latency'):
             raise ValueError(f"batching must be 'fixed' or 'latency', got {batching!r}")
         self._latency = batching == 'latency'
+        self._model_failed = False  # a model step failed: none until the next cloud
         self._work: deque[tuple[float, float]] = deque()  # (start, end) of the latest items, monotonic
         self._engine: LocalEngine | ProcessEngine = ProcessEngine(fmap, nice) if process else LocalEngine(fmap)
         self._queue: deque[Cloud | _Command] = deque()
@@ -223,7 +229,7 @@ class MapWorker:
         #: CPU seconds of the last update in the process that mapped (see ``MapView.cpu_seconds``).
         self.last_update_cpu_seconds = 0.0
         self.pending_points = self._engine.view.pending
-        self._working: Cloud | None = None
+        self._working: list[Cloud] = []  # the clouds being mapped
         self._held: list[float] = []  # arrival times of the clouds whose points are held back
         #: Seconds from arrival to map of the latest clouds (newest last).
         self.latencies: deque[float] = deque(maxlen=LATENCY_WINDOW)
@@ -318,11 +324,11 @@ class MapWorker:
         with self._cond:
             out = dict(self.counters)
             waiting = [c for c in self._queue if isinstance(c, Cloud)]
-            if self._working is not None:
-                waiting.append(self._working)
+            waiting.extend(self._working)
             out['clouds_waiting'] = len(waiting)
             out['points_waiting'] = int(sum(len(c.xyz) for c in waiting))
             out['points_pending'] = self.pending_points
+            out['points_unmodelled'] = self._engine.view.unmodelled
             return out
 
     def committed(self) -> tuple[FacadeMap, int, int]:
@@ -338,7 +344,7 @@ class MapWorker:
             # The engine answered item ``done`` already; its version follows at once.
             while done not in self._versions and done > self._items and not self._stop:
                 self._cond.wait(1.0)
-            waiting = self._clouds + (self._working is not None)
+            waiting = self._clouds + len(self._working)
             return fmap, self._versions.get(done, self.snapshot.version), waiting
 
     @property
@@ -378,6 +384,8 @@ class MapWorker:
         while True:
             with self._cond:
                 while not self._queue and not self._stop:
+                    if self._latency and self._engine.view.needs_model and not self._model_failed:
+                        break  # the second tier: model a piece while no cloud waits
                     if self._idle_flush > 0 and self._needs_flush():
                         # Idle since the last cloud came *and* since the last work ended: while
                         # the worker was busy, clouds may have waited upstream (in DDS, for the
@@ -390,18 +398,28 @@ class MapWorker:
                         self._cond.wait()
                 if self._stop:
                     return
-                # An empty queue here means the idle time passed: flush.
-                idle_flush = not self._queue
-                item = _Command(None) if idle_flush else self._queue.popleft()
+                # An empty queue here means a model step is due or the idle time passed: flush.
+                model = not self._queue and self._latency and self._engine.view.needs_model and not self._model_failed
+                idle_flush = not self._queue and not model
+                item = _Command(None) if idle_flush or model else self._queue.popleft()
+                clouds: list[Cloud] = []
                 if isinstance(item, Cloud):
-                    self._clouds -= 1
-                    self._points -= len(item.xyz)
-                    self._working = item
+                    clouds.append(item)
+                    # The first tier takes every cloud waiting, in one store.
+                    while self._latency and self._queue and isinstance(self._queue[0], Cloud):
+                        clouds.append(self._queue.popleft())
+                    self._clouds -= len(clouds)
+                    self._points -= sum(len(c.xyz) for c in clouds)
+                    self._working = clouds
                 self._busy = True
             began = time.monotonic()
             try:
-                if isinstance(item, Cloud):
+                if clouds and self._latency:
+                    self._store_clouds(clouds)
+                elif clouds:
                     self._map_cloud(item)
+                elif model:
+                    self._model_step()
                 else:
                     self._run_command(item)
                     if idle_flush and item.error is not None:
@@ -413,7 +431,7 @@ class MapWorker:
                     self.pending_points = self._engine.view.pending
                     self._idle_since = time.monotonic()
                     self._work.append((began, self._idle_since))
-                    self._working = None
+                    self._working = []
                     self._busy = False
                     self._cond.notify_all()
 
@@ -446,23 +464,21 @@ class MapWorker:
 
     def _map_cloud(self, cloud: Cloud) -> None:
         started = time.perf_counter()
-        with self._cond:  # nothing waits behind it and the mapper keeps up: map it now (batching 'latency')
-            now = self._latency and not self._clouds and self.busy_share() < LOAD_SHARE
         try:
-            updated = self._engine.add_points(cloud.xyz, cloud.building_id, cloud.sensor_origins, now)
+            updated = self._engine.add_points(cloud.xyz, cloud.building_id, cloud.sensor_origins)
         except Exception as exc:  # noqa: BLE001 - reported, the node keeps running
             self._item_done()
             with self._cond:
                 self.counters['clouds_failed'] += 1
                 self.counters['points_failed'] += len(cloud.xyz)
-                self._working = None
+                self._working = []
             if self._on_error is not None:
                 self._on_error(cloud, exc)
             return
         with self._cond:
             self.counters['clouds_mapped'] += 1
             self.counters['points_mapped'] += len(cloud.xyz)
-            self._working = None
+            self._working = []
         self._held.append(cloud.arrived or time.monotonic())
         self._stamp = max(self._stamp, int(cloud.stamp_ns))
         if updated:  # an update ran (or nothing is held back): the held-back points are mapped
@@ -471,6 +487,53 @@ class MapWorker:
             self._mapped()
             self._publish()
         self._item_done()
+
+    def _store_clouds(self, clouds: list[Cloud]) -> None:
+        """The first tier (batching 'latency'): store the clouds at once; their points are
+        queryable from the snapshot that follows (their latency ends here)."""
+        started = time.perf_counter()
+        try:
+            refused = self._engine.store([(c.xyz, c.building_id, c.sensor_origins) for c in clouds])
+        except Exception as exc:  # noqa: BLE001 - reported, the node keeps running; the map is as before
+            refused = [exc] * len(clouds)
+        self._item_done()
+        self._model_failed = False  # new points: the second tier tries again
+        now = time.monotonic()
+        failed = []
+        with self._cond:
+            for cloud, why in zip(clouds, refused):
+                if why is None:
+                    self.counters['clouds_mapped'] += 1
+                    self.counters['points_mapped'] += len(cloud.xyz)
+                    self.latencies.append(now - (cloud.arrived or now))
+                    self._stamp = max(self._stamp, int(cloud.stamp_ns))
+                else:
+                    self.counters['clouds_failed'] += 1
+                    self.counters['points_failed'] += len(cloud.xyz)
+                    failed.append((cloud, why if isinstance(why, BaseException) else InputError(why)))
+            self._working = []
+        self.last_update_seconds = time.perf_counter() - started
+        self.last_update_cpu_seconds = self._engine.view.cpu_seconds
+        if len(failed) < len(clouds):
+            self._publish()
+        if self._on_error is not None:
+            for cloud, exc in failed:
+                self._on_error(cloud, exc)
+
+    def _model_step(self) -> None:
+        """The second tier (batching 'latency'): one piece of modelling, while no cloud waits."""
+        try:
+            done = self._engine.model_step(self._engine.view.params.update.step_points)
+        except Exception as exc:  # noqa: BLE001 - the map is as before; tried again after the next cloud
+            self._item_done()
+            self._model_failed = True
+            self.counters['flushes_failed'] += 1
+            if self._on_flush_error is not None:
+                self._on_flush_error(exc)
+            return
+        self._item_done()
+        if done or not self._engine.view.needs_model:
+            self._publish()
 
     def _run_command(self, command: _Command) -> None:
         try:
