@@ -737,24 +737,9 @@ class FacadeMap:
 
         Only the buildings whose stored points meet the new points' bounds (grown by 2 m) take
         part, so its cost follows the new points and the walls they meet, not the map."""
-        queue, self._registration_queue = self._registration_queue, []
-        base, self._registration_base = self._registration_base or {}, None
-        up = self.params.update
-        if up.registration_points <= 0 or not queue:
-            return
-        xyz = queue[0][0] if len(queue) == 1 else np.vstack([q[0] for q in queue])
-        labels = queue[0][1] if len(queue) == 1 else np.concatenate([q[1] for q in queue])
-        lo, hi = xyz.min(axis=0) - 2.0, xyz.max(axis=0) + 2.0
-        near = [p for b, p in base.items() if len(p) and self._meets(b, p, lo, hi)]
-        earlier = np.vstack(near) if near else np.empty((0, 3))
-        # The draw as before the queue: seeded by the points mapped before them and their number.
-        rng = np.random.default_rng([self.params.seed, self._registration_mapped, len(xyz)])
-        reading = QueryConfig()  # the map does not know how it will be queried: the default local reading
-        found = scan_disagreement(xyz, labels, earlier, reading.local_neighbours, up.registration_points, rng,
-                                  reading.local_inner, up.store_voxel, up.store_per_voxel)
-        if found[0]:
-            self.registration_sums_ = self.registration_sums_ + found
-            self.registration_var_ = registration_variance(self.registration_sums_, up.registration_max_std)
+        self._start_registration()
+        while self._registration_round is not None:
+            self._registration_piece()
 
     def _start_registration(self) -> None:
         """Begin the comparison of the scans held back in pieces (:meth:`model_step`): the
@@ -770,6 +755,7 @@ class FacadeMap:
         lo, hi = xyz.min(axis=0) - 2.0, xyz.max(axis=0) + 2.0
         near = [p for b, p in base.items() if len(p) and self._meets(b, p, lo, hi)]
         earlier = np.vstack(near) if near else np.empty((0, 3))
+        # The draw as before the queue: seeded by the points mapped before them and their number.
         rng = np.random.default_rng([self.params.seed, self._registration_mapped, len(xyz)])
         scans, per_scan = scans_to_compare(labels, len(earlier), up.registration_points, rng)
         if len(scans):
@@ -887,33 +873,11 @@ class FacadeMap:
         old_so = self.sensor_origins.get(b)
         self.sensor_origins[b] = origins if old is None else (None if origins is None or old_so is None
                                                               else np.vstack([old_so, origins]))
-        k = self.params.extraction.normal_neighbours
-        if not with_normals:
-            held = self.normals.get(b)
-            normals = np.full((len(xyz), 3), np.nan)
-            self.normals[b] = normals if held is None else np.vstack([held, normals])
-            return first
-        if old is None:
-            normals = _point_normals(pts - pts.mean(axis=0), min(k, len(pts))) if len(pts) >= 3 else \
-                np.tile([0.0, 0.0, 1.0], (len(pts), 1))
-        else:
-            # Neighbours from the building's points near the new ones only: in the cells
-            # (side normal_reach) of the new points and their neighbours, which hold every
-            # point within normal_reach of one (a 360-degree sweep's bounding box holds
-            # most of the building, its cells only the walls it saw).
-            reach = self.params.update.normal_reach
-            lo, hi = xyz.min(axis=0) - reach, xyz.max(axis=0) + reach
-            near = np.flatnonzero(np.all((old >= lo) & (old <= hi), axis=1))
-            near = near[in_sorted(wrapped_keys(old[near], reach), near_keys(xyz, reach))]
-            local = np.vstack([old[near], xyz])
-            centre = local.mean(axis=0)
-            normals = np.vstack([self.normals[b], np.zeros((len(xyz), 3))])
-            if len(local) >= 3:  # the new points' normals only (the old ones keep theirs)
-                normals[first:] = _point_normals(local - centre, min(k, len(local)),
-                                                 np.arange(len(near), len(local)))
-            else:
-                normals[first:] = [0.0, 0.0, 1.0]
-        self.normals[b] = normals
+        held = self.normals.get(b)
+        normals = np.full((len(xyz), 3), np.nan)
+        self.normals[b] = normals if held is None else np.vstack([held, normals])
+        if with_normals:
+            self._ensure_normals(b, first, len(pts))
         return first
 
     def _ensure_normals(self, b: int, first: int, end: int) -> None:
