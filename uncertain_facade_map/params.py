@@ -606,11 +606,19 @@ class NodeConfig(Section):
                                    'block by block are fitted whole (0: never)', unit='s',
                               allowed=_closed(0.0, 3600.0))
     local_refresh: float = param(5.0, 'while the map is being updated, queries read the stored points per point '
-                                      '(query.surface local) from a reading at most this old, rebuilt in the '
-                                      'background (its set-up costs about 1 s per million stored points, which '
-                                      'each update would otherwise spend again); the façade rasters are always '
-                                      "the newest; once the map settles, queries read the newest map's points "
-                                      '(0: always the newest)', unit='s', allowed=_closed(0.0, 3600.0))
+                                      '(query.surface local) from an earlier reading, rebuilt in the background '
+                                      'once it is this old and the map has stored local_growth more points (its '
+                                      'set-up costs about 1 s per million stored points, and takes the CPU from '
+                                      'the queries); the façade rasters are always the newest; once the map '
+                                      "settles, its own reading is built at once (in the background: /diagnostics "
+                                      "says settled when queries read it) (0: always the newest, built by the "
+                                      'query that needs it)',
+                                 unit='s', allowed=_closed(0.0, 3600.0))
+    local_growth: float = param(0.05, '... the share of stored points the map must have gained since the reading '
+                                      'was built: the rebuilds then cost, over a whole drive, a bounded multiple of '
+                                      'building the final reading once, not a share of the CPU for as long as the '
+                                      'drive lasts (a smaller gain still rebuilds it after 6 x local_refresh)',
+                                allowed=_closed(0.0, 10.0))
     use_tf: bool = param(True, 'read the transforms on /tf and /tf_static (tf2_msgs/TFMessage; static ones with '
                                'transient-local QoS, as robots publish them)')
     odometry_topic: str = param('', 'a nav_msgs/Odometry topic whose poses (header.frame_id -> child_frame_id) join '

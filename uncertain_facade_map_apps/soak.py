@@ -748,7 +748,7 @@ class QueryLoop(threading.Thread):
 
 
 #: Diagnostics kept in the samples: the counters, the map's size, the timings.
-SAMPLE_PREFIXES = ('query_', 'clouds_', 'points_', 'poses_', 'latency', 'last_update', 'map_', 'facades', 'buildings',
+SAMPLE_PREFIXES = ('query_', 'reading_', 'clouds_', 'points_', 'poses_', 'latency', 'last_update', 'map_', 'facades', 'buildings',
                    'settled', 'flushes', 'queries', 'callback_errors', 'saves', 'published_')
 
 

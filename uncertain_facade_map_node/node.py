@@ -81,8 +81,9 @@ from uncertain_facade_map.io.map_folder import MapFolder
 from uncertain_facade_map.io.scans import Scan, ScanPoints
 from uncertain_facade_map.mapping import products as mp
 from uncertain_facade_map.mapping.allocator import limit_heap_growth, release_free_memory
-from uncertain_facade_map.mapping.engine import HelperProcess
+from uncertain_facade_map.mapping.engine import HelperProcess, unkept
 from uncertain_facade_map.mapping.facade_map import FacadeMap
+from uncertain_facade_map.mapping.served import ServedReading
 from uncertain_facade_map.mapping.worker import Cloud, MapSnapshot, MapWorker, replace_with
 from uncertain_facade_map.msg import FacadeGridArray
 from uncertain_facade_map.params import (
@@ -230,11 +231,6 @@ class FacadeMapperNode(Node):
         self._published_bytes = 0  # of the latest published maps (serialized; the grid's cells)
         self._query_seconds: deque[float] = deque(maxlen=200)  # time in the node of the latest queries
         self._published_version = -1
-        # The latest reading of the stored points: (its snapshot, LocalSurface, monotonic time built,
-        # the worker's map replacements then).
-        self._local_held: tuple[MapSnapshot, LocalSurface | None, float, int] | None = None
-        self._local_building = False
-        self._local_lock = threading.Lock()
         self._saved_version = 0
         self._last_publish = 0.0
         self._publish_lock = threading.Lock()
@@ -263,6 +259,8 @@ class FacadeMapperNode(Node):
                                on_flush=self._flushed, on_flush_error=self._flush_failed,
                                process=cfg.node.mapping_process, nice=cfg.node.mapping_nice,
                                queue_points=cfg.node.queue_points, batching=cfg.node.batching)
+        # The per-point reading the queries read, and when it is built again.
+        self.reading = ServedReading(self.worker, cfg.query, cfg.node, on_error=self._reading_failed)
 
         latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                              reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
@@ -735,7 +733,7 @@ class FacadeMapperNode(Node):
                 # Built and serialized in the helper process: here only bytes are handed over.
                 maps = self._compute(published_map_messages, facades, cfg, band.band_back, band.band_front,
                                      self.frame_id, stamp, serialize_message, self._occupancy(snap),
-                                     self._local_surface(snap), snap.registration_var)
+                                     self.reading.kept(snap), snap.registration_var)
                 # The latched publishers keep these (and the grid) until the next ones.
                 self._published_bytes = (len(maps.surface) + len(maps.mesh) + len(maps.variance_grids)
                                          + len(maps.voxels) + (maps.grid.p.size if maps.grid is not None else 0))
@@ -754,51 +752,12 @@ class FacadeMapperNode(Node):
                                     f'{time.perf_counter() - started:.2f} s')
 
     def _local_surface(self, snap: MapSnapshot) -> LocalSurface | None:
-        """The stored points read per point (``query.surface``) for a snapshot's answers.
+        """The stored points read per point (``query.surface``) for a snapshot's answers
+        (:class:`~uncertain_facade_map.mapping.served.ServedReading` says which reading)."""
+        return self.reading.for_snapshot(snap)
 
-        A settled map's (nothing queued or held back) is its own, built at its first query.
-        While the map is being updated, each update makes a new snapshot, and building its
-        reading (about 1 s per million stored points) would take the CPU from the mapping at
-        every update: an earlier snapshot's reading serves while it is younger than
-        ``node.local_refresh``, and the newest snapshot's is built in the background."""
-        config = self.config.query
-        if config.surface != 'local':
-            return None
-        refresh = self.config.node.local_refresh
-        replacements = self.worker.replacements
-        with self._local_lock:
-            held = self._local_held
-            if held is not None and held[0] is snap:
-                return held[1]
-            # An earlier snapshot's of the same map (no load or reset since), while it maps.
-            if refresh > 0 and held is not None and held[3] == replacements and not self.worker.settled:
-                if not self._local_building and time.monotonic() - held[2] >= refresh:
-                    self._local_building = True
-                    threading.Thread(target=self._build_local, args=(snap,), daemon=True,
-                                     name='local_surface').start()
-                return held[1]
-        local = snap.local_surface(config)
-        self._keep_local(snap, local, replacements)
-        return local
-
-    def _keep_local(self, snap: MapSnapshot, local: LocalSurface | None, replacements: int) -> None:
-        """Hold a snapshot's reading unless a newer one of the same map is held already."""
-        with self._local_lock:
-            held = self._local_held
-            if held is None or held[3] != replacements or held[0].version <= snap.version:
-                self._local_held = (snap, local, time.monotonic(), replacements)
-
-    def _build_local(self, snap: MapSnapshot) -> None:
-        """Build a snapshot's reading of the stored points in the background (see
-        :meth:`_local_surface`)."""
-        try:
-            replacements = self.worker.replacements
-            self._keep_local(snap, snap.local_surface(self.config.query), replacements)
-        except Exception as exc:  # noqa: BLE001 - the next query builds it in its own thread
-            self.get_logger().warning(f'building the local reading failed: {exc}', throttle_duration_sec=10.0)
-        finally:
-            with self._local_lock:
-                self._local_building = False
+    def _reading_failed(self, exc: BaseException) -> None:
+        self.get_logger().warning(f'building the local reading failed: {exc}', throttle_duration_sec=10.0)
 
     def _occupancy(self, snap: MapSnapshot) -> PLSC:
         """The occupancy's PLSC parameters for a snapshot's answers (``query.occupancy``)."""
@@ -806,7 +765,7 @@ class FacadeMapperNode(Node):
 
     def _compute(self, fn: Callable[..., Any], *args: Any) -> Any:
         """``fn(*args)`` in the helper process (``node.mapping_process``), else here."""
-        return fn(*args) if self._helper is None else self._helper.call(fn, *args)
+        return fn(*unkept(args)) if self._helper is None else self._helper.call(fn, *args)
 
     def _grid_msg(self, snap: MapSnapshot, stamp: int, grid: mp.OccupancyGrid2D | None = None) -> Any:
         """The 2D occupancy grid of a snapshot (cached per version; ``grid``: computed already),
@@ -819,7 +778,7 @@ class FacadeMapperNode(Node):
         p, origin, resolution = np.full((1, 1), np.nan), np.zeros(2), cfg.grid_resolution
         if snap.facades:
             g = grid or self._compute(mp.band_grid, list(snap.facades), cfg, params.band_back, params.band_front,
-                                      self._occupancy(snap), self._local_surface(snap), snap.registration_var)
+                                      self._occupancy(snap), self.reading.kept(snap), snap.registration_var)
             p, origin, resolution = g.p, g.origin, g.resolution
             if resolution != cfg.grid_resolution:
                 self._warn(f'the 2D grid of this map would have more than publish.grid_max_cells = '
@@ -887,6 +846,7 @@ class FacadeMapperNode(Node):
     def diagnostics_callback(self) -> None:
         """Publish the accounts, the map's size, update time and latency, and a level that
         tells of the recent window (``publish.diagnostics_window``)."""
+        self.reading.refresh()
         snap = self.worker.snapshot
         window = self.config.publish.diagnostics_window
         now = time.monotonic()
@@ -898,7 +858,8 @@ class FacadeMapperNode(Node):
             'map_points': snap.points, 'map_points_stored': snap.stored,
             'map_mb': round(snap.map_bytes / 2**20, 1), 'facades_mb': self._facades_mb(snap),
             'published_mb': round(self._published_bytes / 2**20, 1), 'buildings': snap.buildings, 'facades': len(snap.facades),
-            'map_version': snap.version, 'settled': self.worker.settled,
+            'map_version': snap.version, 'settled': self.worker.settled and self.reading.current,
+            'reading_builds': self.reading.builds[0], 'reading_build_seconds': round(self.reading.builds[1], 2),
             'last_update_seconds': round(self.worker.last_update_seconds, 4),
             'last_update_cpu_seconds': round(self.worker.last_update_cpu_seconds, 4),
             'latency_seconds': round(float(latencies[-1]), 3) if len(latencies) else 0.0,

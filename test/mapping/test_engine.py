@@ -3,6 +3,7 @@ pickle, saves that do not wait for an update, and a child that ends with its par
 
 import functools
 import os
+import pickle
 import signal
 import subprocess
 import sys
@@ -13,7 +14,7 @@ import time
 import numpy as np
 import pytest
 
-from uncertain_facade_map.mapping.engine import HelperProcess, MappingProcessError, ProcessEngine
+from uncertain_facade_map.mapping.engine import HelperProcess, Kept, MappingProcessError, ProcessEngine, unkept
 from uncertain_facade_map.mapping.facade_map import FacadeMap
 from uncertain_facade_map.mapping.worker import Cloud, MapWorker, replace_with
 from uncertain_facade_map.params import MapParams, UpdateParams
@@ -164,6 +165,34 @@ def test_a_helper_process_runs_functions_and_starts_again_after_dying():
     assert helper.pid is None
     with pytest.raises(ProcessLookupError):
         os.kill(pid, 0)
+
+
+def _size_and_sum(a, scale):
+    return len(a), float(a.sum()) * scale
+
+
+def test_a_kept_argument_crosses_to_the_helper_once_per_object():
+    """The node hands its per-point reading (millions of stored points) to every publication:
+    the helper keeps it, so only a new reading crosses the process boundary; the answers are
+    those of calls with the values themselves, here as there, and again after a restart."""
+    helper = HelperProcess('test_helper')
+    sent = []
+    conn_send = None
+    try:
+        big, other = np.arange(2_000_000, dtype=np.float64), np.ones(10)
+        assert helper.call(_size_and_sum, Kept('a', big, big), 2.0) == _size_and_sum(*unkept((Kept('a', big, big), 2.0)))
+        conn_send = helper._conn.send
+        helper._conn.send = lambda msg: (sent.append(len(pickle.dumps(msg))), conn_send(msg))[1]
+        assert helper.call(_size_and_sum, Kept('a', big, big), 1.0) == (2_000_000, float(big.sum()))
+        copy = big.copy()  # equal, but another object: sent
+        assert helper.call(_size_and_sum, Kept('a', copy, copy), 1.0) == (2_000_000, float(big.sum()))
+        assert helper.call(_size_and_sum, Kept('a', copy, copy), 0.0) == (2_000_000, 0.0)
+        assert sent[0] < 10_000 and sent[1] > 16_000_000 and sent[2] < 10_000
+        os.kill(helper.pid, signal.SIGKILL)
+        time.sleep(0.3)
+        assert helper.call(_size_and_sum, Kept('a', other, other), 3.0) == (10, 30.0)  # sent again to the new one
+    finally:
+        helper.close()
 
 
 def test_closing_a_helper_during_a_call_ends_the_call_with_a_clear_error():

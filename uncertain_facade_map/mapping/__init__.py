@@ -9,5 +9,8 @@
 - ``products``: the maps the node publishes, as arrays: surface grid and mesh, voxel and
   2D occupancy.
 - ``engine``: where the map is updated, in the worker's thread or a child process;
+- ``served``: :class:`ServedReading`, the per-point reading a live map's queries read, and
+  when it is built again;
+- ``calibration``: what the map learns from its stored points (occupancy, registration);
 - ``allocator``: freed memory given back to the system by the long-running processes.
 """

@@ -460,18 +460,54 @@ class ProcessEngine:
         return result
 
 
+@dataclass(frozen=True)
+class Kept:
+    """An argument of :meth:`HelperProcess.call` that the helper keeps: sent the first time
+    (and whenever ``ident`` is another object), named by ``key`` after. For large inputs that
+    change seldom and are used at every call (the node's per-point reading of millions of
+    stored points, handed to every publication of the maps: pickled each time, it held the
+    node's interpreter for tenths of a second every ``publish.period``).
+
+    Attributes:
+        key: the helper's slot for it.
+        ident: the object it stands for (compared by identity).
+        value: what the function receives (``ident`` itself or a lighter copy of it).
+    """
+
+    key: str
+    ident: Any
+    value: Any
+
+
+@dataclass(frozen=True)
+class _Held:
+    key: str
+
+
+def unkept(args: tuple) -> tuple:
+    """``args`` with each :class:`Kept` replaced by its value (a call made here)."""
+    return tuple(a.value if isinstance(a, Kept) else a for a in args)
+
+
 def _helper_main(conn: Any, nice: int = 0) -> None:
     """A helper process: ``(function, args, kwargs)`` from ``conn``, its result (or the
-    exception it raised) back; ends when the parent's pipe closes."""
+    exception it raised) back; ends when the parent's pipe closes. Keeps the values of
+    :class:`Kept` arguments by key and passes them where a later call names them."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _lower_priority(nice)
     limit_heap_growth()
+    kept: dict[str, Any] = {}
     while True:
         try:
             fn, args, kwargs = conn.recv()
         except (EOFError, OSError):
             os._exit(0)
         try:
+            for a in args:
+                if isinstance(a, Kept):
+                    kept[a.key] = a.value
+            args = tuple(kept[a.key] if isinstance(a, _Held) else a.value if isinstance(a, Kept) else a
+                         for a in args)
             answer: tuple[str, Any] = ('ok', fn(*args, **kwargs))
         except BaseException as exc:  # noqa: BLE001 - handed to the caller
             answer = ('error', _picklable(exc))
@@ -503,6 +539,7 @@ class HelperProcess:
         self._process: Any = None
         self._conn: Any = None
         self._closed = False
+        self._kept: dict[str, Any] = {}  # key -> the object the child holds (Kept)
 
     @property
     def pid(self) -> int | None:
@@ -522,9 +559,13 @@ class HelperProcess:
             if self._process is None or not self._process.is_alive():
                 self._start()
             process, conn = self._process, self._conn
+            new = [a for a in args if isinstance(a, Kept) and self._kept.get(a.key) is not a.ident]
+            sent = tuple((Kept(a.key, None, a.value) if any(a is b for b in new) else _Held(a.key))
+                         if isinstance(a, Kept) else a for a in args)  # the value only, not what it stands for
             try:
-                conn.send((fn, args, kwargs))
+                conn.send((fn, sent, kwargs))
                 status, result = conn.recv()
+                self._kept.update({a.key: a.ident for a in new})
             except (EOFError, OSError, TypeError) as exc:  # TypeError: closed by close() meanwhile
                 process.join(1.0)
                 self._process = None
@@ -552,6 +593,7 @@ class HelperProcess:
                 self._lock.release()
 
     def _start(self) -> None:
+        self._kept = {}
         ctx = multiprocessing.get_context('spawn')
         self._conn, child = ctx.Pipe()
         self._process = ctx.Process(target=_helper_main, args=(child, self._nice), name=self._name, daemon=True)

@@ -20,10 +20,20 @@ instead of numpy passes over (N, K + 1, 3) arrays and a KD-tree query:
   The closed form is 3-4 x faster than Jacobi: the reading's 500,000 street queries took
   1.36 s with Jacobi alone.
 
+The kernels release the GIL (``nogil``): a reading built in a background thread leaves
+the interpreter to the threads that answer queries. Calls of the parallel kernel take
+turns (:func:`planes`: it uses both cores anyway, and numba's ``workqueue`` threading
+layer, where neither ``omp`` nor ``tbb`` is found, stops the process when two threads
+launch parallel kernels at once); one-core calls run side by side.
+
 Frames and units as in :mod:`.step7_local_surface`: map frame, metres.
 """
 
 from __future__ import annotations
+
+import contextlib
+import threading
+from typing import Iterator
 
 import numpy as np
 from numba import njit, prange
@@ -40,12 +50,12 @@ _BATCH = 256
 SERIAL_BELOW = 2048
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True, nogil=True, inline='always')
 def _slot(key: np.int64, shift: np.uint64) -> np.int64:
     return np.int64((np.uint64(key) * _HASH) >> shift)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _build_table(keys: np.ndarray, bits: int) -> np.ndarray:
     """Open-addressing table (2**bits slots) of the sorted unique ``keys``: slot -> index into
     ``keys`` (-1: empty)."""
@@ -61,7 +71,7 @@ def _build_table(keys: np.ndarray, bits: int) -> np.ndarray:
     return table
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True, nogil=True, inline='always')
 def _find(table: np.ndarray, keys: np.ndarray, key: np.int64, shift: np.uint64) -> np.int64:
     mask = len(table) - 1
     s = _slot(key, shift)
@@ -143,7 +153,7 @@ class PointGrid:
                 self.table, self.shift, self.cell)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _jacobi3(a: np.ndarray, lam: np.ndarray, vec: np.ndarray) -> None:
     """Eigen-decomposition of the symmetric 3 x 3 ``a`` (overwritten): ``lam`` ascending,
     ``vec[:, i]`` the unit eigenvector of ``lam[i]``."""
@@ -196,7 +206,7 @@ def _jacobi3(a: np.ndarray, lam: np.ndarray, vec: np.ndarray) -> None:
 _GAP = 1e-6
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _plane_normal(a: np.ndarray, n: np.ndarray) -> bool:
     """The unit eigenvector of the smallest eigenvalue of the symmetric 3 x 3 ``a`` into
     ``n`` (3,), in closed form; False (``n`` not written) where the two smallest
@@ -230,7 +240,7 @@ def _plane_normal(a: np.ndarray, n: np.ndarray) -> bool:
     return _null_vector(a, rq, n)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _null_vector(a: np.ndarray, lam: float, n: np.ndarray) -> bool:
     """The unit eigenvector of the simple eigenvalue ``lam`` of the symmetric 3 x 3 ``a`` into
     ``n``; False where all cross products vanish."""
@@ -259,7 +269,7 @@ def _null_vector(a: np.ndarray, lam: float, n: np.ndarray) -> bool:
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _in_plane(a: np.ndarray, n: np.ndarray, vec: np.ndarray, lam: np.ndarray) -> None:
     """With ``n`` (3,) a unit eigenvector of the symmetric 3 x 3 ``a``: ``vec[:, 0] = n`` and
     ``vec[:, 1:]`` the eigenvectors within the plane normal to ``n``, ``lam[1] <= lam[2]``
@@ -302,7 +312,7 @@ def _in_plane(a: np.ndarray, n: np.ndarray, vec: np.ndarray, lam: np.ndarray) ->
         vec[k, 1] = -s * ek + c * fk
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _knn(x0: float, x1: float, x2: float, pts: np.ndarray, corner: np.ndarray, zlo: np.ndarray, nz: np.ndarray, zoff: np.ndarray,
          zstart: np.ndarray, tile_keys: np.ndarray, tile_cols: np.ndarray, table: np.ndarray, shift: np.uint64,
          cell: float, kk: int, skip: np.int64, radius: float, max_ring: int, bd: np.ndarray, bi: np.ndarray) -> int:
@@ -385,7 +395,7 @@ def _knn(x0: float, x1: float, x2: float, pts: np.ndarray, corner: np.ndarray, z
     return 2
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, nogil=True)
 def local_planes(rows: np.ndarray, xyz: np.ndarray, skip: np.ndarray, label: np.ndarray, pts: np.ndarray, corner: np.ndarray,
                  zlo: np.ndarray, nz: np.ndarray, zoff: np.ndarray, zstart: np.ndarray, tile_keys: np.ndarray,
                  tile_cols: np.ndarray, table: np.ndarray, shift: np.uint64, cell: float, k: int, near: int,
@@ -424,7 +434,7 @@ def local_planes(rows: np.ndarray, xyz: np.ndarray, skip: np.ndarray, label: np.
                             rho_out, nearest_out, status)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _local_planes_range(lo: int, hi: int, rows: np.ndarray, xyz: np.ndarray, skip: np.ndarray, label: np.ndarray, pts: np.ndarray,
                         corner: np.ndarray, zlo: np.ndarray, nz: np.ndarray, zoff: np.ndarray, zstart: np.ndarray, tile_keys: np.ndarray,
                         tile_cols: np.ndarray, table: np.ndarray, shift: np.uint64, cell: float, k: int, near: int,
@@ -537,4 +547,32 @@ def _local_planes_range(lo: int, hi: int, rows: np.ndarray, xyz: np.ndarray, ski
 
 
 #: :func:`local_planes` on one core (``prange`` runs as ``range``): small calls.
-local_planes_serial = njit(cache=True)(local_planes.py_func)
+local_planes_serial = njit(cache=True, nogil=True)(local_planes.py_func)
+
+
+_SERIAL = threading.local()
+
+
+@contextlib.contextmanager
+def serial_kernels() -> Iterator[None]:
+    """Within it, this thread's readings run on one core (:func:`local_planes_serial`) whatever
+    their size: a background build of a reading leaves the other core to the queries."""
+    before = getattr(_SERIAL, 'on', False)
+    _SERIAL.on = True
+    try:
+        yield
+    finally:
+        _SERIAL.on = before
+
+
+_PARALLEL = threading.Lock()
+
+
+def planes(rows: np.ndarray, *args: object) -> None:
+    """:func:`local_planes` on both cores for ``SERIAL_BELOW`` rows or more, one call at a
+    time (outside :func:`serial_kernels`), else :func:`local_planes_serial` (same arguments)."""
+    if len(rows) >= SERIAL_BELOW and not getattr(_SERIAL, 'on', False):
+        with _PARALLEL:
+            local_planes(rows, *args)
+    else:
+        local_planes_serial(rows, *args)

@@ -57,7 +57,7 @@ from scipy.spatial import cKDTree
 from ..datatypes import FacadeModel
 from ..errors import InputError
 from ..params import QueryConfig
-from .local_kernels import MAX_RING, SERIAL_BELOW, TILE, PointGrid, local_planes, local_planes_serial
+from .local_kernels import MAX_RING, TILE, PointGrid, planes
 
 #: The blend weight depends on the distance to this many-th nearest stored point (1: the
 #: nearest, which tells a hole from sparse data better than the 12th: measured on the
@@ -310,6 +310,14 @@ class LocalSurface:
         out._orders[id(grid)] = [grid, out.facade, None]  # the labels in the grid's order: its own
         return out
 
+    def without_caches(self) -> LocalSurface:
+        """The same surface without the search structures it builds on first use (KD-tree,
+        grids): a lighter copy to hand to another process, which builds them as it reads."""
+        out = copy.copy(self)
+        out._tree = out._grid = out._coarse = None
+        out._orders = {}
+        return out
+
     @property
     def tree(self) -> cKDTree:
         """KD-tree of the stored points (built on first use)."""
@@ -397,8 +405,7 @@ class LocalSurface:
             grid = self.coarse_grid if coarse else g
             labels, inverse = self._in_grid_order(grid, inverse=skip is not None)
             sk = np.full(n, -1, np.int64) if skip is None else inverse[skip]
-            kernel = local_planes if len(order) >= SERIAL_BELOW else local_planes_serial
-            kernel(order, x, sk, labels, *grid.arrays(), self.neighbours, min(NEAR, self.neighbours) - 1, MAX_RING,
+            planes(order, x, sk, labels, *grid.arrays(), self.neighbours, min(NEAR, self.neighbours) - 1, MAX_RING,
                    normals, float(radius), MIN_VAR, fid, s, scatter, plane_var, normal, rho, nearest, status)
             order = order[status[order] == 2]
             if not len(order):
