@@ -94,7 +94,6 @@ from uncertain_facade_map.params import (
     node_sections,
     parameters,
 )
-from uncertain_facade_map.pipeline.step7_local_surface import LocalSurface
 from uncertain_facade_map.pipeline.step8_occupancy import PLSC, occupancy_model
 from uncertain_facade_map.srv import GetFacades, ListTiles, LoadMap, QueryPoints, SaveMap
 from uncertain_facade_map.tiling.manifest import is_tiled_map
@@ -751,11 +750,6 @@ class FacadeMapperNode(Node):
             self.get_logger().debug(f'published map version {snap.version} in '
                                     f'{time.perf_counter() - started:.2f} s')
 
-    def _local_surface(self, snap: MapSnapshot) -> LocalSurface | None:
-        """The stored points read per point (``query.surface``) for a snapshot's answers
-        (:class:`~uncertain_facade_map.mapping.served.ServedReading` says which reading)."""
-        return self.reading.for_snapshot(snap)
-
     def _reading_failed(self, exc: BaseException) -> None:
         self.get_logger().warning(f'building the local reading failed: {exc}', throttle_duration_sec=10.0)
 
@@ -920,8 +914,8 @@ class FacadeMapperNode(Node):
             snap = self.worker.snapshot
             tiled = self._tiled
             if tiled is None:
-                # Its own bands (a loaded map keeps its own); the local reading as _local_surface says.
-                answers = snap.query(xyz, self.config.query, resolution, local=self._local_surface(snap))
+                # Its own bands (a loaded map keeps its own); the local reading as self.reading says.
+                answers = snap.query(xyz, self.config.query, resolution, local=self.reading.for_snapshot(snap))
                 message = f'{len(xyz)} points, map version {snap.version}'
             else:
                 answers, message = self._tiled_query(tiled, snap, xyz, resolution)
@@ -940,7 +934,7 @@ class FacadeMapperNode(Node):
         map when that has façades (ids plus :data:`~.tiled.LIVE_FACADE_OFFSET`)."""
         answers = tiled.query(xyz, self.config.query, resolution)
         asked = np.flatnonzero(np.asarray(answers.facade) < 0) if snap.facades else np.zeros(0, np.int64)
-        live = (snap.query(xyz[asked], self.config.query, resolution, local=self._local_surface(snap))
+        live = (snap.query(xyz[asked], self.config.query, resolution, local=self.reading.for_snapshot(snap))
                 if len(asked) else None)
         out = nt.combine_answers(answers, live, asked)
         by_live = int((np.asarray(live.facade) >= 0).sum()) if live is not None else 0

@@ -188,6 +188,7 @@ def test_a_kept_argument_crosses_to_the_helper_once_per_object():
         assert helper.call(_size_and_sum, Kept('a', copy, copy), 1.0) == (2_000_000, float(big.sum()))
         assert helper.call(_size_and_sum, Kept('a', copy, copy), 0.0) == (2_000_000, 0.0)
         assert sent[0] < 10_000 and sent[1] > 16_000_000 and sent[2] < 10_000
+        assert unkept((Kept('a', big, other), 1.0))[0] is big  # called here: the object itself, not the copy to send
         os.kill(helper.pid, signal.SIGKILL)
         time.sleep(0.3)
         assert helper.call(_size_and_sum, Kept('a', other, other), 3.0) == (10, 30.0)  # sent again to the new one

@@ -32,6 +32,15 @@ class Worker:
         self.snapshot, self.settled, self.replacements = snap, False, 0
 
 
+def after_a_first_query(node: NodeConfig) -> tuple[Snap, Worker, ServedReading]:
+    """A map's first snapshot, its worker, and the reading served, built by a first query."""
+    first = Snap(1, 1000)
+    worker = Worker(first)
+    served = ServedReading(worker, QueryConfig(), node)
+    served.for_snapshot(first)
+    return first, worker, served
+
+
 def wait_for(condition, timeout: float = 10.0) -> bool:
     end = time.monotonic() + timeout
     while time.monotonic() < end:
@@ -65,10 +74,7 @@ def test_the_held_reading_serves_until_it_is_old_and_the_map_has_grown():
 
 
 def test_a_small_gain_is_read_after_six_refreshes():
-    first = Snap(1, 1000)
-    worker = Worker(first)
-    served = ServedReading(worker, QueryConfig(), NodeConfig(local_refresh=0.05, local_growth=0.5))
-    served.for_snapshot(first)
+    _, worker, served = after_a_first_query(NodeConfig(local_refresh=0.05, local_growth=0.5))
     same, grown = Snap(2, 1000), Snap(3, 1001)
     worker.snapshot = same
     time.sleep(0.35)
@@ -79,10 +85,7 @@ def test_a_small_gain_is_read_after_six_refreshes():
 
 
 def test_the_settled_map_gets_its_own_reading_in_the_background():
-    first = Snap(1, 1000)
-    worker = Worker(first)
-    served = ServedReading(worker, QueryConfig(), NodeConfig(local_refresh=3600.0))
-    served.for_snapshot(first)
+    _, worker, served = after_a_first_query(NodeConfig(local_refresh=3600.0))
     last = Snap(2, 1001)
     worker.snapshot, worker.settled = last, True
     assert not served.current
@@ -92,10 +95,7 @@ def test_the_settled_map_gets_its_own_reading_in_the_background():
 
 
 def test_a_new_map_and_refresh_zero_build_at_the_query():
-    first = Snap(1, 1000)
-    worker = Worker(first)
-    served = ServedReading(worker, QueryConfig(), NodeConfig(local_refresh=5.0))
-    served.for_snapshot(first)
+    first, worker, served = after_a_first_query(NodeConfig(local_refresh=5.0))
     loaded = Snap(2, 10)
     worker.snapshot, worker.replacements = loaded, 1  # a load or a reset: the old reading is not this map's
     assert served.for_snapshot(loaded) == ('reading', 2) and loaded.built == 1

@@ -470,8 +470,9 @@ class Kept:
 
     Attributes:
         key: the helper's slot for it.
-        ident: the object it stands for (compared by identity).
-        value: what the function receives (``ident`` itself or a lighter copy of it).
+        ident: the object it stands for (compared by identity); a call made in this
+            process (:func:`unkept`) receives it.
+        value: what crosses to the helper for it (``ident`` itself or a lighter copy).
     """
 
     key: str
@@ -485,8 +486,9 @@ class _Held:
 
 
 def unkept(args: tuple) -> tuple:
-    """``args`` with each :class:`Kept` replaced by its value (a call made here)."""
-    return tuple(a.value if isinstance(a, Kept) else a for a in args)
+    """``args`` with each :class:`Kept` replaced by the object it stands for (a call made
+    here: the object itself, with whatever it has built, not the copy made to cross)."""
+    return tuple(a.ident if isinstance(a, Kept) else a for a in args)
 
 
 def _helper_main(conn: Any, nice: int = 0) -> None:
@@ -506,8 +508,7 @@ def _helper_main(conn: Any, nice: int = 0) -> None:
             for a in args:
                 if isinstance(a, Kept):
                     kept[a.key] = a.value
-            args = tuple(kept[a.key] if isinstance(a, _Held) else a.value if isinstance(a, Kept) else a
-                         for a in args)
+            args = tuple(kept[a.key] if isinstance(a, (Kept, _Held)) else a for a in args)
             answer: tuple[str, Any] = ('ok', fn(*args, **kwargs))
         except BaseException as exc:  # noqa: BLE001 - handed to the caller
             answer = ('error', _picklable(exc))
@@ -559,13 +560,13 @@ class HelperProcess:
             if self._process is None or not self._process.is_alive():
                 self._start()
             process, conn = self._process, self._conn
-            new = [a for a in args if isinstance(a, Kept) and self._kept.get(a.key) is not a.ident]
-            sent = tuple((Kept(a.key, None, a.value) if any(a is b for b in new) else _Held(a.key))
-                         if isinstance(a, Kept) else a for a in args)  # the value only, not what it stands for
+            new = {a.key: a.ident for a in args if isinstance(a, Kept) and self._kept.get(a.key) is not a.ident}
+            sent = tuple((Kept(a.key, None, a.value) if a.key in new else _Held(a.key))  # the value, not the object
+                         if isinstance(a, Kept) else a for a in args)
             try:
                 conn.send((fn, sent, kwargs))
                 status, result = conn.recv()
-                self._kept.update({a.key: a.ident for a in new})
+                self._kept.update(new)
             except (EOFError, OSError, TypeError) as exc:  # TypeError: closed by close() meanwhile
                 process.join(1.0)
                 self._process = None

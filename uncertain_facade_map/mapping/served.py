@@ -46,7 +46,7 @@ BUILD_NICE = 10
 
 
 @dataclass(frozen=True)
-class _Held:
+class _Reading:
     snapshot: Any  # MapSnapshot
     reading: LocalSurface | None
     built: float  # time.monotonic()
@@ -73,7 +73,7 @@ class ServedReading:
         self._growth = node.local_growth
         self._on_error = on_error
         self._lock = threading.Lock()
-        self._held: _Held | None = None
+        self._held: _Reading | None = None
         self._building = False
         self._builds = (0, 0.0)
 
@@ -125,7 +125,7 @@ class ServedReading:
                 self._start(snap)
 
     # -- internals (under _lock where said) --------------------------------------------
-    def _due(self, held: _Held, snap: Any) -> bool:
+    def _due(self, held: _Reading, snap: Any) -> bool:
         """Whether to build ``snap``'s reading now, ``held`` serving (under ``_lock``)."""
         if self._building:
             return False
@@ -145,7 +145,7 @@ class ServedReading:
         with self._lock:
             held = self._held
             if held is None or held.replacements != replacements or held.snapshot.version <= snap.version:
-                self._held = _Held(snap, local, time.monotonic(), replacements)
+                self._held = _Reading(snap, local, time.monotonic(), replacements)
 
     def _build(self, snap: Any) -> None:
         """Build a snapshot's reading: niced below the queries' threads, on one core."""
