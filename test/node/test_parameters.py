@@ -17,8 +17,15 @@ from rclpy.parameter import Parameter  # noqa: E402
 from support import assert_edge_taken, edge_cases  # noqa: E402
 
 from uncertain_facade_map.errors import InputError  # noqa: E402
-from uncertain_facade_map.params import LOCALIZER_NAME, LOCALIZER_SECTIONS, Config, node_sections, parameters  # noqa: E402
-from uncertain_facade_map_node.node import NODE_NAME, declare_config  # noqa: E402
+from uncertain_facade_map.params import (  # noqa: E402
+    LOCALIZER_NAME,
+    LOCALIZER_SECTIONS,
+    NODE_NAME,
+    Config,
+    node_sections,
+    parameters,
+)
+from uncertain_facade_map_node.runtime import declare_config  # noqa: E402
 
 CASES = edge_cases()
 

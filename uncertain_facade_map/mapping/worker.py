@@ -142,7 +142,8 @@ class Cloud:
         building_id: (N,) int64 building ids (negative: none), or None.
         sensor_origins: (N, 3) sensor positions, metres, map frame, or None.
         stamp_ns: acquisition stamp, nanoseconds.
-        arrived: ``time.monotonic()`` when it was queued (set by :meth:`MapWorker.put`).
+        arrived: ``time.monotonic()`` when it arrived (the node's gate sets it; else
+            :meth:`MapWorker.put` does): latencies count from it.
     """
 
     xyz: np.ndarray

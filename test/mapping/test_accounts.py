@@ -1,16 +1,11 @@
-"""The node's estimate of the clouds lost before they reached it, from gaps in the stamps."""
+"""The accounts of a live mapper: the clouds lost before they reached it, from gaps in the stamps."""
 
 from __future__ import annotations
-
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-pytest.importorskip('rclpy')
-pytest.importorskip('uncertain_facade_map.srv')
-
-from uncertain_facade_map_node.node import FacadeMapperNode  # noqa: E402
+from uncertain_facade_map.mapping.accounts import Accounts
 
 
 @pytest.mark.parametrize('lost_share', [0.0, 0.1, 0.6])
@@ -23,8 +18,8 @@ def test_lost_clouds_are_estimated_from_the_stamps(lost_share):
     stamps = (np.arange(n) * 0.1 + rng.normal(0, 0.001, n)) * 1e9
     kept = rng.random(n) >= lost_share
     kept[:10] = True
-    node = SimpleNamespace(_last_stamp={}, counters={'clouds_missed_estimate': 0})
-    for stamp in stamps[kept]:
-        FacadeMapperNode._count_gap(node, 'lidar', int(stamp))
+    accounts = Accounts(print)
+    told = sum(accounts.count_gap('lidar', int(stamp)) for stamp in stamps[kept])
     lost = int((~kept).sum())
-    assert abs(node.counters['clouds_missed_estimate'] - lost) <= max(2, 0.03 * lost)
+    assert abs(accounts.counters['clouds_missed_estimate'] - lost) <= max(2, 0.03 * lost)
+    assert told == accounts.counters['clouds_missed_estimate']

@@ -14,7 +14,7 @@ import pytest
 from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.params import TilesConfig
 from uncertain_facade_map.pipeline.step7_queries import ANSWER_FIELDS, PointQuery
-from uncertain_facade_map_node.tiled import (
+from uncertain_facade_map.tiling.serving import (
     LIVE_FACADE_OFFSET,
     TileFollower,
     check_radius,
