@@ -107,6 +107,12 @@ MODEL_LAG = 3
 #: façade, so small pieces cost nearly as much as large ones: one lap of the simulated street
 #: kept up cloud by cloud cost 66 CPU s with pieces from 5,000 points, 30 s from 20,000) ...
 MODEL_MAX_WAIT = 100
+#: Calls of :meth:`FacadeMap.store_points` a due full round (the scan comparison, then the
+#: pools: RANSAC for new façades) waits behind ready pieces of stored points at most; then,
+#: while clouds keep coming, the round's pieces take every other model step. Without it a
+#: drive that never pauses never had its full round, and no new façade until it stopped (the
+#: simulated residential drive replayed for 2 minutes: 4 of 48 façades the whole time).
+ROUND_MAX_WAIT = 10
 
 
 @dataclass(frozen=True, eq=False)
@@ -218,6 +224,11 @@ class FacadeMap:
     _unmodelled_since: dict[int, int] = field(default_factory=dict, init=False, repr=False)
     #: Buildings whose pools a started full round still has to look at (:meth:`model_step`).
     _pools_due: list[int] = field(default_factory=list, init=False, repr=False)
+    #: ``_stores`` when a full round became due behind ready pieces (None: not waiting), when
+    #: the round under way started, and whether the round took the last contested step.
+    _round_due_since: int | None = field(default=None, init=False, repr=False)
+    _round_started: int = field(default=0, init=False, repr=False)
+    _round_turn: bool = field(default=False, init=False, repr=False)
     #: The scan comparison under way in pieces (:meth:`_start_registration`), or None.
     _registration_round: tuple | None = field(default=None, init=False, repr=False)
 
@@ -380,10 +391,30 @@ class FacadeMap:
         """Whether :meth:`model_step` has work now: stored points to model (but those of the
         latest :data:`MODEL_LAG` clouds), or a full round due (``update.batch_points`` stored,
         or :data:`FULL_AFTER_RECEIVED` batches received, since the last one) or under way."""
+        return bool(self._next_to_model() is not None or self._pools_due or self._registration_round is not None
+                    or self._round_due())
+
+    def _round_due(self) -> bool:
+        """Whether a full round is due (``update.batch_points`` stored, or
+        :data:`FULL_AFTER_RECEIVED` batches received, since the last one) and has work."""
         batch = self.params.update.batch_points
         due = self._since_full >= batch or self._received_since_full >= FULL_AFTER_RECEIVED * batch
-        return bool(self._next_to_model() is not None or self._pools_due or self._registration_round is not None
-                    or due and (self._unchecked or self._registration_queue))
+        return bool(due and (self._unchecked or self._registration_queue))
+
+    def _round_first(self) -> bool:
+        """Whether the next model step goes to the full round rather than to a ready piece of
+        stored points: pieces first (a drive stored before it is modelled is modelled as
+        before), unless clouds keep coming: a due round then waits :data:`ROUND_MAX_WAIT`
+        stores at most, and a round under way takes every other step while stores come."""
+        if self._registration_round is not None or self._pools_due:
+            self._round_turn = not self._round_turn
+            return self._round_turn and self._stores > self._round_started
+        if not self._round_due():
+            self._round_due_since = None
+            return False
+        if self._round_due_since is None:
+            self._round_due_since = self._stores
+        return self._stores - self._round_due_since >= ROUND_MAX_WAIT
 
     def model_step(self, max_points: int | None = None) -> list[int]:
         """One bounded piece of live mapping's second tier, so that a cloud waiting to be
@@ -391,7 +422,8 @@ class FacadeMap:
         yet (at most ``max_points`` of them, in arrival order) allocated to its façades and
         those updated, as :meth:`add_points` updates them; once they are all modelled and a
         full round is due, the scan comparison (one piece), then the pools of the buildings
-        that received points, one building a piece (RANSAC for new façades).
+        that received points, one building a piece (RANSAC for new façades). While clouds
+        keep coming the round does not wait for the pieces to run out (:meth:`_round_first`).
 
         Returns:
             The labels of the buildings updated (empty when there was nothing to do).
@@ -399,6 +431,8 @@ class FacadeMap:
         t0 = time.perf_counter()
         with one_blas_thread():
             b = self._next_to_model() if self._recent else next(iter(self._unmodelled), None)
+            if b is not None and self._round_first():
+                b = None  # the full round's turn (see _round_first)
             if b is not None:
                 first = self._unmodelled[b]
                 n = len(self.points[b])
@@ -428,6 +462,7 @@ class FacadeMap:
                     self._update_building(b, n, True, n)
                 done = [b]
             elif self.needs_model:  # a full round: compare the scans, then the pools, a piece each
+                self._round_due_since, self._round_started = None, self._stores
                 started = time.perf_counter()
                 self._start_registration()
                 self.last_update = _update_record([], time.perf_counter() - started)
