@@ -17,18 +17,24 @@ def scene(scenes):
     return scenes.scene('small')
 
 
-@pytest.fixture(scope='module')
-def drive(scenes):
-    """The small scene's building points in time order, cut into 1 s batches."""
+def cut_drive(scenes, seconds: float) -> tuple[list[tuple[np.ndarray, ...]], np.ndarray]:
+    """The small scene's building points in time order, cut into batches of ``seconds``:
+    [(xyz (N, 3), building ids (N,), sensor origins (N, 3))], and the map origin."""
     cloud = scenes.campaign('small', 0)
     pts = cloud.points[cloud.points['class'] == 1]
     pts = pts[np.argsort(pts['time'], kind='stable')]
     xyz = np.stack([pts['x'], pts['y'], pts['z']], 1)
     origins = np.stack([pts['origin_x'], pts['origin_y'], pts['origin_z']], 1)
-    edges = np.searchsorted(pts['time'], np.arange(np.floor(pts['time'][0]) + 1, pts['time'][-1], 1.0))
+    edges = np.searchsorted(pts['time'], np.arange(np.floor(pts['time'][0]) + seconds, pts['time'][-1], seconds))
     bounds = np.unique(np.r_[0, edges, len(pts)])
     batches = [(xyz[a:b], pts['building_id'][a:b], origins[a:b]) for a, b in zip(bounds[:-1], bounds[1:])]
     return batches, cloud.map_origin
+
+
+@pytest.fixture(scope='module')
+def drive(scenes):
+    """The small scene's building points in time order, cut into 1 s batches."""
+    return cut_drive(scenes, 1.0)
 
 
 def feed(batches, map_origin, fmap=None):
@@ -301,18 +307,11 @@ def test_a_drive_that_never_pauses_gets_its_full_rounds(scenes, monkeypatch):
     one go."""
     from uncertain_facade_map.mapping import facade_map as fm
 
-    cloud = scenes.campaign('small', 0)
-    pts = cloud.points[cloud.points['class'] == 1]
-    pts = pts[np.argsort(pts['time'], kind='stable')]
-    xyz = np.stack([pts['x'], pts['y'], pts['z']], 1)
-    origins = np.stack([pts['origin_x'], pts['origin_y'], pts['origin_z']], 1)
-    edges = np.searchsorted(pts['time'], np.arange(np.floor(pts['time'][0]) + 0.1, pts['time'][-1], 0.1))
-    bounds = np.unique(np.r_[0, edges, len(pts)])
-    clouds = [(xyz[a:b], pts['building_id'][a:b], origins[a:b]) for a, b in zip(bounds[:-1], bounds[1:])]
+    clouds, origin = cut_drive(scenes, 0.1)
     params = MapParams(update=UpdateParams(step_points=50, batch_points=2000))
 
     def drive() -> tuple[FacadeMap, list[int]]:
-        live, seen = FacadeMap(params, cloud.map_origin), []
+        live, seen = FacadeMap(params, origin), []
         for c in clouds:
             live.store_points(*c)
             live.model_step(50)
@@ -325,5 +324,5 @@ def test_a_drive_that_never_pauses_gets_its_full_rounds(scenes, monkeypatch):
     monkeypatch.setattr(fm, 'ROUND_MAX_WAIT', 10**9)  # the rule before: pieces first, always
     assert max(drive()[1]) == 0
     live.flush()
-    whole = build_map(xyz, pts['building_id'], origins, params, cloud.map_origin)
+    whole = build_map(*(np.concatenate(parts) for parts in zip(*clouds)), params, origin)
     assert len(live.facades) == len(whole.facades) == 4
