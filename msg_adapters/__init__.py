@@ -40,6 +40,7 @@ from .pointcloud2 import (
 from .transforms import (
     StampedTransform,
     feed,
+    header_stamp_ns,
     odometry_msg,
     pose_stamped_msg,
     stamped_transforms,
@@ -60,6 +61,7 @@ __all__ = [
     'feed',
     'fill_list_tiles_response',
     'fill_query_response',
+    'header_stamp_ns',
     'list_topics',
     'load_inputs',
     'occupancy_grid_msg',

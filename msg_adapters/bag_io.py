@@ -40,7 +40,7 @@ from uncertain_facade_map.io.inputs import load_inputs as core_load_inputs
 from uncertain_facade_map.transforms import TransformBuffer
 
 from .pointcloud2 import pointcloud2_from_structured, rosbags_types, structured_from_pointcloud2
-from .transforms import StampedTransform, stamped_transforms, transform_arrays
+from .transforms import StampedTransform, header_stamp_ns, stamped_transforms, transform_arrays
 
 #: custom_data key of ROS 2 bags holding the map origin, ``'x y z'`` as Python float reprs.
 ORIGIN_KEY = 'uncertain_facade_map/map_origin'
@@ -516,9 +516,7 @@ def read_bag(
 
 def _scan(msg: Any) -> tuple[int, np.ndarray, str]:
     """(stamp_ns, points, frame_id) of a PointCloud2 message."""
-    stamp = msg.header.stamp
-    return (int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec), structured_from_pointcloud2(msg),
-            str(msg.header.frame_id))
+    return header_stamp_ns(msg.header), structured_from_pointcloud2(msg), str(msg.header.frame_id)
 
 
 def _scans_of(reader: Any, topic: str, limit: int | None = None) -> Iterator[tuple[int, np.ndarray, str]]:

@@ -74,14 +74,15 @@ class StampedTransform:
 # --------------------------------------------------------------------------------------
 
 
-def _stamp_ns(header: Any) -> int:
+def header_stamp_ns(header: Any) -> int:
+    """A message header's stamp, integer nanoseconds (rclpy's and rosbags' headers alike)."""
     return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
 
 
 def _from_transform_stamped(msg: Any) -> StampedTransform:
     tr = msg.transform.translation
     q = msg.transform.rotation
-    return StampedTransform(str(msg.header.frame_id), str(msg.child_frame_id), _stamp_ns(msg.header),
+    return StampedTransform(str(msg.header.frame_id), str(msg.child_frame_id), header_stamp_ns(msg.header),
                             (float(tr.x), float(tr.y), float(tr.z)),
                             (float(q.x), float(q.y), float(q.z), float(q.w)))
 
@@ -126,7 +127,7 @@ def stamped_transforms(msg: Any, *, child_frame: str | None = None) -> list[Stam
             kind = 'Odometry with an empty child_frame_id' if hasattr(msg, 'child_frame_id') else type(msg).__name__
             raise InputError(f'{kind} names no child frame: pass child_frame, the frame whose pose it gives')
         p, q = pose.position, pose.orientation
-        return [StampedTransform(str(msg.header.frame_id), str(child), _stamp_ns(msg.header),
+        return [StampedTransform(str(msg.header.frame_id), str(child), header_stamp_ns(msg.header),
                                  (float(p.x), float(p.y), float(p.z)),
                                  (float(q.x), float(q.y), float(q.z), float(q.w)))]
     raise InputError(f'{type(msg).__name__} is not a transform message: expected a tf2_msgs/TFMessage, '

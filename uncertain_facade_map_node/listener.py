@@ -26,6 +26,7 @@ from uncertain_facade_map.errors import InputError, TransformError
 from uncertain_facade_map.mapping.accounts import Accounts
 from uncertain_facade_map.params import NodeConfig
 from uncertain_facade_map.transforms import TransformBuffer
+from uncertain_facade_map_node.runtime import failed
 
 __all__ = ['PoseListener']
 
@@ -117,11 +118,7 @@ class PoseListener:
         try:
             fn(*args)
         except Exception as exc:  # noqa: BLE001 - the node must live on
-            if not self._node.context.ok():
-                return
-            self._accounts.event('callback_error', f'pose callback failed: {type(exc).__name__}: {exc}')
-            self._node.get_logger().error(f'pose callback failed: {type(exc).__name__}: {exc}',
-                                          throttle_duration_sec=5.0)
+            failed(self._node, self._accounts, 'pose callback', exc)
 
     def xy(self, map_frame: str, *frames: str) -> np.ndarray | None:
         """The latest map-frame (x, y) of the first of ``frames`` the buffer can place (empty

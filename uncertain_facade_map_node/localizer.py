@@ -50,7 +50,7 @@ from uncertain_facade_map.localisation import PoseEstimate, covariance_from_std,
 from uncertain_facade_map.localisation.se3 import inverse, se3_exp, se3_log
 from uncertain_facade_map.params import LOCALIZER_NAME, LOCALIZER_SECTIONS, Config
 from uncertain_facade_map.srv import QueryPoints
-from uncertain_facade_map_node.runtime import declare_config, spin, stamp_ns
+from uncertain_facade_map_node.runtime import declare_config, spin
 
 
 class FacadeLocalizerNode(Node):
@@ -198,7 +198,7 @@ class FacadeLocalizerNode(Node):
 
     def _localise(self, msg: Any) -> bool:
         """Localise the scan and publish its pose; False (nothing done) when it has no prior."""
-        stamp = stamp_ns(msg.header)
+        stamp = ma.header_stamp_ns(msg.header)
         xyz = points_xyz(ma.structured_from_pointcloud2(msg))
         xyz = xyz[np.isfinite(xyz).all(axis=1)]
         prior = self._prior_for(stamp)

@@ -53,12 +53,10 @@ from uncertain_facade_map.tiling.serving import ServedMap, initial_map
 from uncertain_facade_map_node.listener import PoseListener
 from uncertain_facade_map_node.publisher import MapPublisher
 from uncertain_facade_map_node.replay import dds_profile_hint
-from uncertain_facade_map_node.runtime import ServiceCheck, declare_config, guarded, spin, stamp_ns
+from uncertain_facade_map_node.runtime import ServiceCheck, declare_config, failed, guarded, spin
 
 #: Seconds between the interpreter's thread switches in the node (Python's default: 0.005).
 SWITCH_INTERVAL = 0.0005
-#: The services, relative names (remap with ``--ros-args -r``).
-SERVICES = ('query_points', 'get_facades', 'save_map', 'load_map', 'reset', 'get_map', 'list_tiles')
 
 
 def _sensor_qos(config: Any) -> QoSProfile:
@@ -99,22 +97,24 @@ class FacadeMapperNode(Node):
         self.listener = PoseListener(self, cfg.node, self.accounts)
         self._cloud_frame = ''  # the frame of the latest cloud (the tiles' last choice of a pose)
         self.served = ServedMap(self.worker, self.reading, cfg, tiled, self._pose_xy, self.accounts.warn)
-        self.publisher = MapPublisher(self, cfg, self.frame_id, self.reading, self.accounts)
+        self.publisher = MapPublisher(self, cfg, self.frame_id, self.reading, self.accounts, self.types)
         self.gate = CloudGate(self.listener.buffer, self.frame_id, cfg, self.worker, self.accounts,
-                              on_outcome=self._outcome).start()
+                              on_outcome=self._outcome,
+                              on_error=lambda exc: failed(self, self.accounts, 'cloud gate', exc)).start()
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
 
         self.create_subscription(PointCloud2, 'points', self.points_callback, _sensor_qos(cfg.node),
                                  callback_group=MutuallyExclusiveCallbackGroup())
-        services = ReentrantCallbackGroup()
-        for kind, name, callback in ((QueryPoints, 'query_points', self.query_callback),
-                                     (GetFacades, 'get_facades', self.get_facades_callback),
-                                     (SaveMap, 'save_map', self.save_callback),
-                                     (LoadMap, 'load_map', self.load_callback),
-                                     (Trigger, 'reset', self.reset_callback),
-                                     (GetMap, 'get_map', self.get_map_callback),
-                                     (ListTiles, 'list_tiles', self.list_tiles_callback)):
-            self.create_service(kind, name, callback, callback_group=services)
+        services = ((QueryPoints, 'query_points', self.query_callback),  # relative names (remap with -r)
+                    (GetFacades, 'get_facades', self.get_facades_callback),
+                    (SaveMap, 'save_map', self.save_callback),
+                    (LoadMap, 'load_map', self.load_callback),
+                    (Trigger, 'reset', self.reset_callback),
+                    (GetMap, 'get_map', self.get_map_callback),
+                    (ListTiles, 'list_tiles', self.list_tiles_callback))
+        group = ReentrantCallbackGroup()
+        for kind, name, callback in services:
+            self.create_service(kind, name, callback, callback_group=group)
         # Each timer in a group of its own: a long publication must not hold up diagnostics.
         for period, callback in ((max(0.05, min(cfg.publish.period, 1.0) or 0.1), self.publish_callback),
                                  (cfg.publish.diagnostics_period, self.diagnostics_callback),
@@ -122,7 +122,8 @@ class FacadeMapperNode(Node):
                                  (cfg.persistence.autosave_period, self.autosave_callback)):
             if period > 0:
                 self.create_timer(period, callback, callback_group=MutuallyExclusiveCallbackGroup())
-        self.service_check = ServiceCheck(self, SERVICES, MutuallyExclusiveCallbackGroup())
+        self.service_check = ServiceCheck(self, tuple(name for _, name, _ in services),
+                                          MutuallyExclusiveCallbackGroup())
         snap = self.worker.snapshot
         self.accounts.start_summary(self.worker)
         self.get_logger().info(f'mapping clouds on "{self.resolve_topic_name("points")}" into frame "{self.frame_id}" '
@@ -145,20 +146,28 @@ class FacadeMapperNode(Node):
         it waits for its transform it counts as waiting.
         """
         n = int(msg.width) * int(msg.height)
-        with self.accounts.lock:  # the diagnostics read the counts between two clouds
-            missed = self.accounts.received(msg.header.frame_id, stamp_ns(msg.header), n)
-            self._cloud_frame = str(msg.header.frame_id)
-            try:
-                self.gate.add(self._scan(msg, n), n)
-            except (InputError, ValueError, TypeError) as exc:
-                self.accounts.reject(str(exc), n)
+        frame, stamp = str(msg.header.frame_id), ma.header_stamp_ns(msg.header)
+        self._cloud_frame = frame
+        scan: Scan | None = None
+        why = ''
+        try:  # converted before the lock: the gate and the diagnostics wait for the lock only
+            scan = self._scan(msg, n, stamp)
+        except (InputError, ValueError, TypeError) as exc:
+            why = str(exc)
+        with self.accounts.lock:  # counted received and queued (or rejected) at one moment
+            missed = self.accounts.received(frame, stamp, n)
+            if scan is not None:
+                self.gate.add(scan, n)
+            else:
+                self.accounts.reject(why, n)
         hint = dds_profile_hint(len(msg.data)) if missed else None
         if hint is not None:
             self.accounts.warn(f'about {missed} clouds of "{msg.header.frame_id}" were lost before they reached the '
                                f'node (a gap in their stamps); {hint}', 'dds losses', 60.0)
 
-    def _scan(self, msg: Any, n: int) -> Scan:
-        """A cloud as a scan (its points, frame and stamp); InputError when it cannot be one."""
+    def _scan(self, msg: Any, n: int, stamp: int) -> Scan:
+        """A cloud of ``n`` points as a scan (its points, frame and ``stamp``, ns); InputError
+        when it cannot be one."""
         cfg = self.config
         if n > cfg.node.max_cloud_points:
             raise InputError(f'{n:,} points, more than node.max_cloud_points = {cfg.node.max_cloud_points:,}')
@@ -171,7 +180,7 @@ class FacadeMapperNode(Node):
                     else 'every point is taken as building (selection.mode: off)')
             self.accounts.warn(f'a cloud has no field "{cfg.input.class_field}" (input.class_field; fields: '
                                f'{", ".join(names)}): {what}', 'class field', 60.0)
-        return Scan.of(points, msg.header.frame_id, stamp_ns(msg.header), cfg.input)
+        return Scan.of(points, msg.header.frame_id, stamp, cfg.input)
 
     def _outcome(self, outcome: Outcome) -> None:
         self.get_logger().debug(outcome.line())

@@ -50,15 +50,17 @@ class MapPublisher:
         frame_id: the map frame.
         reading: the live map's reading (sent to the helper once per reading).
         accounts: where a failed publication is told.
+        types: the node's message types (``msg_adapters.map_messages.rclpy_map_types()``).
     """
 
-    def __init__(self, node: Any, config: Config, frame_id: str, reading: ServedReading, accounts: Accounts) -> None:
+    def __init__(self, node: Any, config: Config, frame_id: str, reading: ServedReading, accounts: Accounts,
+                 types: Any) -> None:
         self._node = node
         self._config = config
         self.frame_id = frame_id
         self._reading = reading
         self._accounts = accounts
-        self.types = mm.rclpy_map_types()
+        self.types = types
         self._helper = (HelperProcess('facade_products', config.node.mapping_nice)
                         if config.node.mapping_process else None)
         latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,

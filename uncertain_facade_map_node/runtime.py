@@ -15,7 +15,7 @@ from msg_adapters import parameters as mp_params
 from uncertain_facade_map.errors import FacadeMapError, InputError
 from uncertain_facade_map.params import Config, config_from_parameters, node_sections, parameters
 
-__all__ = ['ServiceCheck', 'declare_config', 'guarded', 'spin', 'stamp_ns']
+__all__ = ['ServiceCheck', 'declare_config', 'failed', 'guarded', 'spin']
 
 #: Parameters every rclpy node has, besides the declared ones.
 _BUILTIN_PARAMETERS = frozenset({'use_sim_time', 'start_type_description_service'})
@@ -66,9 +66,15 @@ def _refuse_unknown_overrides(node: Any, declared: set[str]) -> None:
         raise InputError(f'unknown parameter {name}{more}{hint}')
 
 
-def stamp_ns(header: Any) -> int:
-    """A message header's stamp, integer nanoseconds."""
-    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+def failed(node: Any, accounts: Any, name: str, exc: Exception) -> bool:
+    """Log and count (``callback_errors``) that ``name`` failed with ``exc`` in ``node``;
+    False, and nothing logged, while the node stops (``node.stopping``, or its context is
+    shut down by Ctrl-C: publishers and helper processes are going, not broken)."""
+    if getattr(node, 'stopping', False) or not node.context.ok():
+        return False
+    accounts.event('callback_error', f'{name} failed: {type(exc).__name__}: {exc}')
+    node.get_logger().error(f'{name} failed: {type(exc).__name__}: {exc}', throttle_duration_sec=5.0)
+    return True
 
 
 def guarded(callback: Callable[..., Any]) -> Callable[..., Any]:
@@ -81,12 +87,8 @@ def guarded(callback: Callable[..., Any]) -> Callable[..., Any]:
             return callback(self, *args)
         except Exception as exc:  # noqa: BLE001 - the node must live on
             response = args[1] if len(args) == 2 else None
-            if self.stopping or not self.context.ok():
-                # Shutting down (Ctrl-C): the context, publishers and helper processes are going, not broken.
+            if not failed(self, self.accounts, callback.__name__, exc):
                 return response
-            self.accounts.event('callback_error', f'{callback.__name__} failed: {type(exc).__name__}: {exc}')
-            self.get_logger().error(f'{callback.__name__} failed: {type(exc).__name__}: {exc}',
-                                    throttle_duration_sec=5.0)
             if response is not None and hasattr(response, 'success'):
                 response.success = False
                 if hasattr(response, 'message'):

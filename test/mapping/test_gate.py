@@ -174,3 +174,32 @@ def test_a_cloud_is_counted_in_while_another_is_selected():
     assert took < 0.1
     assert [o.kind for o in outcomes] == ['queued', 'queued']
     assert [c.stamp_ns for c in worker.clouds] == [SECOND, 2 * SECOND]
+
+
+def test_a_fault_in_a_step_is_reported_and_the_gate_goes_on():
+    """An exception that escapes a step (a fault of the code: here the worker's put raises
+    once) goes to on_error, and the gate's thread maps the next cloud (before the split the
+    callback doing this work was guarded; a thread that died would stop the mapping unseen)."""
+    worker = _Worker()
+    put, faults = worker.put, []
+
+    def put_once_failing(cloud):
+        worker.put = put
+        raise RuntimeError('put failed')
+
+    worker.put = put_once_failing
+    gate, accounts, outcomes = _gate(worker)
+    gate._on_error = faults.append
+    gate.start()
+    try:
+        _add(gate, accounts, _scan('map', SECOND))
+        deadline = time.monotonic() + 5
+        while not faults and time.monotonic() < deadline:
+            time.sleep(0.01)
+        _add(gate, accounts, _scan('map', 2 * SECOND))
+        while not outcomes and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        gate.stop()
+    assert [str(f) for f in faults] == ['put failed']
+    assert [o.kind for o in outcomes] == ['queued'] and worker.clouds[-1].stamp_ns == 2 * SECOND

@@ -87,12 +87,12 @@ class Accounts:
         return [e for e in list(self.events) if now - e[0] <= window]
 
     # -- clouds (the caller holds :attr:`lock`) ----------------------------------------------
-    def received(self, frame: str, stamp_ns: int, points: int, size: int = 0) -> int:
+    def received(self, frame: str, stamp_ns: int, points: int) -> int:
         """Count a cloud received; returns the clouds estimated lost just before it (:meth:`count_gap`)."""
         self.counters['clouds_received'] += 1
         self.counters['points_received'] += points
         self.interval['in'] += 1
-        return self.count_gap(frame, stamp_ns, size)
+        return self.count_gap(frame, stamp_ns)
 
     def reject(self, why: str, points: int, kind: str | None = None) -> None:
         """Count a refused cloud of ``points`` points; ``kind`` names the reason in the summary
@@ -103,12 +103,11 @@ class Accounts:
         self.event('rejected', f'cloud rejected: {why}')
         self.warn(f'cloud rejected: {why}', kind or why.split(':')[0][:30])
 
-    def count_gap(self, frame: str, stamp: int, size: int = 0) -> int:
+    def count_gap(self, frame: str, stamp: int) -> int:
         """Estimate clouds lost before they reached the mapper from the gaps between stamps
         (a gap of k typical periods means k - 1 lost); returns the clouds this gap lost. The
         typical period is the 10th percentile of the last 50 gaps: when most clouds are lost
         the median gap is itself a gap, the short ones are still the sensor's period."""
-        del size  # the caller words a warning from it
         last, periods = self._last_stamp.get(frame, (None, deque(maxlen=_PERIODS)))
         missed = 0
         if last is not None and stamp > last:

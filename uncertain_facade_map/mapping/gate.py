@@ -96,16 +96,21 @@ class CloudGate:
         worker: the map worker (``put``).
         accounts: where every outcome is counted.
         on_outcome: called (outside the lock, in the gate's thread) with each outcome.
+        on_error: called with an exception that escaped a step (a fault of the code, not of a
+            cloud: those are outcomes); the thread goes on. None: counted as a
+            ``callback_error`` event.
     """
 
     def __init__(self, transforms: TransformBuffer, frame_id: str, config: Config, worker: Any, accounts: Accounts,
-                 on_outcome: Callable[[Outcome], None] | None = None) -> None:
+                 on_outcome: Callable[[Outcome], None] | None = None,
+                 on_error: Callable[[Exception], None] | None = None) -> None:
         self.transforms = transforms
         self.frame_id = frame_id
         self._config = config
         self._worker = worker
         self._accounts = accounts
         self._on_outcome = on_outcome
+        self._on_error = on_error
         self._waiting: deque[_Waiting] = deque()
         self._outcomes: list[Outcome] = []  # since the last step (written under the accounts' lock)
         self._current: _Waiting | None = None  # the cloud being placed and selected
@@ -162,8 +167,10 @@ class CloudGate:
                 why = f'internal error: {type(exc).__name__}: {exc}'
             with lock:
                 self._current = None
-                if why:
-                    self._give_up(head, why) if transform else self._rejected(head, why)
+                if why and transform:
+                    self._give_up(head, why)
+                elif why:
+                    self._rejected(head, why)
                 elif placement is not None and found is not None:
                     self._map(head, placement, found)
                 else:  # its transform may still come: it waits at the head
@@ -250,9 +257,15 @@ class CloudGate:
             self._wake.clear()
             if self._stop:
                 return
-            for outcome in self.step():
-                if self._on_outcome is not None:
-                    self._on_outcome(outcome)
+            try:
+                for outcome in self.step():
+                    if self._on_outcome is not None:
+                        self._on_outcome(outcome)
+            except Exception as exc:  # noqa: BLE001 - the gate must live on, as the callback it replaces did
+                if self._on_error is not None:
+                    self._on_error(exc)
+                else:
+                    self._accounts.event('callback_error', f'cloud gate failed: {type(exc).__name__}: {exc}')
 
     def stop(self, timeout: float = 10.0) -> None:
         """End the thread (the clouds still waiting stay counted as waiting)."""
