@@ -10,7 +10,9 @@ compiled block kernel in two threads, the mapping process beside the node's).
 
 from __future__ import annotations
 
+import types
 from contextlib import AbstractContextManager, nullcontext
+from typing import Any
 
 
 def one_blas_thread() -> AbstractContextManager:
@@ -60,3 +62,28 @@ def threads(default: int) -> int:
 def kdtree_workers() -> int:
     """The ``workers`` of scipy's k-d tree queries: -1 (all cores) unless :func:`set_threads` set a number."""
     return -1 if _THREADS is None else _THREADS
+
+
+def serial_twin(kernel: Any, name: str, **flags: Any) -> Any:
+    """The one-core twin of the parallel compiled ``kernel`` (``prange`` runs as ``range``),
+    cached under its own ``name``.
+
+    numba names a kernel's cache entry after the function's qualified name and first line and
+    keys it by signature and source, not by its ``parallel`` flag: a twin compiled from the
+    same ``py_func`` shares the parallel kernel's entry, and whichever of the two is compiled
+    first is loaded for both from then on. The kernels' warm-up calls are small (one-core), so
+    the parallel kernels ran on one core (the query's reading took the same 60 ms per 20,000
+    points with one core or two). A copy of the function under another name has its own entry.
+
+    Args:
+        kernel: a ``numba.njit(parallel=True, cache=True)`` dispatcher.
+        name: the twin's name in its module (its cache entry's).
+        flags: further ``njit`` options (e.g. ``nogil=True``).
+    """
+    from numba import njit  # noqa: PLC0415 - the compiled kernels' modules import numba anyway
+
+    f = kernel.py_func
+    twin = types.FunctionType(f.__code__, f.__globals__, name, f.__defaults__, f.__closure__)
+    twin.__qualname__ = name
+    twin.__doc__ = f'{f.__name__} on one core (``prange`` runs as ``range``).'
+    return njit(cache=True, **flags)(twin)

@@ -38,6 +38,8 @@ from typing import Iterator
 import numpy as np
 from numba import njit, prange
 
+from ..threads import serial_twin
+
 #: Rings of cells searched at most around a query's cell; beyond, the point is flagged
 #: (``status`` 2) for the caller to search again (coarser cells, then a KD-tree).
 MAX_RING = 6
@@ -547,7 +549,7 @@ def _local_planes_range(lo: int, hi: int, rows: np.ndarray, xyz: np.ndarray, ski
 
 
 #: :func:`local_planes` on one core (``prange`` runs as ``range``): small calls.
-local_planes_serial = njit(cache=True, nogil=True)(local_planes.py_func)
+local_planes_serial = serial_twin(local_planes, 'local_planes_serial', nogil=True)
 
 
 _SERIAL = threading.local()

@@ -18,6 +18,7 @@ import numpy as np
 from numba import njit, prange
 
 from ..datatypes import SOURCE_GLOBAL, FacadeModel
+from ..threads import serial_twin
 
 _BATCH = 512
 
@@ -267,5 +268,5 @@ def raster_answer_all(which, uvd, corner, cell, shape, offset, mean, var, facet,
 #: The kernels on one core (``prange`` runs as ``range``): small calls, where waking the
 #: second core costs more than it saves.
 SERIAL_BELOW = 2048
-assign_all_serial = njit(cache=True)(assign_all.py_func)
-raster_answer_all_serial = njit(cache=True)(raster_answer_all.py_func)
+assign_all_serial = serial_twin(assign_all, 'assign_all_serial')
+raster_answer_all_serial = serial_twin(raster_answer_all, 'raster_answer_all_serial')
