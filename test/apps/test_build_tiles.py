@@ -72,7 +72,7 @@ def test_a_build_lists_its_tiles(built):
     # 200,000 points not reached), as the one-file map of the whole learns it.
     joined = merge_maps([load_map(built / r.file) for r in manifest.tiles.values()])
     assert manifest.local_calibration == local_calibration(joined)
-    assert 0.5 < manifest.local_calibration[reading_id(QueryConfig())] < 5
+    assert 0.5 < manifest.local_calibration[reading_id(QueryConfig())].scale < 5
 
 
 def test_a_killed_build_resumes_to_the_same_tiles(drives, built, tmp_path, capsys):

@@ -105,3 +105,24 @@ def test_closed_form_normal_and_in_plane_axes_against_numpy():
             assert np.linalg.norm(np.cross(vec[:, 2], want[:, 2])) < 1e-10 + 1e-13 * top / (want_lam[2] - want_lam[1])
         assert np.allclose(vec.T @ vec, np.eye(3), atol=1e-12)
     assert answered > 2000
+
+
+def test_a_cut_leaves_its_half_space_out_as_a_smaller_map_would():
+    """With a half-space cut per point, the reading equals the reading of the stored points
+    outside it (the KD-tree reference on that subset), for each of a few cuts."""
+    rng = np.random.default_rng(8)
+    pts, fid = walls(rng)
+    normals = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+    local = LocalSurface(pts, fid, normals, neighbours=12)
+    x = pts[rng.choice(3000, 40)] + rng.normal(0, 0.05, (40, 3))
+    along = np.array([1.0, 0.0, 0.0])
+    for gap in (0.0, 0.2, 0.45):
+        cut = np.c_[np.tile(along, (len(x), 1)), x @ along - gap]
+        got = local._raw(x, cut=cut)
+        for i in range(0, len(x), 8):
+            keep = pts @ along <= cut[i, 3]
+            want = LocalSurface(pts[keep], fid[keep], normals, neighbours=12)._raw_kd(x[i:i + 1])
+            assert got[0][i] == want[0][0]
+            for a, b in zip(got[1:], want[1:]):
+                assert np.allclose(a[i], b[0], rtol=1e-9, atol=1e-9)
+            assert got[7][i] >= gap  # the lever arm spans the cut's gap at least

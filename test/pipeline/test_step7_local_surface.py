@@ -105,7 +105,7 @@ def test_smoothstep_and_plane_fit_invariants():
     x = np.array([[0.1, 0.2, 0.05]])
     dist = np.linalg.norm(nb[0] - x, axis=1)[None]
     order = np.argsort(dist[0])
-    s, normal, scatter, var = fit_local_planes(x, nb[:, order], dist[:, order])
+    s, normal, scatter, var, _ = fit_local_planes(x, nb[:, order], dist[:, order])
     assert abs(abs(s[0]) - 0.05) < 1e-9 and abs(abs(normal[0, 2]) - 1) < 1e-9
     assert scatter[0] < 1e-7 and var[0] < 1e-7
 
@@ -221,3 +221,35 @@ def test_off_every_raster_the_local_plane_answers_up_to_its_reach_with_the_prior
     assert np.all(near.p_occupied[:2] < 0.05)  # 1 m and 0.8 m from a determined plane: free
     none = query_points([model], probe, 0.1, 1.0, 0.2, local=local, event='surface', reach=0.0)
     assert np.all(none.facade == -1) and np.all(none.p_occupied == 0.5)
+
+
+def test_a_plane_read_across_a_hole_gets_the_variance_of_its_gap():
+    """A wall with an 8 cm relief (1.5 m waves) and 1 cm noise, and a 2 m x 2 m hole: the
+    held-out points 0-0.5 m inside the hole are covered by the intervals once the gap's
+    variance is learnt (and not without it), while the interior keeps its coverage."""
+    rng = np.random.default_rng(3)
+
+    def wall(n):
+        u, v = rng.uniform(0, 12, n), rng.uniform(0, 6, n)
+        depth = 0.08 * np.sin(2 * np.pi * u / 1.5) * np.cos(2 * np.pi * v / 1.7)
+        return np.c_[u, depth, v], np.c_[u, depth + rng.normal(0, 0.01, n), v]
+
+    truth, noisy = wall(40_000)
+    hole = (np.abs(truth[:, 0] - 6) < 1) & (np.abs(truth[:, 2] - 3) < 1)  # held out as measured (noisy)
+    stored = ~hole & (rng.random(len(truth)) < 0.5)
+    local = LocalSurface(noisy[stored], np.zeros(stored.sum(), np.int32), np.array([[0.0, 1.0, 0.0]]))
+    local.calibrate()
+    assert 0.1 < local.gap_slope_ < 2 and 0 < local.gap_start_ < 0.3 and 0 < local.lever_start_ < 0.3
+    inside = hole & (np.maximum(np.abs(truth[:, 0] - 6), np.abs(truth[:, 2] - 3)) > 0.5)
+    interior = ~hole & ~stored
+
+    def coverage(sel, slope):
+        kept = local.gap_slope_
+        local.gap_slope_ = slope
+        r = local.read(noisy[sel])
+        local.gap_slope_ = kept
+        ok = r.weight > 0
+        return np.mean(np.abs(r.signed_distance[ok]) <= 1.96 * np.sqrt(r.variance[ok] + r.noise_variance[ok]))
+
+    assert coverage(inside, local.gap_slope_) >= 0.9 > 0.85 > coverage(inside, 0.0)
+    assert 0.93 <= coverage(interior, local.gap_slope_) <= 0.97

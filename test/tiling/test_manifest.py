@@ -13,6 +13,7 @@ from uncertain_facade_map.errors import InputError
 from uncertain_facade_map.io.map_file import load_map
 from uncertain_facade_map.mapping.facade_map import build_map
 from uncertain_facade_map.params import MapParams, map_params_record
+from uncertain_facade_map.pipeline.step7_local_surface import ReadingCalibration
 from uncertain_facade_map.tiling.grid import TileGrid, tile_id
 from uncertain_facade_map.tiling.manifest import (
     FORMAT,
@@ -54,7 +55,9 @@ def manifests(draw):
                                                                   'spread': st.floats(0.0, 2.0),
                                                                   'n_positive': st.integers(0, 10**6),
                                                                   'n_negative': st.integers(0, 10**6)})))
-    calibration = draw(st.dictionaries(st.text(min_size=1, max_size=20), st.floats(0.01, 100.0), max_size=3))
+    calibration = draw(st.dictionaries(st.text(min_size=1, max_size=20),
+                                       st.builds(ReadingCalibration, st.floats(0.01, 100.0), st.floats(0.0, 4.0),
+                                                 st.floats(0.0, 2.0), st.floats(0.0, 2.0)), max_size=3))
     registration = draw(st.one_of(st.none(), st.fixed_dictionaries({'var': st.floats(0.0, 1.0),
                                                                      'sums': st.lists(finite, min_size=3, max_size=3)})))
     return Manifest(side=draw(st.floats(0.1, 1e5)), map_origin=tuple(draw(st.lists(finite, min_size=3, max_size=3))),
@@ -122,6 +125,9 @@ def edit(change):
     (edit(lambda d: d.update(building_tiles={'3': 'tile_9_9'})), 'not listed'),
     (edit(lambda d: d.update(map_origin=[0, 0, None])), 'damaged manifest'),
     (edit(lambda d: d.update(registration={'var': 0.1})), "missing field 'sums'"),
+    (edit(lambda d: d.update(local_calibration={'local': 'x'})), 'a calibration is a number or an object'),
+    (edit(lambda d: d.update(local_calibration={'local': {'scale': 1.0, 'slope': 2.0}})), 'unknown calibration'),
+    (edit(lambda d: d.update(local_calibration={'local': {'scale': float('nan')}})), 'must be finite'),
 ])
 def test_bad_manifests_are_refused_in_one_line(tmp_path, doc, message):
     write_doc(tmp_path, doc)
@@ -133,6 +139,12 @@ def test_bad_manifests_are_refused_in_one_line(tmp_path, doc, message):
 def test_good_doc_reads(tmp_path):
     m = read_manifest(write_doc(tmp_path, good_doc()))
     assert m.tiles['tile_0_m1'].index == (0, -1) and m.building_tiles == {3: 'tile_0_m1'}
+
+
+def test_a_calibration_written_before_the_gap_reads_as_its_scale(tmp_path):
+    doc = edit(lambda d: d.update(local_calibration={'local:12:0.5:0.2': 1.25}))
+    m = read_manifest(write_doc(tmp_path, doc))
+    assert m.local_calibration == {'local:12:0.5:0.2': ReadingCalibration(1.25)}
 
 
 def test_missing_manifests(tmp_path):

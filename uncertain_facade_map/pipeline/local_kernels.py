@@ -317,14 +317,18 @@ def _in_plane(a: np.ndarray, n: np.ndarray, vec: np.ndarray, lam: np.ndarray) ->
 @njit(cache=True, nogil=True)
 def _knn(x0: float, x1: float, x2: float, pts: np.ndarray, corner: np.ndarray, zlo: np.ndarray, nz: np.ndarray, zoff: np.ndarray,
          zstart: np.ndarray, tile_keys: np.ndarray, tile_cols: np.ndarray, table: np.ndarray, shift: np.uint64,
-         cell: float, kk: int, skip: np.int64, radius: float, max_ring: int, bd: np.ndarray, bi: np.ndarray) -> int:
-    """The ``kk`` nearest sorted points to (x0, x1, x2), but ``skip``, into ``bd`` (squared
-    distances, ascending) and ``bi`` (sorted indices), searched ring by ring of cells.
+         cell: float, kk: int, skip: np.int64, radius: float, max_ring: int, bd: np.ndarray, bi: np.ndarray,
+         cut: np.ndarray) -> int:
+    """The ``kk`` nearest sorted points to (x0, x1, x2), but ``skip`` and, where ``cut`` (4,)
+    is not all zero, the points ``q`` with ``q . cut[:3] > cut[3]`` (a half-space left out),
+    into ``bd`` (squared distances, ascending) and ``bi`` (sorted indices), searched ring by
+    ring of cells.
     Returns 0: found; 1: no point within ``radius`` (only checked when ``radius`` is
     finite); 2: the search would need more than ``max_ring`` rings."""
     for j in range(kk):
         bd[j] = np.inf
         bi[j] = -1
+    cutting = cut[0] != 0.0 or cut[1] != 0.0 or cut[2] != 0.0
     g0, g1, g2 = (x0 - corner[0]) / cell, (x1 - corner[1]) / cell, (x2 - corner[2]) / cell
     if not (abs(g0) < 4.0 * _LIMIT and abs(g1) < 4.0 * _LIMIT and abs(g2) < 4.0 * _LIMIT):
         return 2  # far outside the grid (beyond its int64 cells): the caller's KD-tree
@@ -381,6 +385,9 @@ def _knn(x0: float, x1: float, x2: float, pts: np.ndarray, corner: np.ndarray, z
                                 q0, q1, q2 = pts[p, 0] - x0, pts[p, 1] - x1, pts[p, 2] - x2
                                 dd = q0 * q0 + q1 * q1 + q2 * q2
                                 if dd < bd[kk - 1]:
+                                    if cutting and (pts[p, 0] * cut[0] + pts[p, 1] * cut[1]
+                                                    + pts[p, 2] * cut[2] > cut[3]):
+                                        continue
                                     j = kk - 1
                                     while j > 0 and bd[j - 1] > dd:
                                         bd[j] = bd[j - 1]
@@ -398,12 +405,14 @@ def _knn(x0: float, x1: float, x2: float, pts: np.ndarray, corner: np.ndarray, z
 
 
 @njit(cache=True, parallel=True, nogil=True)
-def local_planes(rows: np.ndarray, xyz: np.ndarray, skip: np.ndarray, label: np.ndarray, pts: np.ndarray, corner: np.ndarray,
+def local_planes(rows: np.ndarray, xyz: np.ndarray, skip: np.ndarray, cut: np.ndarray, label: np.ndarray, pts: np.ndarray,
+                 corner: np.ndarray,
                  zlo: np.ndarray, nz: np.ndarray, zoff: np.ndarray, zstart: np.ndarray, tile_keys: np.ndarray,
                  tile_cols: np.ndarray, table: np.ndarray, shift: np.uint64, cell: float, k: int, near: int,
                  max_ring: int, normals: np.ndarray, radius: float, min_var: float,
                  fid: np.ndarray, s_out: np.ndarray, scatter_out: np.ndarray, var_out: np.ndarray,
-                 normal_out: np.ndarray, rho_out: np.ndarray, nearest_out: np.ndarray, status: np.ndarray) -> None:
+                 normal_out: np.ndarray, rho_out: np.ndarray, nearest_out: np.ndarray, offset_out: np.ndarray,
+                 status: np.ndarray) -> None:
     """The reading of :meth:`~.step7_local_surface.LocalSurface._raw` at the rows ``rows``
     of (N, 3) ``xyz`` (the outputs' other rows are not written).
 
@@ -413,6 +422,9 @@ def local_planes(rows: np.ndarray, xyz: np.ndarray, skip: np.ndarray, label: np.
         xyz: (N, 3) query points, metres.
         skip: (N,) sorted index of a stored point left out of each point's neighbours
             (leave-one-out), -1 for none.
+        cut: (N, 4) per point a half-space of stored points left out of its neighbours,
+            those ``q`` with ``q . cut[i, :3] > cut[i, 3]`` (a hole's edge emulated, metres);
+            all zero: none; (0, 4): none for any point.
         label: (M,) façade of each sorted stored point (-1: none).
         pts ... cell: the :class:`PointGrid` of the stored points (``PointGrid.arrays()``).
         k: K (the plane's neighbours; K + 1 are searched, the last for the taper).
@@ -425,24 +437,27 @@ def local_planes(rows: np.ndarray, xyz: np.ndarray, skip: np.ndarray, label: np.
         fid, s_out, scatter_out, var_out, normal_out, rho_out: (N,) / (N, 3) outputs as
             ``_raw``'s (uncalibrated), written where ``status`` is 0.
         nearest_out: (N,) distance to the nearest stored point, metres (where ``status`` is 0).
+        offset_out: (N,) distance of the point from its neighbours' weighted centroid within
+            the plane, metres: the lever arm of a tilt of the plane (where ``status`` is 0).
         status: (N,) int8 output: 0 read, 1 no stored point within ``radius``, 2 not
             searched far enough (``max_ring``).
     """
     n = len(rows)
     nchunks = (n + _BATCH - 1) // _BATCH
     for b in prange(nchunks):
-        _local_planes_range(b * _BATCH, min(n, (b + 1) * _BATCH), rows, xyz, skip, label, pts, corner, zlo, nz, zoff, zstart,
+        _local_planes_range(b * _BATCH, min(n, (b + 1) * _BATCH), rows, xyz, skip, cut, label, pts, corner, zlo, nz, zoff, zstart,
                             tile_keys, tile_cols, table, shift, cell, k, near, max_ring, normals, radius, min_var, fid, s_out, scatter_out, var_out, normal_out,
-                            rho_out, nearest_out, status)
+                            rho_out, nearest_out, offset_out, status)
 
 
 @njit(cache=True, nogil=True)
-def _local_planes_range(lo: int, hi: int, rows: np.ndarray, xyz: np.ndarray, skip: np.ndarray, label: np.ndarray, pts: np.ndarray,
+def _local_planes_range(lo: int, hi: int, rows: np.ndarray, xyz: np.ndarray, skip: np.ndarray, cut: np.ndarray,
+                        label: np.ndarray, pts: np.ndarray,
                         corner: np.ndarray, zlo: np.ndarray, nz: np.ndarray, zoff: np.ndarray, zstart: np.ndarray, tile_keys: np.ndarray,
                         tile_cols: np.ndarray, table: np.ndarray, shift: np.uint64, cell: float, k: int, near: int,
                         max_ring: int, normals: np.ndarray, radius: float, min_var: float, fid: np.ndarray,
                         s_out: np.ndarray, scatter_out: np.ndarray, var_out: np.ndarray, normal_out: np.ndarray,
-                        rho_out: np.ndarray, nearest_out: np.ndarray, status: np.ndarray) -> None:
+                        rho_out: np.ndarray, nearest_out: np.ndarray, offset_out: np.ndarray, status: np.ndarray) -> None:
     """:func:`local_planes` of the rows ``rows[lo:hi]`` (scratch arrays allocated once)."""
     kk = k + 1
     nf = len(normals)
@@ -455,10 +470,11 @@ def _local_planes_range(lo: int, hi: int, rows: np.ndarray, xyz: np.ndarray, ski
     vec = np.empty((3, 3))
     nv = np.empty(3)
     c = np.empty(3)
+    none = np.zeros(4)
     for t in range(lo, hi):
         i = rows[t]
         st = _knn(xyz[i, 0], xyz[i, 1], xyz[i, 2], pts, corner, zlo, nz, zoff, zstart, tile_keys, tile_cols, table, shift,
-                  cell, kk, skip[i], radius, max_ring, bd, bi)
+                  cell, kk, skip[i], radius, max_ring, bd, bi, cut[i] if len(cut) else none)
         status[i] = st
         if st != 0:
             continue
@@ -546,6 +562,7 @@ def _local_planes_range(lo: int, hi: int, rows: np.ndarray, xyz: np.ndarray, ski
             normal_out[i, a] = sign * vec[a, 0]
         rho_out[i] = np.sqrt(bd[near]) if f >= 0 else np.inf
         nearest_out[i] = np.sqrt(bd[0])
+        offset_out[i] = np.sqrt(u1 * u1 + u2 * u2)
 
 
 #: :func:`local_planes` on one core (``prange`` runs as ``range``): small calls.

@@ -30,7 +30,19 @@ nearest stored points and the plane per point on both cores; :func:`fit_local_pl
    the centroid (it grows with the distance from the data);
 4. both scaled by one factor ``calibration_`` learnt on the stored points themselves,
    leave-one-out (:meth:`LocalSurface.calibrate`): the factor that puts 95 % of the
-   stored points' leave-one-out residuals inside ``1.96 sqrt(sigma^2 + var)``;
+   stored points' leave-one-out residuals inside ``1.96 sqrt(sigma^2 + var)``; and, where
+   the point lies farther from the data than the stored points lie from each other, the
+   variance of a plane carried across a gap (issue 39), ``(gap_slope_ g)^2`` with the gap
+   ``g = max(rho - gap_start_, offset - lever_start_, 0)``: ``offset`` is the point's
+   distance from its neighbours' weighted centroid within the plane (the lever arm of a
+   tilt of the plane), and both starts are what the stored points themselves read
+   leave-one-out (the sampling, not a distance in metres fixed for all data: a far wall's
+   sparse rings read as its own spacing). The slope is learnt on the same stored points
+   read with every neighbour beyond a straight edge cut away (:meth:`LocalSurface.calibrate`),
+   so that the plane is read one-sided across a gap of known width, as at the edge of a
+   hole. The plane's own leverage (step 3) assumes the plane holds beyond its neighbours; a
+   wall's relief, a second layer and a plane tilted by neighbours along one scan line do not
+   (on the real sweeps: 95 % of such readings 0.43-0.47 m off at 0.45 m from the data);
 5. the blend weight ``w = smoothstep((radius - rho) / (radius - inner))``, where ``rho`` is
    the distance to the ``NEAR``-th nearest stored point: 1 where those lie within
    ``inner``, 0 beyond ``radius`` (the raster alone), continuous between. The blended
@@ -67,6 +79,13 @@ NEAR = 1
 CALIBRATION_POINTS = 20_000
 #: The coverage the calibration aims at, and its interval's half width in sigmas.
 COVERAGE, Z95 = 0.95, 1.959963984540054
+#: A point lies across a gap where it is farther from the data than most stored points are
+#: from their neighbours (leave-one-out): its ``rho`` beyond this quantile of theirs, or its
+#: offset from its neighbours' centroid beyond this quantile of theirs (step 4).
+GAP_QUANTILES = (0.75, 0.95)
+#: Gap slope's search bound (extra standard deviation per metre of gap; the real sweeps
+#: learn 0.5-0.6).
+MAX_GAP_SLOPE = 4.0
 #: Sigmas of disagreement at which the raster's share in the blend falls to exp(-1/2).
 AGREEMENT = 3.0
 #: Leave-one-out sigmas (uncalibrated) beyond which a chi-squared outlier of the façade
@@ -109,7 +128,10 @@ class LocalReading:
     Attributes:
         facade: (N,) int32 façade of the nearest stored point, -1 where no stored point.
         signed_distance: (N,) ``s_l``, metres, positive outside (along ``normal``).
-        variance: (N,) variance of the local plane at the point, m^2 (calibrated).
+        variance: (N,) variance of the local plane at the point, m^2 (calibrated, its gap's
+            included).
+        gap_variance: (N,) the part of ``variance`` that is the gap's
+            (:meth:`LocalSurface.gap_variance`), m^2.
         noise_variance: (N,) scatter of the stored points about it, m^2 (calibrated).
         normal: (N, 3) unit local normal, map frame, turned like the façade's.
         weight: (N,) blend weight in [0, 1] (1: the local reading alone; 0: the raster).
@@ -121,6 +143,49 @@ class LocalReading:
     noise_variance: np.ndarray
     normal: np.ndarray
     weight: np.ndarray
+    gap_variance: np.ndarray
+
+
+@dataclass(frozen=True)
+class ReadingCalibration:
+    """What :meth:`LocalSurface.calibrate` learns, to read another surface with (a tiled
+    map's views read with the map-wide values; ``LocalSurface`` fields of the same names
+    ending in ``_``).
+
+    Attributes:
+        scale: the variances' leave-one-out factor (``calibration_``).
+        gap_slope: extra standard deviation per metre of gap (``gap_slope_``).
+        gap_start: metres of ``rho`` where the gap starts (``gap_start_``).
+        lever_start: metres of offset from the neighbours' centroid where it starts
+            (``lever_start_``).
+    """
+
+    scale: float = 1.0
+    gap_slope: float = 0.0
+    gap_start: float = 0.0
+    lever_start: float = 0.0
+
+    def as_dict(self) -> dict[str, float]:
+        """The JSON object (a tiled map's manifest)."""
+        return {'scale': self.scale, 'gap_slope': self.gap_slope, 'gap_start': self.gap_start,
+                'lever_start': self.lever_start}
+
+    @classmethod
+    def parse(cls, value: object) -> ReadingCalibration:
+        """From :meth:`as_dict`'s object, or a number (a manifest written before the gap:
+        the scale alone). Raises ValueError on anything else or a non-finite value."""
+        if isinstance(value, dict):
+            unknown = set(value) - {'scale', 'gap_slope', 'gap_start', 'lever_start'}
+            if unknown:
+                raise ValueError(f'unknown calibration fields {sorted(unknown)}')
+            out = cls(**{k: float(v) for k, v in value.items()})
+        elif isinstance(value, (int, float)) and not isinstance(value, bool):
+            out = cls(float(value))
+        else:
+            raise ValueError(f'a calibration is a number or an object, got {value!r}')
+        if not all(np.isfinite(v) for v in out.as_dict().values()):
+            raise ValueError(f'a calibration must be finite, got {out.as_dict()}')
+        return out
 
 
 def smoothstep(t: np.ndarray) -> np.ndarray:
@@ -147,10 +212,11 @@ def fit_local_planes(x: np.ndarray, nb: np.ndarray, dist: np.ndarray
         dist: (N, K + 1) their distances, metres.
 
     Returns:
-        ``(s, normal, scatter, plane_var)``: (N,) signed distance of ``x`` to the plane
-        along ``normal`` (sign not yet turned), (N, 3) unit normals, (N,) scatter
-        ``sigma^2`` (bias corrected) and (N,) variance of the plane at ``x`` (uncalibrated,
-        m^2).
+        ``(s, normal, scatter, plane_var, offset)``: (N,) signed distance of ``x`` to the
+        plane along ``normal`` (sign not yet turned), (N, 3) unit normals, (N,) scatter
+        ``sigma^2`` (bias corrected), (N,) variance of the plane at ``x`` (uncalibrated,
+        m^2) and (N,) distance of ``x`` from the neighbours' weighted centroid within the
+        plane, metres.
     """
     taper = np.maximum(dist[:, -1:], 1e-9)
     w = np.square(np.clip(1.0 - np.square(dist[:, :-1] / taper), 0.0, 1.0))
@@ -173,7 +239,8 @@ def fit_local_planes(x: np.ndarray, nb: np.ndarray, dist: np.ndarray
     s = np.einsum('ni,ni->n', off, normal)
     lev = (np.square(np.einsum('ni,ni->n', off, vec[:, :, 1])) / np.maximum(lam[:, 1], MIN_VAR)
            + np.square(np.einsum('ni,ni->n', off, vec[:, :, 2])) / np.maximum(lam[:, 2], MIN_VAR))
-    return s, normal, scatter, scatter * (1.0 + lev) / n_eff
+    offset = np.sqrt(np.maximum(np.einsum('ni,ni->n', off, off) - s * s, 0.0))
+    return s, normal, scatter, scatter * (1.0 + lev) / n_eff, offset
 
 
 @dataclass(eq=False)
@@ -194,6 +261,11 @@ class LocalSurface:
             switch between the two readings instead of a blend).
         calibration_: the leave-one-out scale of the variances (:meth:`calibrate`;
             1 until then).
+        gap_slope_: extra standard deviation of a plane read across a gap, per metre of
+            gap (:meth:`gap_variance`, :meth:`calibrate`; 0 until then, dimensionless).
+        gap_start_, lever_start_: the stored points' own ``rho`` and offset from their
+            neighbours' centroid (leave-one-out) at ``GAP_QUANTILES``: the gap counts from
+            there, metres (:meth:`calibrate`).
         source: (M,) int64 index of each point in the map's stored points concatenated in
             building label order (:meth:`of`; None: the points as given).
         noise_floor: (F,) per façade, the least scatter a local plane on it is read with, m^2
@@ -207,6 +279,9 @@ class LocalSurface:
     radius: float = 0.5
     inner: float = 0.2
     calibration_: float = 1.0
+    gap_slope_: float = 0.0
+    gap_start_: float = 0.0
+    lever_start_: float = 0.0
     source: np.ndarray | None = field(default=None, repr=False)
     noise_floor: np.ndarray | None = field(default=None, repr=False)
     _tree: cKDTree | None = field(default=None, init=False, repr=False)
@@ -279,7 +354,7 @@ class LocalSurface:
             z = np.empty(len(flagged))
             for start in range(0, len(flagged), CHUNK):
                 p = flagged[start:start + CHUNK]
-                _, s, scatter, plane_var, _, _, _ = out.raw(xyz[p], skip=p)
+                _, s, scatter, plane_var, _, _, _, _ = out.raw(xyz[p], skip=p)
                 z[start:start + CHUNK] = np.abs(s) / np.sqrt(scatter + plane_var)
             alone = flagged[(z > OUTLIER_Z) | np.concatenate(fronts)[flagged]]
             if len(alone):
@@ -304,7 +379,8 @@ class LocalSurface:
             return self
         grid = copy.copy(self.grid)  # the arrays shared; this one's order is the identity
         out = LocalSurface(grid.points, self.facade[grid.order].astype(np.int32), self.normals, self.neighbours,
-                           self.radius, self.inner, self.calibration_, noise_floor=self.noise_floor)
+                           self.radius, self.inner, self.calibration_, self.gap_slope_, self.gap_start_,
+                           self.lever_start_, noise_floor=self.noise_floor)
         grid.order = np.arange(len(grid.points), dtype=np.int32)
         out._grid = grid
         out._orders[id(grid)] = [grid, out.facade, None]  # the labels in the grid's order: its own
@@ -379,19 +455,21 @@ class LocalSurface:
             idx = np.concatenate([idx, np.repeat(idx[:, -1:], pad, 1)], axis=1)
         return dist, idx
 
-    def _raw(self, xyz: np.ndarray, skip: np.ndarray | None = None, radius: float = np.inf
-             ) -> tuple[np.ndarray, ...]:
+    def _raw(self, xyz: np.ndarray, skip: np.ndarray | None = None, radius: float = np.inf,
+             cut: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
         """``(fid, s, scatter, plane_var, normal, rho, nearest)`` at (N, 3) points (leaving the
         stored points ``skip`` out, leave-one-out): the compiled kernels
         (:func:`~.local_kernels.local_planes`), the KD-tree's numpy reading
         (:meth:`_raw_kd`) for the few points the grid's search does not reach. Points with no
-        stored point within ``radius`` get NaN and ``nearest`` inf."""
+        stored point within ``radius`` get NaN and ``nearest`` inf. ``cut``: (N, 4) per point
+        a half-space of stored points left out (:func:`~.local_kernels.local_planes`); its
+        points the grids do not reach get NaN (no KD-tree reading)."""
         n = len(xyz)
         if len(self.points) < self.neighbours + 2:
             return self._raw_kd(xyz, skip)
         g = self.grid
         fid = np.full(n, -1, np.int32)
-        s, scatter, plane_var, rho, nearest = (np.full(n, np.nan) for _ in range(5))
+        s, scatter, plane_var, rho, nearest, offset = (np.full(n, np.nan) for _ in range(6))
         nearest[:] = np.inf
         normal = np.full((n, 3), np.nan)
         status = np.zeros(n, np.int8)
@@ -401,37 +479,41 @@ class LocalSurface:
         ijk = np.clip(np.floor((xyz - g.corner) / (g.cell * np.array([TILE, TILE, 1.0]))), -1, 1 << 20).astype(np.int64)
         order = np.argsort(((ijk[:, 0] + 1) << 42) | ((ijk[:, 1] + 1) << 21) | (ijk[:, 2] + 1))
         x = np.ascontiguousarray(xyz, dtype=np.float64)
+        none = np.zeros((0, 4))
+        if cut is not None:
+            cut = np.ascontiguousarray(cut, dtype=np.float64).reshape(n, 4)
         for coarse in (False, True):  # the few points far from K + 1 stored points: again, on coarser cells
             grid = self.coarse_grid if coarse else g
             labels, inverse = self._in_grid_order(grid, inverse=skip is not None)
             sk = np.full(n, -1, np.int64) if skip is None else inverse[skip]
-            planes(order, x, sk, labels, *grid.arrays(), self.neighbours, min(NEAR, self.neighbours) - 1, MAX_RING,
-                   normals, float(radius), MIN_VAR, fid, s, scatter, plane_var, normal, rho, nearest, status)
+            planes(order, x, sk, none if cut is None else cut, labels, *grid.arrays(), self.neighbours, min(NEAR, self.neighbours) - 1, MAX_RING,
+                   normals, float(radius), MIN_VAR, fid, s, scatter, plane_var, normal, rho, nearest, offset, status)
             order = order[status[order] == 2]
             if not len(order):
                 break
         far = np.flatnonzero(status == 2)
-        if len(far):
+        if len(far) and cut is None:
             out = self._raw_kd(xyz[far], None if skip is None else skip[far])
-            for a, b in zip((fid, s, scatter, plane_var, normal, rho, nearest), out):
+            for a, b in zip((fid, s, scatter, plane_var, normal, rho, nearest, offset), out):
                 a[far] = b
-        return fid, s, scatter, plane_var, normal, rho, nearest
+        return fid, s, scatter, plane_var, normal, rho, nearest, offset
 
-    def raw(self, xyz: np.ndarray, skip: np.ndarray | None = None, radius: float = np.inf) -> tuple[np.ndarray, ...]:
+    def raw(self, xyz: np.ndarray, skip: np.ndarray | None = None, radius: float = np.inf,
+            cut: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
         """:meth:`_raw` with the scatter (and the plane's variance with it) floored at the
         façade's :attr:`noise_floor` (uncalibrated, m^2)."""
-        fid, s, scatter, plane_var, normal, rho, nearest = self._raw(xyz, skip, radius)
+        fid, s, scatter, plane_var, normal, rho, nearest, offset = self._raw(xyz, skip, radius, cut)
         if self.noise_floor is not None and len(self.noise_floor):
             floor = np.where(fid >= 0, self.noise_floor[np.maximum(fid, 0)], 0.0)
             ratio = np.maximum(scatter, floor) / np.maximum(scatter, MIN_VAR)
             ratio = np.where(np.isfinite(ratio) & (ratio > 1.0), ratio, 1.0)
             scatter, plane_var = scatter * ratio, plane_var * ratio
-        return fid, s, scatter, plane_var, normal, rho, nearest
+        return fid, s, scatter, plane_var, normal, rho, nearest, offset
 
     def _raw_kd(self, xyz: np.ndarray, skip: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
         """:meth:`_raw` by the KD-tree and numpy (the reference the kernels reproduce)."""
         dist, idx = self._neighbours(xyz, skip)
-        s, normal, scatter, plane_var = fit_local_planes(xyz, self.points[idx], dist)
+        s, normal, scatter, plane_var, offset = fit_local_planes(xyz, self.points[idx], dist)
         # The façade of the nearest neighbour that belongs to one (-1: none does).
         labels = self.facade[idx]
         first = np.argmax(labels >= 0, axis=1)
@@ -442,49 +524,123 @@ class LocalSurface:
         normal = np.where(flip[:, None], -normal, normal)
         rho = dist[:, min(NEAR, self.neighbours) - 1]
         rho = np.where(fid >= 0, rho, np.inf)
-        return fid, s, scatter, plane_var, normal, rho, dist[:, 0]
+        return fid, s, scatter, plane_var, normal, rho, dist[:, 0], offset
 
     def calibrate(self, seed: int = 0, max_points: int = CALIBRATION_POINTS) -> float:
         """Learn ``calibration_`` leave-one-out on (at most ``max_points`` of) the stored
-        points where the local reading answers alone; returns it (1 with too few points)."""
+        points where the local reading answers alone, the gap's starts from the same
+        readings, and ``gap_slope_`` on the same points read across a gap
+        (:meth:`_calibrate_gap`); returns ``calibration_`` (1 with too few points)."""
         m = len(self.points)
-        self.calibration_ = 1.0
+        self.calibration_, self.gap_slope_, self.gap_start_, self.lever_start_ = 1.0, 0.0, 0.0, 0.0
         if m <= self.neighbours + 2:
             return self.calibration_
         rng = np.random.default_rng(seed)
         pick = np.sort(rng.choice(m, max_points, replace=False)) if m > max_points else np.arange(m)
-        z = []
+        z, rhos, levers = [], [], []
         for start in range(0, len(pick), CHUNK):
             p = pick[start:start + CHUNK]
-            _, s, scatter, plane_var, _, rho, _ = self.raw(self.points[p], skip=p)
+            _, s, scatter, plane_var, _, rho, _, offset = self.raw(self.points[p], skip=p)
             used = rho <= self.inner
             z.append(np.abs(s[used]) / np.sqrt(scatter[used] + plane_var[used]))
+            read = np.isfinite(rho) & np.isfinite(offset)
+            rhos.append(rho[read])
+            levers.append(offset[read])
         z = np.concatenate(z)
         if len(z) >= 50:
             self.calibration_ = float(np.quantile(z, COVERAGE) / Z95)
+        rhos, levers = np.concatenate(rhos), np.concatenate(levers)
+        if len(rhos) >= 50 and len(self.normals):
+            self.gap_start_ = float(np.quantile(rhos, GAP_QUANTILES[0]))
+            self.lever_start_ = float(np.quantile(levers, GAP_QUANTILES[1]))
+            self.gap_slope_ = self._calibrate_gap(pick, rng)
         return self.calibration_
+
+    def _calibrate_gap(self, pick: np.ndarray, rng: np.random.Generator) -> float:
+        """The gap slope: the stored points ``pick`` read with their neighbours beyond a
+        straight edge cut away, the edge a gap ``g`` (uniform in [0, ``radius``]) from the
+        point across its façade's plane in a random direction (a hole's edge); the least
+        slope that puts 95 % of those across a gap (``g > 0``, :meth:`gap`) inside
+        ``1.96 sqrt(c^2 (sigma^2 + var) + (slope g)^2)`` (bisection: coverage grows with
+        the slope). 0 with fewer than 50 such readings."""
+        pts = self.points[pick]
+        normal = self.normals[np.maximum(self.facade[pick], 0)]
+        along = rng.normal(size=(len(pick), 3))
+        along -= np.einsum('ni,ni->n', along, normal)[:, None] * normal
+        along /= np.maximum(np.linalg.norm(along, axis=1), 1e-12)[:, None]
+        gap = rng.uniform(0.0, self.radius, len(pick))
+        # Left out: the stored points q with (q - p) . along > -gap.
+        cut = np.c_[along, np.einsum('ni,ni->n', pts, along) - gap]
+        s, base, gaps = [], [], []
+        for start in range(0, len(pick), CHUNK):
+            part = slice(start, start + CHUNK)
+            _, si, scatter, plane_var, _, rho, _, offset = self.raw(pts[part], skip=pick[part], cut=cut[part])
+            s.append(si)
+            base.append(self.calibration_ ** 2 * (scatter + plane_var))
+            gaps.append(self.gap(rho, offset))
+        s, base, excess = np.concatenate(s), np.concatenate(base), np.concatenate(gaps)
+        over = np.isfinite(s) & (excess > 0)
+        if over.sum() < 50:
+            return 0.0
+        s, base, excess = np.abs(s[over]), base[over], excess[over]
+
+        def covered(slope: float) -> float:
+            return float(np.mean(s <= Z95 * np.sqrt(base + np.square(slope * excess))))
+
+        if covered(0.0) >= COVERAGE:
+            return 0.0
+        lo, hi = 0.0, MAX_GAP_SLOPE
+        for _ in range(40):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (lo, mid) if covered(mid) >= COVERAGE else (mid, hi)
+        return hi
+
+    def calibration(self) -> ReadingCalibration:
+        """What :meth:`calibrate` learnt (or was given)."""
+        return ReadingCalibration(float(self.calibration_), float(self.gap_slope_), float(self.gap_start_),
+                                  float(self.lever_start_))
+
+    def calibrate_with(self, calibration: ReadingCalibration) -> LocalSurface:
+        """Read with ``calibration`` (learnt elsewhere: a tiled map's map-wide values); itself."""
+        self.calibration_, self.gap_slope_ = calibration.scale, calibration.gap_slope
+        self.gap_start_, self.lever_start_ = calibration.gap_start, calibration.lever_start
+        return self
+
+    def gap(self, rho: np.ndarray, offset: np.ndarray) -> np.ndarray:
+        """(N,) metres a point lies across a gap in the data, from its ``rho`` and ``offset``
+        (N,) (:meth:`raw`): ``max(rho - gap_start_, offset - lever_start_, 0)`` (0 where
+        either is not finite)."""
+        g = np.maximum(np.asarray(rho) - self.gap_start_, np.asarray(offset) - self.lever_start_)
+        return np.where(np.isfinite(g), np.maximum(g, 0.0), 0.0)
+
+    def gap_variance(self, rho: np.ndarray, offset: np.ndarray) -> np.ndarray:
+        """(N,) variance of a plane read across a gap, ``(gap_slope_ g)^2`` of the gap
+        :meth:`gap` at (N,) ``rho`` and ``offset``, m^2."""
+        return np.square(self.gap_slope_ * self.gap(rho, offset))
 
     def read(self, xyz: np.ndarray) -> LocalReading:
         """The local reading at (N, 3) points, metres, map frame."""
         n = len(xyz)
         out = LocalReading(np.full(n, -1, np.int32), np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan),
-                           np.full((n, 3), np.nan), np.zeros(n))
+                           np.full((n, 3), np.nan), np.zeros(n), np.zeros(n))
         if not len(self.points):
             return out
         c2 = self.calibration_ ** 2
         # Only points with a stored point within the radius are read (the others weigh 0).
         for start in range(0, n, CHUNK):
-            fid, s, scatter, plane_var, normal, rho, nearest = self.raw(xyz[start:start + CHUNK], radius=self.radius)
+            fid, s, scatter, plane_var, normal, rho, nearest, offset = self.raw(xyz[start:start + CHUNK], radius=self.radius)
             near = np.flatnonzero(nearest < self.radius)
             part = start + near
-            fid, s, scatter, plane_var, normal, rho = (a[near] for a in (fid, s, scatter, plane_var, normal, rho))
+            fid, s, scatter, plane_var, normal, rho, offset = (a[near] for a in (fid, s, scatter, plane_var, normal, rho,
+                                                                                offset))
             if self.radius > self.inner:
                 w = smoothstep((self.radius - rho) / (self.radius - self.inner))
             else:  # inner == radius: a switch
                 w = (rho <= self.radius).astype(np.float64)
             out.facade[part] = np.where(w > 0, fid, -1)
             out.signed_distance[part] = s
-            out.variance[part] = c2 * plane_var
+            out.gap_variance[part] = self.gap_variance(rho, offset)
+            out.variance[part] = c2 * plane_var + out.gap_variance[part]
             out.noise_variance[part] = c2 * scatter
             out.normal[part] = normal
             out.weight[part] = w

@@ -329,8 +329,9 @@ def query_points(facades: Sequence[FacadeModel], xyz: np.ndarray, resolution: fl
         reach: metres (``query.local_reach``): a point that neither a raster nor the local
             reading within its radius answers is read from the local plane of its nearest
             stored points if the nearest lies within this, with the variance of the plane
-            plus its façade's prior variance (``global_var_``): off every raster, an answer
-            about where the surface is, never a tight one far from the data. 0: none.
+            (and of its gap, ``LocalSurface.gap_variance``) plus its façade's prior variance
+            (``global_var_``): off every raster, an answer about where the surface is, never
+            a tight one far from the data. 0: none.
 
     Returns:
         The answers; NaN depth, variance, noise variance and distance, and occupancy 0.5,
@@ -404,9 +405,10 @@ def _answer_far(facades: Sequence[FacadeModel], local: LocalSurface, xyz: np.nda
     (see :func:`query_points`), in place in the (N,) and (N, 3) answer arrays."""
     if not len(idx) or not len(local.points):
         return
-    fid, s, scatter, plane_var, n, _, nearest = local.raw(xyz[idx], radius=reach)
+    fid, s, scatter, plane_var, n, rho, nearest, offset = local.raw(xyz[idx], radius=reach)
     ok = (fid >= 0) & (nearest < reach) & np.isfinite(s)
     idx, fid, s, scatter, plane_var, n = idx[ok], fid[ok], s[ok], scatter[ok], plane_var[ok], n[ok]
+    gap_var = local.gap_variance(rho[ok], offset[ok])
     if not len(idx):
         return
     c2 = local.calibration_ ** 2
@@ -415,7 +417,7 @@ def _answer_far(facades: Sequence[FacadeModel], local: LocalSurface, xyz: np.nda
                       np.array([facades[i].frame.normal for i in fid]))
     facade[idx] = fid
     dist[idx] = s
-    var[idx] = c2 * plane_var + prior
+    var[idx] = c2 * plane_var + gap_var + prior
     noise[idx] = c2 * scatter
     mean[idx] = depth - s
     surface_normal[idx] = n
@@ -481,7 +483,8 @@ def _blend(answer: tuple[np.ndarray, ...], reading: LocalReading, w: np.ndarray,
     ws, s_l, s_r = w[sel], reading.signed_distance[sel], dist[sel]
     # The local reading's posterior share: the raster keeps its weight where it agrees with
     # the local plane and loses it where it lies several sigmas off (another layer, a face).
-    agree = raster_agreement(s_l, s_r, var[sel] + reading.variance[sel] + reading.noise_variance[sel])
+    agree = raster_agreement(s_l, s_r, var[sel] + reading.variance[sel] - reading.gap_variance[sel]
+                             + reading.noise_variance[sel])
     ws = ws / (ws + (1.0 - ws) * agree)
     dist[sel] = ws * s_l + (1.0 - ws) * s_r
     var[sel] = ws * reading.variance[sel] + (1.0 - ws) * var[sel] + ws * (1.0 - ws) * np.square(s_l - s_r)

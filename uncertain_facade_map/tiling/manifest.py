@@ -11,7 +11,8 @@ The manifest is JSON::
      "side": 50.0, "map_origin": [x, y, z], "params": {... map_params_record ...},
      "occupancy": {"scale": ..., "spread": ..., "n_positive": ..., "n_negative": ...} or null,
      "building_tiles": {"<label>": "<tile id>", ...},
-     "local_calibration": {"<reading key>": factor, ...},
+     "local_calibration": {"<reading key>": {"scale": ..., "gap_slope": ..., "gap_start": ...,
+                                             "lever_start": ...}, ...},
      "registration": {"var": m^2, "sums": [n, cross, within]} or null,
      "tiles": [{"id": "tile_0_m1", "index": [0, -1], "bounds": [min_x, min_y, max_x, max_y],
                 "extent": [min_x, min_y, min_z, max_x, max_y, max_z], "file": "tiles/tile_0_m1.npz",
@@ -42,6 +43,7 @@ import numpy as np
 from ..errors import InputError
 from ..io._files import atomic_write
 from ..mapping.facade_map import FacadeMap
+from ..pipeline.step7_local_surface import ReadingCalibration
 from . import grid as _grid
 from .grid import tile_file, tile_id
 
@@ -107,8 +109,8 @@ class Manifest:
         occupancy: the occupancy's PLSC parameters for all tiles (``PLSC.as_dict()``), or None
             (each tile's own).
         building_tiles: building label -> id of the tile it lives in (set at its first build).
-        local_calibration: the map-wide leave-one-out factor of the local reading
-            (``LocalSurface.calibration_``) per reading key (:func:`reading_id`), when known
+        local_calibration: the map-wide calibration of the local reading
+            (``LocalSurface.calibration()``) per reading key (:func:`reading_id`), when known
             (a map cut from one file knows it; a reader without it uses the merged tiles' own).
         registration: the map-wide scan-to-scan variance (``{'var': m^2, 'sums': [3 floats]}``,
             ``FacadeMap.registration_var_`` and ``registration_sums_``; a build sums its tiles'
@@ -121,7 +123,7 @@ class Manifest:
     tiles: dict[str, TileRecord]
     occupancy: dict | None = None
     building_tiles: dict[int, str] = field(default_factory=dict)
-    local_calibration: dict[str, float] = field(default_factory=dict)
+    local_calibration: dict[str, ReadingCalibration] = field(default_factory=dict)
     registration: dict | None = None
 
     def as_dict(self) -> dict[str, Any]:
@@ -130,7 +132,7 @@ class Manifest:
                 'map_origin': [float(x) for x in self.map_origin], 'params': self.params,
                 'occupancy': self.occupancy,
                 'building_tiles': {str(int(b)): t for b, t in sorted(self.building_tiles.items())},
-                'local_calibration': {str(k): float(v) for k, v in sorted(self.local_calibration.items())},
+                'local_calibration': {str(k): v.as_dict() for k, v in sorted(self.local_calibration.items())},
                 'registration': self.registration,
                 'tiles': [self.tiles[k].as_dict() for k in sorted(self.tiles)]}
 
@@ -286,7 +288,8 @@ def _from_dict(doc: dict) -> Manifest:
                         'sums': list(_floats(registration['sums'], 3, 'registration sums'))}
     return Manifest(side=side, map_origin=_floats(doc['map_origin'], 3, 'map_origin'), params=params, tiles=tiles,
                     occupancy=occupancy, building_tiles=building_tiles,
-                    local_calibration={str(k): float(v) for k, v in calibration.items()}, registration=registration)
+                    local_calibration={str(k): ReadingCalibration.parse(v) for k, v in calibration.items()},
+                    registration=registration)
 
 
 def read_manifest(path: str | os.PathLike) -> Manifest:

@@ -46,7 +46,7 @@ from ..errors import InputError
 from ..mapping.calibration import registration_variance
 from ..mapping.facade_map import FacadeMap, query_settings, reading_key
 from ..params import MapParams, QueryConfig, TilesConfig, map_params_from_record
-from ..pipeline.step7_local_surface import LocalSurface, noise_floor_of
+from ..pipeline.step7_local_surface import LocalSurface, ReadingCalibration, noise_floor_of
 from ..pipeline.step7_queries import PointQuery, query_map
 from ..pipeline.step8_occupancy import PLSC
 from .grid import TileGrid
@@ -190,24 +190,24 @@ def reading_id(config: QueryConfig) -> str | None:
     return f'local:{config.local_neighbours}:{config.local_radius!r}:{config.local_inner!r}'
 
 
-def local_calibration(fmap: FacadeMap, configs: Iterable[QueryConfig] = (QueryConfig(),)) -> dict[str, float]:
-    """The local reading's map-wide calibration (``LocalSurface.calibration_``) of ``fmap`` for
+def local_calibration(fmap: FacadeMap, configs: Iterable[QueryConfig] = (QueryConfig(),)
+                      ) -> dict[str, ReadingCalibration]:
+    """The local reading's map-wide calibration (``LocalSurface.calibration()``) of ``fmap`` for
     each of ``configs`` (local readings only), keyed by :func:`reading_id`, for a manifest."""
     out = {}
     for config in configs:
         key = reading_id(config)
         if key is not None:
-            out[key] = float(fmap.local_surface(config).calibration_)
+            out[key] = fmap.local_surface(config).calibration()
     return out
 
 
-def _install_local_surface(fmap: FacadeMap, config: QueryConfig, calibration: float) -> None:
+def _install_local_surface(fmap: FacadeMap, config: QueryConfig, calibration: ReadingCalibration) -> None:
     """Give ``fmap`` the local surface of ``config`` with the map-wide ``calibration`` (not
     learnt on ``fmap``'s own points, which are a part of the map): put in the cache that
     :meth:`FacadeMap.local_surface` reads, for the map's present state."""
     surface = LocalSurface.of(fmap.facades, fmap.points, config.local_neighbours, config.local_radius,
-                              config.local_inner, calibrate=False)
-    surface.calibration_ = float(calibration)
+                              config.local_inner, calibrate=False).calibrate_with(calibration)
     state = (tuple(fmap.facades), tuple(fmap.points.items()))
     cache = fmap.__dict__.get('_local_cache')
     if cache is None or len(cache[0][0]) != len(state[0]) or any(a is not b for a, b in zip(cache[0][0], state[0])):
@@ -268,7 +268,7 @@ class TiledMap:
         self._tiles: OrderedDict[str, tuple[FacadeMap, int]] = OrderedDict()
         self._parts: dict[tuple[str, tuple], tuple[TilePart, int]] = {}  # (tile, reading) -> part, bytes
         self._views: OrderedDict[tuple, View] = OrderedDict()
-        self._calibration: dict[str, float] = dict(self.manifest_.local_calibration)
+        self._calibration: dict[str, ReadingCalibration] = dict(self.manifest_.local_calibration)
         self._pins: dict[str, int] = {}
         self._stats = {'hits': 0, 'misses': 0, 'evictions': 0, 'load_seconds': 0.0, 'views_built': 0,
                        'view_seconds': 0.0}
@@ -481,8 +481,8 @@ class TiledMap:
                 return hit[0]
         return part
 
-    def local_calibration(self, config: QueryConfig) -> float:
-        """The local reading's map-wide calibration factor for ``config``: the manifest's
+    def local_calibration(self, config: QueryConfig) -> ReadingCalibration:
+        """The local reading's map-wide calibration for ``config``: the manifest's
         (``local_calibration``), else learnt once (leave-one-out,
         :meth:`~uncertain_facade_map.pipeline.step7_local_surface.LocalSurface.calibrate`) on the
         tile with the most stored points, for every view alike."""
@@ -492,14 +492,15 @@ class TiledMap:
         if hit is not None:
             return hit
         if not self._records:
-            return 1.0
+            return ReadingCalibration()
         largest = max(self._records, key=lambda r: (r.points, r.id))
         fmap = self.tile(largest.id)
         part = self._part(largest.id, fmap, config)
         normals = np.array([f.frame.normal for f in fmap.facades]).reshape(-1, 3)
         surface = LocalSurface(stored_points(fmap)[0][part.index], part.facade, normals, config.local_neighbours,
                                config.local_radius, config.local_inner, noise_floor=noise_floor_of(fmap.facades))
-        value = float(surface.calibrate())
+        surface.calibrate()
+        value = surface.calibration()
         with self._lock:
             return self._calibration.setdefault(key, value)
 
@@ -554,7 +555,8 @@ class TiledMap:
         try:
             maps = [self.tile(t) for t in tiles]
             parts = [self._part(t, m, config) for t, m in zip(tiles, maps)]
-            calibration = self.local_calibration(config) if config.surface == 'local' and maps else 1.0
+            calibration = (self.local_calibration(config) if config.surface == 'local' and maps
+                           else ReadingCalibration())
             occupancy, _, reg_var = joint_map_wide(maps) if maps else (FacadeMap(self.params).occupancy_, None, 0.0)
             if self._occupancy is not None:
                 occupancy = self._occupancy

@@ -33,7 +33,7 @@ from ..datatypes import FacadeModel, array_bytes
 from ..mapping.facade_map import FacadeMap
 from ..params import QueryConfig
 from ..pipeline.raster_kernels import PackedRasters, facade_boxes
-from ..pipeline.step7_local_surface import LocalSurface, noise_floor_of
+from ..pipeline.step7_local_surface import LocalSurface, ReadingCalibration, noise_floor_of
 from ..pipeline.step7_queries import STEP_REACH
 from ..pipeline.step8_occupancy import PLSC
 
@@ -113,7 +113,7 @@ class View:
 
 def make_view(key: tuple, tiles: Sequence[str], maps: Sequence[FacadeMap], parts: Sequence[TilePart],
               offsets: Sequence[int], square: tuple[float, float, float, float], pad: float, config: QueryConfig,
-              calibration: float, occupancy: PLSC, registration_var: float) -> View:
+              calibration: ReadingCalibration, occupancy: PLSC, registration_var: float) -> View:
     """Build a view.
 
     Args:
@@ -123,7 +123,7 @@ def make_view(key: tuple, tiles: Sequence[str], maps: Sequence[FacadeMap], parts
         square: (min_x, min_y, max_x, max_y) of the view's tiles, metres, map frame.
         pad: metres the square is grown by (the local reading's reach).
         config: the query settings.
-        calibration: the local reading's map-wide calibration factor.
+        calibration: the local reading's map-wide calibration.
         occupancy: the PLSC parameters; ``registration_var``: the scan-to-scan variance, m^2.
     """
     x0, y0, x1, y1 = square[0] - pad, square[1] - pad, square[2] + pad, square[3] + pad
@@ -170,6 +170,6 @@ def make_view(key: tuple, tiles: Sequence[str], maps: Sequence[FacadeMap], parts
             labels[free] = labels[mapped[cKDTree(pts[mapped]).query(pts[free])[1]]]
         normals = np.ascontiguousarray(rasters.axes[:, 2])
         surface = LocalSurface(pts, labels, normals, config.local_neighbours, config.local_radius, config.local_inner,
-                               float(calibration), noise_floor=noise_floor_of(facades)).in_grid_order()
+                               noise_floor=noise_floor_of(facades)).calibrate_with(calibration).in_grid_order()
     nbytes = array_bytes(rasters) + (array_bytes(surface) if surface is not None else 0)
     return View(key, tuple(tiles), facades, global_ids, rasters, surface, occupancy, float(registration_var), nbytes)
