@@ -105,22 +105,33 @@ def _fmt(v: float, digits: int = 2) -> str:
     return 'n/a' if v is None or not np.isfinite(v) else f'{v:.{digits}f}'
 
 
+def _band(n: int) -> str:
+    """' [lo, hi]': the 95 % band of the mean NEES over ``n`` scans ('' for none)."""
+    if not n:
+        return ''
+    lo, hi = L.mean_nees_band(n)
+    return f' [{lo:.2f}, {hi:.2f}]'
+
+
 def markdown_table(summaries: dict[str, dict[str, float]], band: tuple[float, float]) -> list[str]:
     """One scenario's rows as a markdown table."""
     lines = ['| row | scans | pos. median (m) | pos. p95 (m) | horiz. median (m) | horiz. p95 (m) | vert. p95 (m) | '
              'heading median (deg) | heading p95 (deg) | <= 0.2 m & 1 deg | horiz. <= 0.2 m & 1 deg | NEES mean | '
-             'NEES in band | NEES mean, converged | converged | horiz. p95, converged (m) | failures (flagged) | '
-             'ms/scan median | ms p95 |',
-             '|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|']
+             'NEES in band | NEES mean, converged (band) | converged | horiz. p95, converged (m) | failures (flagged) | '
+             'within 3 sigma x / y / yaw (all) | confident misses | ms/scan median | ms p95 |',
+             '|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|---|---:|---:|---:|']
     for row, s in summaries.items():
         lines.append(f"| {row} | {s['n']} | {_fmt(s['position_median'], 3)} | {_fmt(s['position_p95'], 3)} | "
                      f"{_fmt(s['horizontal_median'], 3)} | {_fmt(s['horizontal_p95'], 3)} | "
                      f"{_fmt(s['vertical_p95'], 3)} | "
                      f"{_fmt(s['heading_median'])} | {_fmt(s['heading_p95'])} | {_fmt(s['good_share'])} | "
                      f"{_fmt(s['good_share_horizontal'])} | "
-                     f"{_fmt(s['nees_mean'], 1)} | {_fmt(s['nees_in_band'])} | {_fmt(s['nees_mean_converged'], 1)} | "
+                     f"{_fmt(s['nees_mean'], 1)} | {_fmt(s['nees_in_band'])} | {_fmt(s['nees_mean_converged'], 1)}"
+                     f"{_band(s.get('nees_n_converged', 0))} | "
                      f"{_fmt(s['converged_share'])} | {_fmt(s['horizontal_p95_kept'], 3)} | "
                      f"{s['failures']} ({s['failures_flagged']}) | "
+                     f"{_fmt(s['within_3sigma_x'])} / {_fmt(s['within_3sigma_y'])} / {_fmt(s['within_3sigma_yaw'])} "
+                     f"({_fmt(s['within_3sigma'])}) | {s['confident_misses']} | "
                      f"{_fmt(s['ms_median'], 0)} | {_fmt(s['ms_p95'], 0)} |")
     return lines
 
@@ -281,7 +292,8 @@ def write_report(out: Path, scenarios: list[L.Scenario], outcomes: list[L.Outcom
                    'position': o.position, 'heading_deg': o.heading_deg,
                    'nees': o.nees if np.isfinite(o.nees) else None,
                    'ms': o.seconds * 1e3 if np.isfinite(o.seconds) else None, 'converged': o.converged,
-                   'prior_error': o.prior_error.tolist()}
+                   'prior_error': o.prior_error.tolist(),
+                   'sigmas': [float(v) if np.isfinite(v) else None for v in o.sigmas]}
                   for o in outcomes],
     }
     (out / 'report.json').write_text(json.dumps(_clean(data), indent=1, default=_json_default, allow_nan=False))

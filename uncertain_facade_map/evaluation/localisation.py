@@ -50,6 +50,8 @@ NEES_BAND = (float(chi2.ppf(0.025, 6)), float(chi2.ppf(0.975, 6)))
 #: Thresholds of a "good" scan: position within (metres) and heading within (degrees).
 GOOD_POSITION = 0.2
 GOOD_HEADING_DEG = 1.0
+#: A "confident miss" (issue 40): more than this off horizontally (metres) and reported converged.
+MISS_POSITION = 0.5
 
 
 # ---------------------------------------------------------------------------------------
@@ -475,7 +477,10 @@ def localiser_row(localise: Callable[..., Any], constant: float | Callable[[Scen
 @dataclass(frozen=True)
 class Outcome:
     """Per scan and row: the (6,) error (:func:`pose_error`), position (m) and heading error
-    (degrees, signed, wrapped), NEES, seconds, the method's verdict, and the prior's (6,) error."""
+    (degrees, signed, wrapped), NEES, seconds, the method's verdict, the prior's (6,) error,
+    and ``sigmas``: the (6,) error in the method's standard deviations, axis by axis
+    (:func:`centred_error` over the square root of the covariance's diagonal; NaN without
+    one)."""
 
     scenario: str
     row: str
@@ -487,15 +492,20 @@ class Outcome:
     seconds: float
     converged: bool | None
     prior_error: np.ndarray
+    sigmas: np.ndarray = field(default_factory=lambda: np.full(6, np.nan))
 
 
 def score(estimate: Estimate, case: ScanCase, scenario: str, row: str) -> Outcome:
     """One estimate against its truth."""
     err = pose_error(estimate.pose, case.truth)
     head = float(wrap_degrees(np.rad2deg(heading(estimate.pose) - heading(case.truth))))
+    centred = centred_error(estimate.pose, case.truth)
+    sigmas = np.full(6, np.nan)
+    if estimate.covariance is not None:
+        sd = np.sqrt(np.clip(np.diag(np.asarray(estimate.covariance, dtype=np.float64)), 0.0, None))
+        sigmas = np.abs(centred) / np.where(sd > 0, sd, np.nan)
     return Outcome(scenario, row, case.label, err, float(np.linalg.norm(err[:3])), head,
-                   nees(centred_error(estimate.pose, case.truth), estimate.covariance), estimate.seconds,
-                   estimate.converged, case.delta)
+                   nees(centred, estimate.covariance), estimate.seconds, estimate.converged, case.delta, sigmas)
 
 
 def run(scenarios: Sequence[Scenario], rows: dict[str, Method],
@@ -538,7 +548,11 @@ def summarise(outcomes: Sequence[Outcome]) -> dict[str, float]:
     ``nees_mean_converged`` and ``horizontal_p95_kept`` (over the scans the row did not flag
     as not converged: what a user who drops flagged scans gets),
     ``failures`` (scans off by more than 0.2 m horizontally or 1 degree) and
-    ``failures_flagged`` (of those, the ones the row flagged as not converged)."""
+    ``failures_flagged`` (of those, the ones the row flagged as not converged);
+    ``within_3sigma_x``, ``_y``, ``_yaw`` and ``within_3sigma`` (all three): shares of scans
+    whose error lies within 3 of the row's standard deviations on that axis (NaN without
+    covariances); ``confident_misses``: scans more than :data:`MISS_POSITION` off
+    horizontally that the row reported as converged; ``nees_n_converged``."""
     pos = np.array([o.position for o in outcomes])
     err = np.array([o.error for o in outcomes]).reshape(-1, 6)
     horizontal = np.hypot(err[:, 0], err[:, 1])
@@ -552,6 +566,12 @@ def summarise(outcomes: Sequence[Outcome]) -> dict[str, float]:
     flags = np.array([-1 if o.converged is None else int(o.converged) for o in outcomes])
     conv_nees = ne[np.isfinite(ne) & (flags != 0)]
     bad = (horizontal > GOOD_POSITION) | (head > GOOD_HEADING_DEG)
+    sig = np.array([o.sigmas for o in outcomes]).reshape(-1, 6)
+    has_sigma = np.isfinite(sig).all(axis=1)
+    within = sig[has_sigma] <= 3.0
+
+    def share(a: np.ndarray) -> float:
+        return float(np.mean(a)) if len(a) else float('nan')
 
     def q(a: np.ndarray, p: float) -> float:
         return float(np.percentile(a, p)) if len(a) else float('nan')
@@ -574,6 +594,10 @@ def summarise(outcomes: Sequence[Outcome]) -> dict[str, float]:
         'horizontal_p95_kept': q(horizontal[flags != 0], 95),
         'failures': int(np.sum(bad)),
         'failures_flagged': int(np.sum(bad & (flags == 0))),
+        'within_3sigma_x': share(within[:, 0]), 'within_3sigma_y': share(within[:, 1]),
+        'within_3sigma_yaw': share(within[:, 5]), 'within_3sigma': share(within[:, [0, 1, 5]].all(axis=1)),
+        'confident_misses': int(np.sum((horizontal > MISS_POSITION) & (flags == 1))),
+        'nees_n_converged': len(conv_nees),
     }
 
 
