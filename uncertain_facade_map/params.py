@@ -804,6 +804,24 @@ class LocaliseParams(Section):
     prior_rotation_std: tuple[float, float, float] = param(
         (3.0, 3.0, 3.0), "the command line's default standard deviation of the prior rotation about the map's X, Y, "
                          'Z axes (roll, pitch, yaw)', unit='degrees', allowed=Interval(0.0, 180.0, 'neither'))
+    facade_offsets: bool = param(True, "each façade's mean surface may be off as a whole by its answered surface "
+                                       "variance (the median over its used points): that shared offset is "
+                                       'marginalised out of the covariance (issue 40), so that many points on one '
+                                       'wall pin the pose along its normal no better than the wall is known')
+    alternatives: int = param(1, 'after the solve, this many of the best-scored starts of the search at least a '
+                                 'search_step from every solution so far are solved too (issue 40): a scan that '
+                                 'another solution explains nearly as well is ambiguous (a slip along a street); '
+                                 '0: none', allowed=_closed(0, 1000))
+    ambiguity_cost: float = param(10.0, 'a solution whose robust cost over every thinned point (an unanswered point '
+                                        "costing an outlier's) exceeds the best one's by less than this is kept as "
+                                        'an alternative: the answer is "ambiguous", not converged, and its '
+                                        'covariance spans the alternative (a negative log-likelihood ratio: 10 is '
+                                        'odds of about 20,000 to 1 for independent points)',
+                                  allowed=_closed(0.0, 1e9))
+    max_residual_ratio: float = param(2.0, "the used points' weighted mean of (residual / sigma)^2 above this marks "
+                                           'the answer "inconsistent" (not converged); above 1 the covariance is '
+                                           'scaled by it (a scan distorted by motion, a map off by more than its '
+                                           'variance)', allowed=_closed(1.0, 1e9))
     seed: int = param(0, 'seed of the thinning and the draws of the search', allowed=_closed(0, 2**31 - 1))
 
 

@@ -821,7 +821,10 @@ def cmd_localise(args: argparse.Namespace) -> int:
             'std': [*np.sqrt(np.diag(cov))[:3].tolist(), *np.rad2deg(np.sqrt(np.diag(cov))[3:]).tolist()],
             'moved_from_prior': float(np.linalg.norm(est.pose[:3, 3] - prior[:3, 3])),
             'iterations': est.iterations, 'queries': est.queries, 'points': len(cloud),
-            'points_used': est.points_used, 'converged': est.converged, 'cost': est.cost, 'seconds': est.seconds,
+            'points_used': est.points_used, 'converged': est.converged, 'status': est.status,
+            'residual_ratio': est.residual_ratio,
+            'alternatives_xyz': [a[:3, 3].tolist() for a in est.alternatives],
+            'cost': est.cost, 'seconds': est.seconds,
         })
     text = '\n'.join(json.dumps(r) for r in records) if len(records) > 1 else json.dumps(records[0], indent=2)
     if args.out:

@@ -14,8 +14,10 @@ Topics (names relative, remap with ``--ros-args -r``):
 - published: ``pose`` (PoseWithCovarianceStamped of the scan's frame in the map frame, at the
   scan's stamp, with the covariance of the solution), with ``localizer.publish_tf`` the
   transform map -> scan frame on ``/tf``, and every second ``/diagnostics`` (the counters
-  below, and the last solve's time, points used, rounds and whether it converged; WARN
-  while scans fail or wait for a prior).
+  below, and the last solve's time, points used, rounds, whether it converged and its
+  status: ``ambiguous`` when another pose explains the scan nearly as well, ``inconsistent``
+  when its residuals exceed their variances; WARN while scans fail, wait for a prior or come
+  out ambiguous or inconsistent, whose poses carry a covariance that says so).
 
 The prior of a scan is the newest ``prior_pose`` when it is at most ``localizer.prior_max_age``
 seconds from the scan's stamp and newer than the last estimate; otherwise the last estimate
@@ -66,7 +68,8 @@ class FacadeLocalizerNode(Node):
         cfg = self.config.localizer
         self.types = mt.transform_types_rclpy(require_tf2_msgs=cfg.publish_tf)
         self.counters = {'scans_received': 0, 'scans_localised': 0, 'scans_failed': 0, 'scans_without_prior': 0,
-                         'scans_skipped': 0, 'priors_received': 0, 'priors_rejected': 0}
+                         'scans_skipped': 0, 'priors_received': 0, 'priors_rejected': 0, 'scans_ambiguous': 0,
+                         'scans_inconsistent': 0}
         self._lock = threading.Lock()
         self._prior: ml.PosePrior | None = None
         self._last: tuple[int, np.ndarray, np.ndarray] | None = None  # (stamp ns, pose, covariance)
@@ -140,10 +143,15 @@ class FacadeLocalizerNode(Node):
         est = self.last_estimate
         if est is not None:
             values.update(last_seconds=round(est.seconds, 4), last_points_used=est.points_used,
-                          last_queries=est.queries, last_converged=est.converged)
-        troubles = sum(values[k] - self._reported.get(k, 0) for k in ('scans_failed', 'scans_without_prior'))
-        self._reported = {k: int(values[k]) for k in ('scans_failed', 'scans_without_prior')}
-        message = 'localising' if not troubles else f'{troubles} scans failed or waited for a prior in the last second'
+                          last_queries=est.queries, last_converged=est.converged, last_status=est.status,
+                          last_residual_ratio=round(est.residual_ratio, 3))
+        kinds = ('scans_failed', 'scans_without_prior', 'scans_ambiguous', 'scans_inconsistent')
+        new = {k: values[k] - self._reported.get(k, 0) for k in kinds}
+        troubles = sum(new.values())
+        self._reported = {k: int(values[k]) for k in kinds}
+        message = ('localising' if not troubles else f'in the last second: {new["scans_failed"]} scans failed, '
+                   f'{new["scans_without_prior"]} waited for a prior, {new["scans_ambiguous"]} were ambiguous, '
+                   f'{new["scans_inconsistent"]} inconsistent with the map')
         self.pub_diag.publish(mm.diagnostic_array(f'{LOCALIZER_NAME}: pose', 1 if troubles else 0, message, values,
                                                   LOCALIZER_NAME, self.get_clock().now().nanoseconds,
                                                   self.diag_types))
@@ -212,6 +220,8 @@ class FacadeLocalizerNode(Node):
                 self._velocity = se3_log(step) / ((stamp - self._last[0]) * 1e-9)
             self._last = (stamp, estimate.pose, estimate.covariance)
             self.counters['scans_localised'] += 1
+            if estimate.status in ('ambiguous', 'inconsistent'):
+                self.counters[f'scans_{estimate.status}'] += 1
         frame = self.config.localizer.map_frame
         self.pub_pose.publish(ml.pose_with_covariance_msg(frame, stamp, estimate.pose, estimate.covariance,
                                                           self.types))

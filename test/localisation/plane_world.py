@@ -2,9 +2,10 @@
 
 Each plane is ``n . x = d`` with an in-plane box (its extent). The *map* of a plane is off
 the truth by an error field, constant over square patches of side ``patch`` (a wall's mean
-surface is off by the same amount over a patch, as a GP map's is), drawn N(0, ``variance``)
-per patch; the query answers the signed distance to the map's plane with that variance, so
-an estimator that trusts the variance is right on average over draws of the map.
+surface is off by the same amount over a patch, as a GP map's is; ``patch`` inf: one error
+per whole plane), drawn N(0, ``variance``) per patch; the query answers the signed distance
+to the map's plane with that variance, so an estimator that trusts the variance is right on
+average over draws of the map.
 """
 
 from __future__ import annotations
@@ -65,7 +66,7 @@ class World:
 
     def _error(self, k: int, x: np.ndarray) -> np.ndarray:
         """The map error of plane k at points x (constant per patch, drawn on first use)."""
-        cells = np.floor(x / self.patch).astype(np.int64)
+        cells = (np.floor(x / self.patch) if np.isfinite(self.patch) else np.zeros_like(x)).astype(np.int64)
         keys, inverse = np.unique(cells, axis=0, return_inverse=True)
         values = np.empty(len(keys))
         for i, c in enumerate(map(tuple, keys)):

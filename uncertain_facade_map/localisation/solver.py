@@ -59,12 +59,32 @@ wall-surface node spacing (``layers.relief_spacing``): the mean surface is a smo
 with nodes that far apart, so its errors are alike over about that distance. It is a model
 choice, not fitted: see the tests (a world of planes whose errors are alike over 3 m patches:
 NEES of the plain Hessian far above its band, inside it with ``correlation_length`` 3 m).
+A whole façade may also sit off as a whole (its frame, a registration error of the drive
+that mapped it), which no number of its points averages away: with ``facade_offsets`` an
+offset ``b_f ~ N(0, v_f)`` shared by a façade's points along their normals, ``v_f`` the
+median surface variance answered on them, is marginalised out of the points' information
+(:func:`_facade_offsets`, a Schur complement per façade).
+
+Consistency. The used points' weighted mean of ``(r_i / sigma_i)^2`` (``residual_ratio``)
+is 1 when the residuals are as large as their variances say; above 1 (a scan distorted by
+motion, a map off by more than its variance) the points' information is divided by it, and
+above ``max_residual_ratio`` the answer is ``inconsistent``, not converged.
+
+Ambiguity (issue 40). After the solve, the best-scored starts of the search at least a
+``search_step`` from every solution so far (``alternatives`` of them) are solved too, and
+the solutions are compared on one robust cost over every thinned point, an unanswered point
+costing what an outlier does (:meth:`_Problem.common_cost`). An alternative within
+``ambiguity_cost`` of the first solution, or cheaper, makes the answer ``ambiguous``: the
+first solution is kept (taking the cheaper one turned one of the small scene's 10 test
+scans right and another wrong) and the covariance grows by ``d d^T`` for each alternative ``d`` away, so that one
+standard deviation reaches it; ``converged`` is then false. ``converged`` is true only for a
+solution that settled, is not ambiguous and is consistent (``PoseEstimate.status``).
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import numpy as np
@@ -93,9 +113,20 @@ class PoseEstimate:
         iterations: Levenberg-Marquardt iterations in all rounds.
         queries: calls of ``query`` (each with at most ``params.batch_points`` points).
         points_used: scan points with a weight > 0 in the last iteration.
-        converged: the last round moved the pose less than the tolerances.
+        converged: the solution can be trusted: the last round moved the pose less than the
+            tolerances, no other start explained the scan nearly as well (not ambiguous) and
+            the residuals are consistent with their variances (``status`` says which failed).
         cost: final robust cost (dimensionless; the prior term included).
         seconds: wall time of :func:`localise`, queries included.
+        status: ``converged``, or why not: ``ambiguous`` (another solution explains the scan
+            within ``localise.ambiguity_cost``; the covariance spans both), ``inconsistent``
+            (the residuals' mean square over their variances above
+            ``localise.max_residual_ratio``; the covariance is scaled by it) or
+            ``not settled`` (the rounds ran out still moving).
+        residual_ratio: the used points' weighted mean of ``(r_i / sigma_i)^2``: 1 when the
+            residuals are as large as their variances say (dimensionless).
+        alternatives: (K, 4, 4) the other solutions within ``localise.ambiguity_cost`` (K = 0:
+            none).
     """
 
     pose: np.ndarray
@@ -106,6 +137,9 @@ class PoseEstimate:
     converged: bool
     cost: float
     seconds: float
+    status: str = 'converged'
+    residual_ratio: float = 1.0
+    alternatives: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
 
 
 # ----------------------------------------------------------------------------------------
@@ -246,8 +280,11 @@ class _Batched:
 
 
 def _search_start(points: np.ndarray, prior: np.ndarray, prior_factor: tuple, centre: np.ndarray, ask: _Batched,
-                  params: LocaliseParams, constant_variance: float | None, rng: np.random.Generator) -> np.ndarray:
-    """The best-scoring of a grid of horizontal offsets and yaws of the prior (see the module docstring)."""
+                  params: LocaliseParams, constant_variance: float | None, rng: np.random.Generator
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """A grid of horizontal offsets and yaws of the prior, scored (see the module docstring):
+    ``(candidates, scores)``, (C, 6) twists ``delta`` of the prior about ``centre`` and (C,),
+    best first."""
     r, step = params.search_radius, params.search_step
     k = int(np.floor(r / step))
     grid = np.arange(-k, k + 1) * step
@@ -272,7 +309,8 @@ def _search_start(points: np.ndarray, prior: np.ndarray, prior_factor: tuple, ce
     score = np.where(facade >= 0, np.exp(-0.5 * (sd / width) ** 2), 0.0).reshape(len(candidates), len(pick)).sum(1)
     # the prior's log density breaks near-ties (a street seen end-on): the candidate nearest the prior wins them
     score -= 0.5 * np.einsum('ij,ij->i', candidates, cho_solve(prior_factor, candidates.T).T)
-    return _centred_exp(candidates[int(np.argmax(score))], prior, centre)
+    order = np.argsort(-score, kind='stable')
+    return candidates[order], score[order]
 
 
 # ----------------------------------------------------------------------------------------
@@ -318,60 +356,168 @@ def localise(scan: np.ndarray, prior_pose: np.ndarray, prior_covariance: np.ndar
     points = scan[subsample(scan, params.voxel, params.max_points, params.seed)]
     centre = prior[:3, 3].copy()
     ask = _Batched(query, params.batch_points)
-    sensor2 = params.sensor_noise**2
-    pose = prior
+    problem = _Problem(points, prior, prior_factor, centre, ask, params, constant_variance)
+    candidates = np.zeros((1, 6))
     if params.search_radius > 0:
-        pose = _search_start(points, prior, prior_factor, centre, ask, params, constant_variance, rng)
-
-    tol_t, tol_r = params.translation_tolerance, np.deg2rad(params.rotation_tolerance)
-    iterations, converged = 0, False
-    hessian = cost = None
-    used = 0
-    previous = None
-    for _round in range(params.max_queries):
-        p0 = se3.transform_points(pose, points)
-        facade, r0, var, noise, normal = ask(p0, constant_variance)
-        on = facade >= 0
-        p0, r0, var, noise, normal, fac = p0[on], r0[on], var[on], noise[on], normal[on], facade[on]
-        if params.correlation_length > 0 and constant_variance is None:
-            # the mean surface's error is shared within a patch; the scatter of points about it is not
-            var = var * patch_counts(p0 - r0[:, None] * normal, fac, params.correlation_length)  # on the surface
-        sigma2 = var + noise + sensor2
-        sigma = np.sqrt(sigma2)
-        # annealing: the kernel's scale is at least tau metres, tau shrinking 8x a round (module docstring)
-        tau = params.anneal_start / _ANNEAL**_round
-        tau = tau if tau >= _TAU_MIN else 0.0
-        scale = params.kernel_scale * np.sqrt(1.0 + tau**2 / sigma2)
-        start_pose = pose
-        body = points[on]
-        hessian, cost, pose, n_iter, used = _solve_round(body, p0, r0, normal, sigma, scale, pose, prior,
-                                                         prior_factor, centre, params)
-        iterations += n_iter
-        step = centred_log(pose, start_pose, start_pose[:3, 3])
-        if previous is not None and float(step @ hessian @ previous) < 0:
-            # the answers flip between two rounds (a depth step crossed back and forth): half the step
-            step = 0.5 * step
-            pose = _centred_exp(step, start_pose, start_pose[:3, 3])
-        previous = step
-        moved = centred_log(pose, start_pose, pose[:3, 3])
-        small = np.linalg.norm(moved[:3]) < tol_t and np.linalg.norm(moved[3:]) < tol_r
-        if tau == 0.0 and (small or float(moved @ hessian @ moved) < params.mahalanobis_tolerance**2):
-            converged = True
-            break
-    pose = se3.compose(pose, np.eye(4))  # re-orthonormalised
-    # covariance at the centre c, moved to the estimate's position c'
+        candidates, _ = _search_start(points, prior, prior_factor, centre, ask, params, constant_variance, rng)
+    best = problem.solve(_centred_exp(candidates[0], prior, centre))
+    # Ambiguity (issue 40): the best-scored starts far from the solution, solved in turn; the
+    # solutions are compared on one cost over every thinned point (an unanswered point costs
+    # what an outlier does), so that a solution that leaves walls unanswered is no cheaper;
+    # one within ambiguity_cost of the first (or cheaper) makes the answer ambiguous.
+    others: list[_Solution] = []
+    if params.alternatives > 0 and len(candidates) > 1:
+        best_cost = problem.common_cost(best.pose)
+        tried: list[np.ndarray] = [centred_log(best.pose, prior, centre)]
+        for cand in candidates[1:]:
+            if len(tried) > params.alternatives:
+                break
+            if min(np.hypot(*(cand[:2] - t[:2])) for t in tried) < params.search_step:
+                continue
+            alt = problem.solve(_centred_exp(cand, prior, centre))
+            tried.append(centred_log(alt.pose, prior, centre))
+            alt_cost = problem.common_cost(alt.pose)
+            # Not swapped when cheaper: on the small scene's 10 test scans the cheaper one
+            # was right once (2.85 -> 0.53 m) and wrong once (0.01 -> 2.57 m): the scan does
+            # not tell, and the answer says so.
+            if alt_cost - best_cost < params.ambiguity_cost and np.linalg.norm(
+                    centred_log(alt.pose, best.pose, best.pose[:3, 3])[:3]) > 3 * params.translation_tolerance:
+                others.append(alt)
+    pose = se3.compose(best.pose, np.eye(4))  # re-orthonormalised
+    # Consistency: the residuals against their variances; beyond max_residual_ratio the
+    # points' information is scaled down by the ratio (a scan distorted by motion, a map
+    # off by more than its variance): the covariance grows with what the residuals show.
+    ratio = best.residual_ratio
+    hessian = best.prior_hessian + best.points_hessian / max(ratio, 1.0)
     try:
         h_factor = cho_factor(hessian, lower=True)
     except LinAlgError as err:  # cannot happen with a positive definite prior; keep the cause
         raise InputError('the final Hessian is not positive definite (a degenerate prior covariance?)') from err
     cov_c = cho_solve(h_factor, np.eye(6))
+    # covariance at the centre c, moved to the estimate's position c'
     adjoint = np.eye(6)
     adjoint[:3, 3:] = se3.skew(centre - pose[:3, 3])
     covariance = adjoint @ cov_c @ adjoint.T
+    for alt in others:  # the covariance spans each alternative (one standard deviation reaches it)
+        d = centred_log(alt.pose, pose, pose[:3, 3])
+        covariance = covariance + np.outer(d, d)
     covariance = 0.5 * (covariance + covariance.T)
-    return PoseEstimate(pose=pose, covariance=covariance, iterations=iterations, queries=ask.calls,
-                        points_used=int(used), converged=converged, cost=float(cost),
-                        seconds=time.perf_counter() - started)
+    status = ('ambiguous' if others else 'inconsistent' if ratio > params.max_residual_ratio
+              else 'converged' if best.settled else 'not settled')
+    return PoseEstimate(pose=pose, covariance=covariance, iterations=problem.iterations, queries=ask.calls,
+                        points_used=int(best.used), converged=status == 'converged', cost=float(best.cost),
+                        seconds=time.perf_counter() - started, status=status, residual_ratio=float(ratio),
+                        alternatives=np.array([se3.compose(a.pose, np.eye(4)) for a in others]).reshape(-1, 4, 4))
+
+
+@dataclass(frozen=True)
+class _Solution:
+    """One solve from one start: the pose, the final Hessian's two parts (the points' and the
+    prior's, at the prior's centre), the robust cost, whether the last round settled, the
+    points used and the weighted mean square of their residuals in sigmas."""
+
+    pose: np.ndarray
+    points_hessian: np.ndarray
+    prior_hessian: np.ndarray
+    cost: float
+    settled: bool
+    used: int
+    residual_ratio: float
+
+
+class _Problem:
+    """The scan's points, the prior and the map, solved from any start (:meth:`solve`)."""
+
+    def __init__(self, points: np.ndarray, prior: np.ndarray, prior_factor: tuple, centre: np.ndarray,
+                 ask: _Batched, params: LocaliseParams, constant_variance: float | None) -> None:
+        self.points, self.prior, self.prior_factor, self.centre = points, prior, prior_factor, centre
+        self.ask, self.params, self.constant_variance = ask, params, constant_variance
+        self.iterations = 0
+
+    def _answers(self, pose: np.ndarray) -> tuple[np.ndarray, ...]:
+        """The map's answers at the points placed by ``pose``: (on, p0, r0, sigma2, normal, fac)."""
+        params = self.params
+        p0 = se3.transform_points(pose, self.points)
+        facade, r0, var, noise, normal = self.ask(p0, self.constant_variance)
+        on = facade >= 0
+        p0, r0, var, noise, normal, fac = p0[on], r0[on], var[on], noise[on], normal[on], facade[on]
+        surface = var
+        if params.correlation_length > 0 and self.constant_variance is None:
+            # the mean surface's error is shared within a patch; the scatter of points about it is not
+            var = var * patch_counts(p0 - r0[:, None] * normal, fac, params.correlation_length)  # on the surface
+        return on, p0, r0, var + noise + params.sensor_noise**2, normal, fac, surface
+
+    def solve(self, pose: np.ndarray) -> _Solution:
+        """The rounds from ``pose`` (module docstring)."""
+        params, prior, prior_factor, centre = self.params, self.prior, self.prior_factor, self.centre
+        tol_t, tol_r = params.translation_tolerance, np.deg2rad(params.rotation_tolerance)
+        settled = False
+        previous = None
+        for _round in range(params.max_queries):
+            on, p0, r0, sigma2, normal, fac, surface = self._answers(pose)
+            sigma = np.sqrt(sigma2)
+            # annealing: the kernel's scale is at least tau metres, tau shrinking 8x a round (module docstring)
+            tau = params.anneal_start / _ANNEAL**_round
+            tau = tau if tau >= _TAU_MIN else 0.0
+            scale = params.kernel_scale * np.sqrt(1.0 + tau**2 / sigma2)
+            start_pose = pose
+            hessian, prior_part, cost, pose, n_iter, used, ratio, info = _solve_round(
+                self.points[on], p0, r0, normal, sigma, scale, pose, prior, prior_factor, centre, params)
+            self.iterations += n_iter
+            step = centred_log(pose, start_pose, start_pose[:3, 3])
+            if previous is not None and float(step @ hessian @ previous) < 0:
+                # the answers flip between two rounds (a depth step crossed back and forth): half the step
+                step = 0.5 * step
+                pose = _centred_exp(step, start_pose, start_pose[:3, 3])
+            previous = step
+            moved = centred_log(pose, start_pose, pose[:3, 3])
+            small = np.linalg.norm(moved[:3]) < tol_t and np.linalg.norm(moved[3:]) < tol_r
+            if tau == 0.0 and (small or float(moved @ hessian @ moved) < params.mahalanobis_tolerance**2):
+                settled = True
+                break
+        points_part = hessian - prior_part
+        if params.facade_offsets and self.constant_variance is None:
+            points_part = points_part - _facade_offsets(info, fac, surface)
+        return _Solution(pose, points_part, prior_part, cost, settled, used, ratio)
+
+    def common_cost(self, pose: np.ndarray) -> float:
+        """The robust cost of every thinned point at ``pose`` with the final kernel (no
+        annealing), an unanswered point costing the kernel's limit (an outlier's), plus the
+        prior's: one scale on which solutions from different starts compare."""
+        params = self.params
+        on, _, r0, sigma2, _, _, _ = self._answers(pose)
+        _, rho = robust_weights(r0 / np.sqrt(sigma2), params.kernel, params.kernel_scale)
+        limit = _kernel_limit(params.kernel, params.kernel_scale)
+        e = centred_log(pose, self.prior, self.centre)
+        return float(rho.sum() + (len(on) - on.sum()) * limit + 0.5 * e @ cho_solve(self.prior_factor, e))
+
+
+def _facade_offsets(info: tuple[np.ndarray, np.ndarray], facade: np.ndarray, surface: np.ndarray) -> np.ndarray:
+    """(6, 6) the information the points lose when each façade's mean surface may be off
+    as a whole (issue 40): an offset ``b_f ~ N(0, v_f)`` along the points' normals shared by
+    the points of façade ``f``, ``v_f`` the median surface variance answered on them,
+    marginalised out (Schur complement): ``sum_f g_f g_f^T / (c_f + 1 / v_f)`` with
+    ``g_f = sum_{i in f} J_i^T w_i / sigma_i^2`` and ``c_f = sum_{i in f} w_i / sigma_i^2``.
+    No number of points on one façade then pins the pose along its normal better than the
+    façade's own variance."""
+    jw, cw = info
+    out = np.zeros((6, 6))
+    for f in np.unique(facade):
+        sel = facade == f
+        v = float(np.median(surface[sel]))
+        if not v > 0:
+            continue
+        g = jw[sel].sum(axis=0)
+        out += np.outer(g, g) / (cw[sel].sum() + 1.0 / v)
+    return out
+
+
+def _kernel_limit(kernel: str, scale: float) -> float:
+    """The cost of an unanswered point: the kernel's limit far out (cauchy and huber grow
+    without one: the cost at 3 scales), in the units of :func:`robust_weights`."""
+    if kernel == 'geman':
+        return 0.5 * scale**2
+    return float(robust_weights(np.array([3.0 * scale]), kernel, scale)[1][0])
 
 
 def _costs(points_now, p0, r0, normal, sigma, scale, pose, prior, prior_factor, centre, params):
@@ -388,8 +534,9 @@ def _solve_round(body, p0, r0, normal, sigma, scale, pose, prior, prior_factor, 
     """Levenberg-Marquardt on the linearised surfaces of one round.
 
     Returns:
-        The Gauss-Newton Hessian at the end, the cost, the pose, the iterations, the points
-        with a weight > 0.
+        The Gauss-Newton Hessian at the end and its prior's part, the cost, the pose, the
+        iterations, the points with a weight > 0 and their weighted mean square residual in
+        sigmas.
     """
     lam = 1e-4
     tol_t, tol_r = params.translation_tolerance * 0.1, np.deg2rad(params.rotation_tolerance) * 0.1
@@ -429,5 +576,8 @@ def _solve_round(body, p0, r0, normal, sigma, scale, pose, prior, prior_factor, 
     jac = point_jacobian(now, normal, centre)
     scaled = jac * np.sqrt(w / sigma**2)[:, None]
     j_prior = se3.se3_left_jacobian_inverse(e)
-    hessian = scaled.T @ scaled + j_prior.T @ cho_solve(prior_factor, j_prior)
-    return hessian, cost, pose, n_iter, int((w > 0).sum())
+    prior_part = j_prior.T @ cho_solve(prior_factor, j_prior)
+    hessian = scaled.T @ scaled + prior_part
+    ratio = float(np.sum(w * (r / sigma) ** 2) / np.sum(w)) if np.sum(w) > 0 else 1.0
+    info = (jac * (w / sigma**2)[:, None], w / sigma**2)  # per point J_i w_i / sigma_i^2 and w_i / sigma_i^2
+    return hessian, prior_part, cost, pose, n_iter, int((w > 0).sum()), ratio, info
