@@ -64,9 +64,9 @@ def kdtree_workers() -> int:
     return -1 if _THREADS is None else _THREADS
 
 
-def serial_twin(kernel: Any, name: str, **flags: Any) -> Any:
-    """The one-core twin of the parallel compiled ``kernel`` (``prange`` runs as ``range``),
-    cached under its own ``name``.
+def serial_twin(kernel: Any, name: str) -> Any:
+    """The one-core twin of the parallel compiled ``kernel`` (``prange`` runs as ``range``;
+    its other options, ``nogil`` among them, as the kernel's), cached under its own ``name``.
 
     numba names a kernel's cache entry after the function's qualified name and first line and
     keys it by signature and source, not by its ``parallel`` flag: a twin compiled from the
@@ -78,7 +78,6 @@ def serial_twin(kernel: Any, name: str, **flags: Any) -> Any:
     Args:
         kernel: a ``numba.njit(parallel=True, cache=True)`` dispatcher.
         name: the twin's name in its module (its cache entry's).
-        flags: further ``njit`` options (e.g. ``nogil=True``).
     """
     from numba import njit  # noqa: PLC0415 - the compiled kernels' modules import numba anyway
 
@@ -86,4 +85,5 @@ def serial_twin(kernel: Any, name: str, **flags: Any) -> Any:
     twin = types.FunctionType(f.__code__, f.__globals__, name, f.__defaults__, f.__closure__)
     twin.__qualname__ = name
     twin.__doc__ = f'{f.__name__} on one core (``prange`` runs as ``range``).'
-    return njit(cache=True, **flags)(twin)
+    options = {k: v for k, v in kernel.targetoptions.items() if k not in ('parallel', 'nopython')}
+    return njit(cache=True, **options)(twin)

@@ -566,7 +566,7 @@ def _local_planes_range(lo: int, hi: int, rows: np.ndarray, xyz: np.ndarray, ski
 
 
 #: :func:`local_planes` on one core (``prange`` runs as ``range``): small calls.
-local_planes_serial = serial_twin(local_planes, 'local_planes_serial', nogil=True)
+local_planes_serial = serial_twin(local_planes, 'local_planes_serial')
 
 
 _SERIAL = threading.local()

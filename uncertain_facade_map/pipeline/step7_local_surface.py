@@ -60,6 +60,7 @@ nearest stored points and the plane per point on both cores; :func:`fit_local_pl
 from __future__ import annotations
 
 import copy
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -83,8 +84,8 @@ COVERAGE, Z95 = 0.95, 1.959963984540054
 #: from their neighbours (leave-one-out): its ``rho`` beyond this quantile of theirs, or its
 #: offset from its neighbours' centroid beyond this quantile of theirs (step 4).
 GAP_QUANTILES = (0.75, 0.95)
-#: Gap slope's search bound (extra standard deviation per metre of gap; the real sweeps
-#: learn 0.5-0.6).
+#: Gap slope's search bound (extra standard deviation per metre of gap; AV1, AV2 sweep 0 and
+#: KITTI 1 learn 0.61, 0.65 and 0.79).
 MAX_GAP_SLOPE = 4.0
 #: Sigmas of disagreement at which the raster's share in the blend falls to exp(-1/2).
 AGREEMENT = 3.0
@@ -167,15 +168,14 @@ class ReadingCalibration:
 
     def as_dict(self) -> dict[str, float]:
         """The JSON object (a tiled map's manifest)."""
-        return {'scale': self.scale, 'gap_slope': self.gap_slope, 'gap_start': self.gap_start,
-                'lever_start': self.lever_start}
+        return dataclasses.asdict(self)
 
     @classmethod
     def parse(cls, value: object) -> ReadingCalibration:
         """From :meth:`as_dict`'s object, or a number (a manifest written before the gap:
         the scale alone). Raises ValueError on anything else or a non-finite value."""
         if isinstance(value, dict):
-            unknown = set(value) - {'scale', 'gap_slope', 'gap_start', 'lever_start'}
+            unknown = set(value) - {f.name for f in dataclasses.fields(cls)}
             if unknown:
                 raise ValueError(f'unknown calibration fields {sorted(unknown)}')
             out = cls(**{k: float(v) for k, v in value.items()})
@@ -379,8 +379,7 @@ class LocalSurface:
             return self
         grid = copy.copy(self.grid)  # the arrays shared; this one's order is the identity
         out = LocalSurface(grid.points, self.facade[grid.order].astype(np.int32), self.normals, self.neighbours,
-                           self.radius, self.inner, self.calibration_, self.gap_slope_, self.gap_start_,
-                           self.lever_start_, noise_floor=self.noise_floor)
+                           self.radius, self.inner, noise_floor=self.noise_floor).calibrate_with(self.calibration())
         grid.order = np.arange(len(grid.points), dtype=np.int32)
         out._grid = grid
         out._orders[id(grid)] = [grid, out.facade, None]  # the labels in the grid's order: its own
@@ -457,7 +456,7 @@ class LocalSurface:
 
     def _raw(self, xyz: np.ndarray, skip: np.ndarray | None = None, radius: float = np.inf,
              cut: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
-        """``(fid, s, scatter, plane_var, normal, rho, nearest)`` at (N, 3) points (leaving the
+        """``(fid, s, scatter, plane_var, normal, rho, nearest, offset)`` at (N, 3) points (leaving the
         stored points ``skip`` out, leave-one-out): the compiled kernels
         (:func:`~.local_kernels.local_planes`), the KD-tree's numpy reading
         (:meth:`_raw_kd`) for the few points the grid's search does not reach. Points with no

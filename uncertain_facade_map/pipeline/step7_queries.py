@@ -407,8 +407,8 @@ def _answer_far(facades: Sequence[FacadeModel], local: LocalSurface, xyz: np.nda
         return
     fid, s, scatter, plane_var, n, rho, nearest, offset = local.raw(xyz[idx], radius=reach)
     ok = (fid >= 0) & (nearest < reach) & np.isfinite(s)
-    idx, fid, s, scatter, plane_var, n = idx[ok], fid[ok], s[ok], scatter[ok], plane_var[ok], n[ok]
-    gap_var = local.gap_variance(rho[ok], offset[ok])
+    idx, fid, s, scatter, plane_var, n, rho, offset = (a[ok] for a in (idx, fid, s, scatter, plane_var, n, rho,
+                                                                       offset))
     if not len(idx):
         return
     c2 = local.calibration_ ** 2
@@ -417,7 +417,7 @@ def _answer_far(facades: Sequence[FacadeModel], local: LocalSurface, xyz: np.nda
                       np.array([facades[i].frame.normal for i in fid]))
     facade[idx] = fid
     dist[idx] = s
-    var[idx] = c2 * plane_var + gap_var + prior
+    var[idx] = c2 * plane_var + local.gap_variance(rho, offset) + prior
     noise[idx] = c2 * scatter
     mean[idx] = depth - s
     surface_normal[idx] = n
