@@ -70,6 +70,12 @@ def _add(gate: CloudGate, accounts: Accounts, scan: Scan) -> None:
         gate.add(scan, len(scan.points))
 
 
+def _wait_until(condition, deadline: float) -> None:
+    """Poll ``condition()`` every 10 ms until it holds or ``time.monotonic()`` passes ``deadline``."""
+    while not condition() and time.monotonic() < deadline:
+        time.sleep(0.01)
+
+
 def _balance(accounts: Accounts, worker: _Worker, gate: CloudGate) -> int:
     v = accounts.values(worker, gate)
     return v['clouds_received'] - (v['clouds_mapped'] + v['clouds_dropped'] + v['clouds_rejected']
@@ -136,9 +142,7 @@ def test_the_thread_hands_clouds_on_without_a_step_call():
     gate.start()
     try:
         _add(gate, accounts, _scan('map', SECOND))
-        deadline = time.monotonic() + 5
-        while not outcomes and time.monotonic() < deadline:
-            time.sleep(0.01)
+        _wait_until(lambda: outcomes, time.monotonic() + 5)
     finally:
         gate.stop()
     assert [o.kind for o in outcomes] == ['queued'] and len(worker.clouds) == 1
@@ -166,9 +170,7 @@ def test_a_cloud_is_counted_in_while_another_is_selected():
         _add(gate, accounts, _scan('map', 2 * SECOND))
         took = time.perf_counter() - started
         assert gate.waiting()[0] == 2 and _balance(accounts, worker, gate) == 0
-        deadline = time.monotonic() + 5
-        while len(outcomes) < 2 and time.monotonic() < deadline:
-            time.sleep(0.01)
+        _wait_until(lambda: len(outcomes) >= 2, time.monotonic() + 5)
     finally:
         gate.stop()
     assert took < 0.1
@@ -194,11 +196,9 @@ def test_a_fault_in_a_step_is_reported_and_the_gate_goes_on():
     try:
         _add(gate, accounts, _scan('map', SECOND))
         deadline = time.monotonic() + 5
-        while not faults and time.monotonic() < deadline:
-            time.sleep(0.01)
+        _wait_until(lambda: faults, deadline)
         _add(gate, accounts, _scan('map', 2 * SECOND))
-        while not outcomes and time.monotonic() < deadline:
-            time.sleep(0.01)
+        _wait_until(lambda: outcomes, deadline)
     finally:
         gate.stop()
     assert [str(f) for f in faults] == ['put failed']
