@@ -162,7 +162,7 @@ def test_laps_print_their_cost_stored_points_and_memory(drive, capsys):
 
     rows = bs.drive_laps(drive, laps=2)
     assert [r['lap'] for r in rows] == [1, 2] and rows[0]['stored'] > 0
-    assert rows[1]['stored'] >= rows[0]['stored'] and all(r['cpu_s'] > 0 for r in rows)
+    assert rows[1]['stored'] >= rows[0]['stored'] and all(r['cpu_s'] > 0 and r['map_mb'] > 0 for r in rows)
     _print_stream({'stage': 'stream laps', 'laps': rows, 'peak_mb': 1.0}, as_json=True, live=False)
     lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
     assert [line['stage'] for line in lines] == ['stream laps 1', 'stream laps 2']

@@ -244,3 +244,25 @@ def test_capped_draw_keeps_what_sorting_by_block_and_key_keeps():
         np.testing.assert_array_equal(capped_draw(codes, key, cap), want)
 
     check()
+
+
+@pytest.mark.parametrize('density, sigma', [(300, 0.01), (1000, 0.02), (3000, 0.03)])
+def test_the_noise_of_spaced_points_is_estimated_without_bias(density, sigma):
+    """The map stores no point within ``update.store_spacing`` of another (3-D distance), so two
+    stored points closer than that on the plane differ in depth by more than the spacing
+    allows: left out (``min_lag``), the estimate is within 6 % of the noise (measured 0-5 %);
+    kept, it is 14-73 % high."""
+    from uncertain_facade_map.mapping.facade_map import stored_mask
+    from uncertain_facade_map.params import MapParams, UpdateParams
+    from uncertain_facade_map.pipeline.step4_gp_blocks import estimate_noise
+
+    rng = np.random.default_rng(0)
+    n = density * 50  # a 10 m x 5 m wall in the plane y = 0
+    uv = np.c_[rng.uniform(0, 10, n), rng.uniform(0, 5, n)]
+    depth = rng.normal(0.0, sigma, n)
+    spacing = 0.03
+    kept = stored_mask(np.c_[uv[:, 0], depth, uv[:, 1]], MapParams(update=UpdateParams(store_spacing=spacing)))
+    assert kept.sum() < 0.95 * n
+    unbiased = estimate_noise(uv[kept], depth[kept], 2 * spacing, 1.0, min_lag=spacing)
+    assert abs(unbiased / sigma - 1) < 0.06, unbiased
+    assert estimate_noise(uv[kept], depth[kept], 2 * spacing, 1.0) > 1.1 * sigma

@@ -93,7 +93,7 @@ def outlier_removal(fmap: FacadeMap, points: np.ndarray) -> tuple[int, int, int,
 
     Returns:
         ``(outliers rejected, outliers, inliers rejected, inliers)`` over the points the map
-        stored (the others were thinned, ``update.store_voxel``); rejected means on no
+        stored (the others were thinned, ``update.store_voxel``, ``update.store_spacing``); rejected means on no
         façade or removed by the outlier test (:meth:`FacadeMap.rejected`).
     """
     removed = total = false_alarms = inliers = 0

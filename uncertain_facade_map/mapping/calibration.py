@@ -46,7 +46,6 @@ import numpy as np
 from ..datatypes import FacadeModel
 from ..errors import InputError
 from ..params import MapParams
-from ..pipeline._gp_kernels import capped_draw
 from ..pipeline.step4_gp_blocks import in_sorted
 from ..pipeline.step7_local_surface import LocalSurface
 from ..pipeline.step7_queries import PointQuery, query_points
@@ -61,6 +60,7 @@ from ..voxels import (
     voxel_index,
     wrapped_keys,
 )
+from ._storage_kernel import stored_in_order
 
 __all__ = ['HeldOut', 'Settings', 'fit_free_space', 'fit_occupancy', 'hold_out', 'registration_variance',
            'scan_disagreement', 'scan_voxels', 'surface_terms']
@@ -398,7 +398,7 @@ def scans_to_compare(scan: np.ndarray, n_earlier: int, max_points: int, rng: np.
 def scan_disagreement(xyz: np.ndarray, scan: np.ndarray, earlier: np.ndarray, k: int = 12,
                       max_points: int = 2000, rng: np.random.Generator | None = None,
                       inner: float = 0.2, store_voxel: float = 0.0, store_per_voxel: int = 0, *,
-                      scans: np.ndarray | None = None, per_scan: int | None = None) -> np.ndarray:
+                      store_spacing: float = 0.0, scans: np.ndarray | None = None, per_scan: int | None = None) -> np.ndarray:
     """How far scans lie off each other's surface beyond what the map's reading predicts, as sums.
 
     For each scan of the new points (at most :data:`MAX_SCANS`, a seeded draw), up to
@@ -431,10 +431,11 @@ def scan_disagreement(xyz: np.ndarray, scan: np.ndarray, earlier: np.ndarray, k:
         rng: the draw (default: seeded 0).
         inner: a point counts where a stored point lies within this (``query.local_inner``),
             metres.
-        store_voxel, store_per_voxel: the map's storage rule (``update.store_voxel``,
-            ``update.store_per_voxel``): the other scans' points are read as the map would
-            store them, at most ``store_per_voxel`` per voxel, ``earlier`` first, then the
-            new points in arrival order (a car lidar's scans repeat the same walls: most of
+        store_voxel, store_per_voxel, store_spacing: the map's storage rule
+            (``update.store_voxel``, ``update.store_per_voxel``, ``update.store_spacing``):
+            the other scans' points are read as the map would store them
+            (:func:`~._storage_kernel.stored_in_order`), ``earlier`` first, then the new
+            points in arrival order (a car lidar's scans repeat the same walls: most of
             their points are never stored, and reading them all cost as much as mapping).
             0: all are read.
 
@@ -474,8 +475,7 @@ def scan_disagreement(xyz: np.ndarray, scan: np.ndarray, earlier: np.ndarray, k:
         in_cells = in_sorted(new_keys, mine)
         others = np.vstack([near_old[in_sorted(old_keys, mine)], xyz[near_new[in_cells & (scan[near_new] != s)]]])
         if store_voxel > 0 and store_per_voxel > 0 and len(others):
-            others = others[capped_draw(wrapped_keys(others, store_voxel), np.arange(len(others), dtype=np.float64),
-                                        store_per_voxel)]
+            others = others[stored_in_order(others, store_voxel, store_per_voxel, store_spacing)]
         if len(others) <= k:
             continue
         p = xyz[pick]

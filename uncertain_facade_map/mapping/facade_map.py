@@ -38,10 +38,12 @@ be saved from another thread or put back when an update fails (the live worker d
 
 **Bounded memory** (:meth:`FacadeMap._thin`): a building stores at most
 ``update.store_per_voxel`` points per cubic voxel of side ``update.store_voxel`` (map
-frame), the first to arrive; a new point whose voxel is full is counted
-(:attr:`FacadeMap.thinned`) but not stored, and goes no further. Driving the same street
-again therefore stops growing the stored points, the per-building arrays, the façades'
-point indices and the work of an update, once the voxels are full. The rule depends only on
+frame), the first to arrive, and with ``update.store_spacing`` > 0 none within that
+distance of a stored point; a new point that is not stored is counted
+(:attr:`FacadeMap.thinned`) and goes no further. Driving the same street again therefore
+stops growing the stored points, the per-building arrays, the façades' point indices and
+the work of an update once the voxels are full; with the spacing, from the second pass on
+(it samples the walls near the same spots). The rule depends only on
 the order of the points, not on how they are cut into calls, so the live map (many calls)
 and the offline build (one call) store the same points.
 """
@@ -77,6 +79,7 @@ from ..pipeline.step7_queries import PointQuery, query_map
 from ..pipeline.step8_occupancy import FIXED, PLSC
 from ..threads import one_blas_thread
 from ..voxels import near_keys, wrapped_keys
+from ._storage_kernel import store_pass
 from .calibration import (
     HeldOut,
     Settings,
@@ -804,7 +807,7 @@ class FacadeMap:
         up, reading = self.params.update, QueryConfig()
         found = scan_disagreement(xyz, labels, earlier, reading.local_neighbours, up.registration_points, rng,
                                   reading.local_inner, up.store_voxel, up.store_per_voxel,
-                                  scans=np.array([scan]), per_scan=per_scan)
+                                  store_spacing=up.store_spacing, scans=np.array([scan]), per_scan=per_scan)
         if found[0]:
             self.registration_sums_ = self.registration_sums_ + found
             self.registration_var_ = registration_variance(self.registration_sums_, up.registration_max_std)
@@ -858,20 +861,15 @@ class FacadeMap:
 
     def _thin(self, b: int, xyz: np.ndarray) -> np.ndarray:
         """(N,) bool over building ``b``'s new (N, 3) points (metres, map frame, arrival
-        order): stored, because fewer than ``update.store_per_voxel`` stored points or earlier
-        new points lie in its voxel. Records the stored ones in the voxel index and counts
-        the others in :attr:`thinned`. Costs O(N log N + V) for the building's V voxels."""
-        cap = self.params.update.store_per_voxel
+        order): stored, because its voxel holds fewer than ``update.store_per_voxel`` stored
+        points and no stored point lies within ``update.store_spacing`` of it (both counting
+        the new points stored before it). Records the stored ones in the voxel index and
+        counts the others in :attr:`thinned`. Costs O(N log N + V + S) for the building's V
+        voxels and the S stored points within the new points' bounds."""
+        up = self.params.update
+        xyz = np.ascontiguousarray(xyz, dtype=np.float64)
         keys = self._voxel_keys(xyz)
-        order = np.argsort(keys, kind='stable')  # stable: arrival order within a voxel
-        sk = keys[order]
-        first = np.empty(len(sk), dtype=bool)
-        first[:1] = True
-        first[1:] = sk[1:] != sk[:-1]
-        starts = np.flatnonzero(first)
-        group = np.cumsum(first) - 1
-        rank = np.arange(len(sk)) - starts[group]
-        uk = sk[starts]
+        uk, group = np.unique(keys, return_inverse=True)
         vk, vc = self._voxel_index(b)
         pos = np.searchsorted(vk, uk)
         found = np.zeros(len(uk), dtype=bool)
@@ -879,15 +877,18 @@ class FacadeMap:
             found = vk[np.minimum(pos, len(vk) - 1)] == uk
         have = np.zeros(len(uk), dtype=np.int64)
         have[found] = vc[pos[found]]
-        kept_sorted = have[group] + rank < cap
-        keep = np.empty(len(keys), dtype=bool)
-        keep[order] = kept_sorted
-        added = np.bincount(group, weights=kept_sorted, minlength=len(uk)).astype(np.int32)
+        held = np.empty((0, 3))
+        pts = self.points.get(b)
+        if up.store_spacing > 0 and pts is not None and len(pts) and len(xyz):
+            lo, hi = xyz.min(axis=0) - up.store_spacing, xyz.max(axis=0) + up.store_spacing
+            held = np.ascontiguousarray(pts[np.all((pts >= lo) & (pts <= hi), axis=1)])
+        keep = store_pass(xyz, group.astype(np.int64), have, up.store_per_voxel, held, up.store_spacing) > 0
+        added = np.bincount(group, weights=keep, minlength=len(uk)).astype(np.int32)
         vc = vc.copy()  # the index may be shared with a copy of the map
         vc[pos[found]] += added[found]
         new = ~found & (added > 0)
         self._voxels[b] = (np.insert(vk, pos[new], uk[new]), np.insert(vc, pos[new], added[new]))
-        dropped = int(len(keys) - kept_sorted.sum())
+        dropped = int(len(keys) - keep.sum())
         if dropped:
             self.thinned[b] = self.thinned.get(b, 0) + dropped
         return keep
@@ -1272,7 +1273,8 @@ def _union(a: tuple[float, float, float, float], b: tuple[float, float, float, f
 
 def stored_mask(xyz: np.ndarray, params: MapParams) -> np.ndarray:
     """(N,) bool: which of one building's (N, 3) points (metres, map frame, in arrival
-    order) a map with ``params`` stores, the others being thinned (``update.store_voxel``)."""
+    order) a map with ``params`` stores, the others being thinned (``update.store_voxel``,
+    ``update.store_per_voxel``, ``update.store_spacing``)."""
     return FacadeMap(params)._thin(0, np.asarray(xyz, dtype=np.float64))
 
 

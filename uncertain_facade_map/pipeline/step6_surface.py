@@ -82,12 +82,14 @@ def _global_prior(depth: np.ndarray, layers: DepthLayers) -> tuple[float, float]
 
 
 def _noise_sigma(uv: np.ndarray, depth: np.ndarray, params: MapParams) -> float:
-    """sigma_eta of a façade, metres: estimated from its points (``gp.estimate_noise``), or
+    """sigma_eta of a façade, metres: estimated from its points (``gp.estimate_noise``; pairs
+    at lags from ``update.store_spacing`` to ``gp.noise_lag``, at least twice the spacing), or
     ``gp.noise_sigma``."""
     gp = params.gp
     if not gp.estimate_noise:
         return gp.noise_sigma
-    return max(estimate_noise(uv, depth, gp.noise_lag, gp.noise_sigma), gp.min_noise_sigma)
+    return max(estimate_noise(uv, depth, max(gp.noise_lag, 2 * params.update.store_spacing), gp.noise_sigma,
+                              params.update.store_spacing), gp.min_noise_sigma)
 
 
 def _with_noise(params: MapParams, noise_sigma: float) -> MapParams:
