@@ -119,6 +119,27 @@ def store_pass(new: np.ndarray, group: np.ndarray, have: np.ndarray, cap: int, h
     return out
 
 
+def store(new: np.ndarray, group: np.ndarray, have: np.ndarray, cap: int, held: np.ndarray,
+          spacing: float) -> np.ndarray:
+    """(N,) bool: the new points stored, by the rule of :func:`store_pass` (same arguments).
+
+    Without a spacing the voxel cap alone decides, vectorised (a voxel's first ``cap - have``
+    new points in arrival order), and nothing is compiled: the default map's first cloud
+    does not wait for the compiler."""
+    if spacing > 0:
+        return store_pass(new, group, have, cap, held, spacing) > 0
+    order = np.argsort(group, kind='stable')  # stable: arrival order within a voxel
+    sg = group[order]
+    first = np.empty(len(sg), dtype=bool)
+    first[:1] = True
+    first[1:] = sg[1:] != sg[:-1]
+    starts = np.flatnonzero(first)
+    rank = np.arange(len(sg)) - starts[np.cumsum(first) - 1]
+    keep = np.empty(len(group), dtype=bool)
+    keep[order] = have[sg] + rank < cap
+    return keep
+
+
 def stored_in_order(xyz: np.ndarray, voxel: float, cap: int, spacing: float) -> np.ndarray:
     """(N,) bool: which of (N, 3) points (metres, map frame, arrival order) an empty
     building would store by the rule of :func:`store_pass` (``update.store_voxel``,
@@ -126,4 +147,4 @@ def stored_in_order(xyz: np.ndarray, voxel: float, cap: int, spacing: float) -> 
     xyz = np.ascontiguousarray(xyz, dtype=np.float64)
     _, group = np.unique(wrapped_keys(xyz, voxel), return_inverse=True)
     have = np.zeros(int(group.max()) + 1 if len(group) else 0, np.int64)
-    return store_pass(xyz, group.astype(np.int64), have, cap, np.empty((0, 3)), spacing) > 0
+    return store(xyz, group.astype(np.int64), have, cap, np.empty((0, 3)), spacing)

@@ -79,7 +79,7 @@ from ..pipeline.step7_queries import PointQuery, query_map
 from ..pipeline.step8_occupancy import FIXED, PLSC
 from ..threads import one_blas_thread
 from ..voxels import near_keys, wrapped_keys
-from ._storage_kernel import store_pass
+from ._storage_kernel import store
 from .calibration import (
     HeldOut,
     Settings,
@@ -882,7 +882,7 @@ class FacadeMap:
         if up.store_spacing > 0 and pts is not None and len(pts) and len(xyz):
             lo, hi = xyz.min(axis=0) - up.store_spacing, xyz.max(axis=0) + up.store_spacing
             held = np.ascontiguousarray(pts[np.all((pts >= lo) & (pts <= hi), axis=1)])
-        keep = store_pass(xyz, group.astype(np.int64), have, up.store_per_voxel, held, up.store_spacing) > 0
+        keep = store(xyz, group.astype(np.int64), have, up.store_per_voxel, held, up.store_spacing)
         added = np.bincount(group, weights=keep, minlength=len(uk)).astype(np.int32)
         vc = vc.copy()  # the index may be shared with a copy of the map
         vc[pos[found]] += added[found]
