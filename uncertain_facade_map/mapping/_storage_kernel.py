@@ -48,18 +48,11 @@ def store_pass(new: np.ndarray, group: np.ndarray, have: np.ndarray, cap: int, h
         cap: points a storage voxel stores at most.
         held: (S, 3) float64 stored points near the new ones (at least those within
             ``spacing`` of one), metres, map frame.
-        spacing: metres; <= 0: the voxel cap alone.
+        spacing: metres, > 0 (without one, :func:`store` applies the voxel cap alone).
     """
     n, s_held = new.shape[0], held.shape[0]
     out = np.zeros(n, np.int8)
     count = have.copy()
-    if spacing <= 0.0:
-        for i in range(n):
-            g = group[i]
-            if count[g] < cap:
-                count[g] += 1
-                out[i] = 1
-        return out
     inv = 1.0 / spacing
     d2 = spacing * spacing
     size = 16
@@ -119,16 +112,33 @@ def store_pass(new: np.ndarray, group: np.ndarray, have: np.ndarray, cap: int, h
     return out
 
 
-def store(new: np.ndarray, group: np.ndarray, have: np.ndarray, cap: int, held: np.ndarray,
+def voxel_groups(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points grouped by their (N,) int64 voxel keys, with one stable sort.
+
+    Returns:
+        ``(uk, group, order)``: (G,) sorted unique keys, (N,) int64 index of each point's key
+        in ``uk``, and (N,) the stable order that sorts the keys (arrival order within a voxel).
+    """
+    order = np.argsort(keys, kind='stable')
+    sk = keys[order]
+    first = np.empty(len(sk), dtype=bool)
+    first[:1] = True
+    first[1:] = sk[1:] != sk[:-1]
+    group = np.empty(len(sk), dtype=np.int64)
+    group[order] = np.cumsum(first) - 1
+    return sk[first], group, order
+
+
+def store(new: np.ndarray, group: np.ndarray, order: np.ndarray, have: np.ndarray, cap: int, held: np.ndarray,
           spacing: float) -> np.ndarray:
-    """(N,) bool: the new points stored, by the rule of :func:`store_pass` (same arguments).
+    """(N,) bool: the new points stored, by the rule of :func:`store_pass` (the same
+    arguments, and ``order`` of :func:`voxel_groups`).
 
     Without a spacing the voxel cap alone decides, vectorised (a voxel's first ``cap - have``
     new points in arrival order), and nothing is compiled: the default map's first cloud
     does not wait for the compiler."""
     if spacing > 0:
         return store_pass(new, group, have, cap, held, spacing) > 0
-    order = np.argsort(group, kind='stable')  # stable: arrival order within a voxel
     sg = group[order]
     first = np.empty(len(sg), dtype=bool)
     first[:1] = True
@@ -145,6 +155,5 @@ def stored_in_order(xyz: np.ndarray, voxel: float, cap: int, spacing: float) -> 
     building would store by the rule of :func:`store_pass` (``update.store_voxel``,
     ``update.store_per_voxel``, ``update.store_spacing``)."""
     xyz = np.ascontiguousarray(xyz, dtype=np.float64)
-    _, group = np.unique(wrapped_keys(xyz, voxel), return_inverse=True)
-    have = np.zeros(int(group.max()) + 1 if len(group) else 0, np.int64)
-    return store(xyz, group.astype(np.int64), have, cap, np.empty((0, 3)), spacing)
+    uk, group, order = voxel_groups(wrapped_keys(xyz, voxel))
+    return store(xyz, group, order, np.zeros(len(uk), np.int64), cap, np.empty((0, 3)), spacing)

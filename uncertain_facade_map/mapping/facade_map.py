@@ -79,7 +79,7 @@ from ..pipeline.step7_queries import PointQuery, query_map
 from ..pipeline.step8_occupancy import FIXED, PLSC
 from ..threads import one_blas_thread
 from ..voxels import near_keys, wrapped_keys
-from ._storage_kernel import store
+from ._storage_kernel import store, voxel_groups
 from .calibration import (
     HeldOut,
     Settings,
@@ -869,7 +869,7 @@ class FacadeMap:
         up = self.params.update
         xyz = np.ascontiguousarray(xyz, dtype=np.float64)
         keys = self._voxel_keys(xyz)
-        uk, group = np.unique(keys, return_inverse=True)
+        uk, group, order = voxel_groups(keys)
         vk, vc = self._voxel_index(b)
         pos = np.searchsorted(vk, uk)
         found = np.zeros(len(uk), dtype=bool)
@@ -882,7 +882,7 @@ class FacadeMap:
         if up.store_spacing > 0 and pts is not None and len(pts) and len(xyz):
             lo, hi = xyz.min(axis=0) - up.store_spacing, xyz.max(axis=0) + up.store_spacing
             held = np.ascontiguousarray(pts[np.all((pts >= lo) & (pts <= hi), axis=1)])
-        keep = store(xyz, group.astype(np.int64), have, up.store_per_voxel, held, up.store_spacing)
+        keep = store(xyz, group, order, have, up.store_per_voxel, held, up.store_spacing)
         added = np.bincount(group, weights=keep, minlength=len(uk)).astype(np.int32)
         vc = vc.copy()  # the index may be shared with a copy of the map
         vc[pos[found]] += added[found]
